@@ -1,0 +1,256 @@
+"""Regular-grid forward diffusion in GLSL (Wang et al. 2008, sections 4.4 and 5.2).
+
+kappa, mu and q are packed into 2D float textures (z-slices tiled as blocks, see
+:mod:`glsldiff.grid`); the iterated unknown (``kappa phi`` for the paper's stencil,
+``phi`` for the conservative one) lives in a ping-pong pair of float framebuffers.
+One Jacobi sweep is two draw calls into the target buffer, both reading the source
+buffer: the interior pass (one rectangle per interior z-slice, the offsets to slices
+z-1 and z+1 as flat vertex attributes) and the boundary pass (one rectangle per
+z-face, one 1-texel strip per side-face edge of each interior slice, the offset to the
+linked interior node as attribute). All three colour channels are updated at once.
+
+Convergence is checked by reading back two consecutive iterates every
+``check_every`` sweeps (see :class:`~glsldiff.report.SolveReport` for the residual).
+"""
+from __future__ import annotations
+
+import logging
+import time
+from typing import Mapping
+
+import moderngl
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff import gl
+from glsldiff.errors import InputError, SolverError
+from glsldiff.grid import RegularGrid
+from glsldiff.problem import DiffusionProblem
+from glsldiff.report import SolveReport, contraction_error_estimate
+
+logger = logging.getLogger(__name__)
+
+_VERTEX = np.dtype([("pos", "f4", 2), ("off0", "i4", 2), ("off1", "i4", 2)])
+_UNITS = {"u_state": 0, "u_kappa": 1, "u_mu": 2, "u_q": 3}
+
+
+def _rect_vertices(rects: list[tuple[int, int, int, int, tuple[int, int], tuple[int, int]]]) -> NDArray:
+    """Two triangles per texel rectangle ``(x0, y0, x1, y1, off0, off1)`` (x1, y1 exclusive)."""
+    out = np.zeros(6 * len(rects), dtype=_VERTEX)
+    for i, (x0, y0, x1, y1, o0, o1) in enumerate(rects):
+        corners = [(x0, y0), (x1, y0), (x1, y1), (x0, y0), (x1, y1), (x0, y1)]
+        out["pos"][6 * i:6 * i + 6] = corners
+        out["off0"][6 * i:6 * i + 6] = o0
+        out["off1"][6 * i:6 * i + 6] = o1
+    return out
+
+
+def grid_primitives(grid: RegularGrid) -> tuple[NDArray, NDArray]:
+    """Vertex arrays of the interior pass and of the boundary pass."""
+    nx, ny, nz = grid.nx, grid.ny, grid.nz
+
+    def delta(z_from: int, z_to: int) -> tuple[int, int]:
+        (ax, ay), (bx, by) = grid.tile_origin(z_from), grid.tile_origin(z_to)
+        return bx - ax, by - ay
+
+    interior, boundary = [], []
+    for z in range(nz):
+        ox, oy = grid.tile_origin(z)
+        inner = (ox + 1, oy + 1, ox + nx - 1, oy + ny - 1)
+        if z in (0, nz - 1):  # a z-face: every inner texel is a boundary node
+            boundary.append((*inner, delta(z, 1 if z == 0 else nz - 2), (0, 0)))
+            continue
+        interior.append((*inner, delta(z, z - 1), delta(z, z + 1)))
+        boundary += [
+            (ox, oy + 1, ox + 1, oy + ny - 1, (1, 0), (0, 0)),                  # x-
+            (ox + nx - 1, oy + 1, ox + nx, oy + ny - 1, (-1, 0), (0, 0)),       # x+
+            (ox + 1, oy, ox + nx - 1, oy + 1, (0, 1), (0, 0)),                  # y-
+            (ox + 1, oy + ny - 1, ox + nx - 1, oy + ny, (0, -1), (0, 0)),       # y+
+        ]
+    return _rect_vertices(interior), _rect_vertices(boundary)
+
+
+class GlslDiffusion:
+    """Jacobi relaxation of a :class:`DiffusionProblem` in fragment shaders.
+
+    GPU objects (textures, framebuffers, programs, buffers) belong to this object;
+    call :meth:`release` (or use it as a context manager) to free them.
+
+    Parameters
+    ----------
+    problem
+        The validated problem (grid, kappa, mu, q, C, stencil).
+    ctx
+        A moderngl context; default :func:`glsldiff.gl.get_context`.
+    precision
+        ``"fp32"`` or ``"fp16"`` for the ping-pong buffers (materials are always fp32).
+    """
+
+    def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
+                 precision: str = "fp32") -> None:
+        if precision not in gl.DTYPES:
+            raise InputError(f"precision={precision!r}; choose one of {tuple(gl.DTYPES)}")
+        self.problem = problem
+        self.precision = precision
+        self.ctx = ctx if ctx is not None else gl.get_context()
+        g = problem.grid
+        self.size = g.texture_size
+        self._kappa = gl.float_texture(self.ctx, self.size, g.pack(problem.kappa))
+        self._mu = gl.float_texture(self.ctx, self.size, g.pack(problem.mu))
+        self._q = gl.float_texture(self.ctx, self.size, g.pack(problem.q))
+        self.state = gl.PingPong.create(self.ctx, self.size, precision)
+        defines = {"STENCIL_PAPER": int(problem.stencil == "paper"),
+                   "FACE_HARMONIC": int(problem.face_mean == "harmonic")}
+        self._progs = [gl.program(self.ctx, "grid.vert", f, defines)
+                       for f in ("interior.frag", "boundary.frag")]
+        self._buffers, self._vaos = [], []
+        for prog, verts in zip(self._progs, grid_primitives(g)):
+            self._set_uniforms(prog)
+            vbo = self.ctx.buffer(verts.tobytes())
+            self._buffers.append(vbo)
+            layout = ((vbo, "2f 2i 2i", "in_pos", "in_off0", "in_off1") if "in_off1" in prog
+                      else (vbo, "2f 2i 8x", "in_pos", "in_off0"))
+            self._vaos.append(self.ctx.vertex_array(prog, [layout]))
+        self._mask = g.active
+        self._set_norm()
+
+    # ---- setup ----------------------------------------------------------------
+    def _set_uniforms(self, prog: moderngl.Program) -> None:
+        g, p = self.problem.grid, self.problem
+        values = {"u_size": tuple(float(s) for s in self.size), "u_h2": g.h * g.h,
+                  "u_C": float(p.C), "u_d": g.h, **_UNITS}
+        for name, value in values.items():
+            if name in prog:
+                prog[name] = value
+
+    def _set_norm(self) -> None:
+        first = self.problem.boundary_first_iterate()[self._mask]
+        self._norm_b = np.linalg.norm(first, axis=0)  # per channel
+
+    def set_q(self, q: ArrayLike | Mapping[str, ArrayLike]) -> None:
+        """Replace the boundary source (the material textures stay on the GPU)."""
+        self.problem = self.problem.with_q(q)
+        self._q.write(np.ascontiguousarray(self.problem.grid.pack(self.problem.q)).tobytes(),
+                      alignment=1)
+        self._set_norm()
+
+    def set_initial(self, phi: ArrayLike | None) -> None:
+        """Start the next solve from fluence ``phi`` (volume) or from zero."""
+        g = self.problem.grid
+        if phi is None:
+            x = np.zeros(g.shape + (3,))
+        else:
+            phi = np.asarray(phi, dtype=np.float64)
+            if phi.shape != g.shape + (3,):
+                raise InputError(f"initial phi has shape {phi.shape}, expected {g.shape + (3,)}")
+            x = self.problem.from_phi(phi) * self._mask[..., None]
+        self.state.write(g.pack(x))
+
+    # ---- iteration --------------------------------------------------------------
+    def sweep(self, n: int = 1) -> None:
+        """Run ``n`` Jacobi sweeps (interior pass + boundary pass each)."""
+        self._kappa.use(_UNITS["u_kappa"])
+        self._mu.use(_UNITS["u_mu"])
+        self._q.use(_UNITS["u_q"])
+        for _ in range(n):
+            self.state.dst.use()
+            self.state.src.use(_UNITS["u_state"])
+            for vao in self._vaos:
+                vao.render(moderngl.TRIANGLES)
+            self.state.swap()
+
+    def unknown(self) -> NDArray[np.float64]:
+        """Current iterate (``kappa phi`` or ``phi``) as a ``(nz, ny, nx, 3)`` float64 volume."""
+        return self.problem.grid.unpack(self.state.read()).astype(np.float64)
+
+    def fluence(self) -> NDArray[np.float64]:
+        """Current fluence phi as a ``(nz, ny, nx, 3)`` volume (0 at inactive nodes)."""
+        return self.problem.to_phi(self.unknown())
+
+    def solve(self, tol: float = 1e-6, max_sweeps: int = 20000, check_every: int = 50,
+              x0: ArrayLike | None = None, keep: bool = False) -> tuple[NDArray, SolveReport]:
+        """Relax until the Jacobi-scaled residual is <= ``tol`` or ``max_sweeps`` ran.
+
+        Parameters
+        ----------
+        tol
+            Residual tolerance (see :class:`SolveReport`).
+        max_sweeps
+            Sweep budget.
+        check_every
+            Sweeps between residual checks (each costs two read-backs).
+        x0
+            Initial fluence volume; default zero. Ignored when ``keep`` is true.
+        keep
+            Continue from the current buffer contents (frame coherence / restarts).
+
+        Returns
+        -------
+        phi, report
+            Fluence ``(nz, ny, nx, 3)`` and the :class:`SolveReport`.
+
+        Raises
+        ------
+        SolverError
+            The iterate became non-finite (e.g. fp16 overflow).
+        """
+        if check_every < 1 or max_sweeps < 0:
+            raise InputError("check_every must be >= 1 and max_sweeps >= 0")
+        t0 = time.perf_counter()
+        if not keep:
+            self.set_initial(x0 if x0 is not None else None)
+        g = self.problem.grid
+        history: list[tuple[int, float]] = []
+        sweeps, res, step = 0, float("inf"), float("nan")
+        if not np.any(self._norm_b > 0) and x0 is None and not keep:
+            res = 0.0  # no source: the solution is exactly zero
+        while res > tol and sweeps < max_sweeps:
+            n_run = min(check_every, max_sweeps - sweeps)
+            self.sweep(n_run - 1)
+            old = g.unpack(self.state.read())[self._mask]
+            self.sweep(1)
+            new = g.unpack(self.state.read())[self._mask]
+            sweeps += n_run
+            if not np.all(np.isfinite(new)):
+                raise SolverError(
+                    f"GLSL Jacobi produced non-finite values after {sweeps} sweeps "
+                    f"({self.precision} buffers); the inputs or the precision cannot represent "
+                    "this solution")
+            delta = (new - old).astype(np.float64)
+            num = np.linalg.norm(delta, axis=0)
+            ok = self._norm_b > 0
+            res = float(np.max(num[ok] / self._norm_b[ok])) if ok.any() else float(np.max(num))
+            step = float(np.linalg.norm(delta))
+            history.append((sweeps, res))
+        x = self.unknown()
+        phi = self.problem.to_phi(x)
+        converged = res <= tol
+        if not converged:
+            logger.warning("GLSL Jacobi did not converge: residual %.3e after %d sweeps", res, sweeps)
+        report = SolveReport(
+            f"glsl-jacobi-{self.precision}", nodes=g.n_active, sweeps=sweeps, residual=res,
+            seconds=time.perf_counter() - t0, converged=converged, residuals=history,
+            error_estimate=contraction_error_estimate(history, step, float(np.linalg.norm(x[self._mask]))),
+            device=gl.describe(self.ctx), radiance=self.problem.exitant_radiance(phi))
+        return phi, report
+
+    # ---- lifetime ---------------------------------------------------------------
+    def release(self) -> None:
+        """Free every GPU object this solver created."""
+        for obj in (*self._vaos, *self._buffers, *self._progs, self._kappa, self._mu, self._q):
+            obj.release()
+        self.state.release()
+        self._vaos, self._buffers, self._progs = [], [], []
+
+    def __enter__(self) -> "GlslDiffusion":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def solve_glsl(problem: DiffusionProblem, ctx: moderngl.Context | None = None,
+               precision: str = "fp32", **kwargs: object) -> tuple[NDArray, SolveReport]:
+    """One-shot GLSL solve; ``kwargs`` go to :meth:`GlslDiffusion.solve`."""
+    with GlslDiffusion(problem, ctx, precision) as solver:
+        return solver.solve(**kwargs)  # type: ignore[arg-type]

@@ -1,0 +1,73 @@
+"""The report every solver returns next to its solution."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass
+class SolveReport:
+    """What a solve did and how far it is from the exact discrete answer.
+
+    Attributes
+    ----------
+    method
+        Solver name (``"glsl-jacobi"``, ``"numpy-jacobi"``, ``"scipy-direct"``).
+    sweeps
+        Jacobi sweeps run (0 for a direct solve).
+    residual
+        Final Jacobi-scaled residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``.
+    seconds
+        Wall-clock time of the solve (uploads and read-backs included).
+    converged
+        Whether ``residual <= tol`` was reached within the sweep budget.
+    residuals
+        ``(sweep, residual)`` pairs at each check, in order.
+    error_estimate
+        Estimated relative L2 error to the converged solution from the observed
+        contraction rate rho: ``||x_{n+1} - x_n|| / ((1 - rho) ||x_n||)``; ``nan`` when
+        rho could not be estimated.
+    error
+        Relative L2 error against a reference solution, when the caller measured one.
+    radiance
+        Exitant radiance per face (see ``DiffusionProblem.exitant_radiance``).
+    """
+
+    method: str
+    nodes: int
+    sweeps: int = 0
+    residual: float = float("nan")
+    seconds: float = 0.0
+    converged: bool = False
+    residuals: list[tuple[int, float]] = field(default_factory=list)
+    error_estimate: float = float("nan")
+    error: float | None = None
+    device: str = "cpu"
+    radiance: dict[str, NDArray[np.float64]] = field(default_factory=dict, repr=False)
+
+    @property
+    def node_updates_per_second(self) -> float:
+        return self.nodes * self.sweeps / self.seconds if self.seconds > 0 else float("nan")
+
+    def summary(self) -> str:
+        """One line for logs and the CLI."""
+        err = "" if self.error is None else f", error {self.error:.2e}"
+        est = "" if math.isnan(self.error_estimate) else f", est. error {self.error_estimate:.1e}"
+        state = "converged" if self.converged else "NOT converged"
+        return (f"{self.method}: {self.sweeps} sweeps, residual {self.residual:.2e}{est}{err}, "
+                f"{self.seconds:.3f} s, {state}")
+
+
+def contraction_error_estimate(residuals: list[tuple[int, float]], step_norm: float,
+                               x_norm: float) -> float:
+    """Relative error estimate from the last two residual checks (see :class:`SolveReport`)."""
+    if len(residuals) < 2 or x_norm == 0.0:
+        return float("nan")
+    (n0, r0), (n1, r1) = residuals[-2], residuals[-1]
+    if r0 <= 0.0 or r1 <= 0.0 or n1 <= n0 or r1 >= r0:
+        return float("nan")
+    rho = (r1 / r0) ** (1.0 / (n1 - n0))
+    return step_norm / ((1.0 - rho) * x_norm)

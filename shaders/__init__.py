@@ -1,0 +1,1 @@
+"""GLSL sources of glsldiff (package data; see glsldiff.gl.shader_dir)."""
