@@ -26,7 +26,8 @@ from glsldiff import gl
 from glsldiff.errors import InputError, SolverError
 from glsldiff.grid import RegularGrid
 from glsldiff.problem import DiffusionProblem
-from glsldiff.report import SolveReport, contraction_error_estimate
+from glsldiff.reference import diverged_message
+from glsldiff.report import ConvergenceMonitor, SolveReport, contraction_error_estimate
 
 logger = logging.getLogger(__name__)
 
@@ -200,36 +201,42 @@ class GlslDiffusion:
         if not keep:
             self.set_initial(x0 if x0 is not None else None)
         g = self.problem.grid
-        history: list[tuple[int, float]] = []
-        sweeps, res, step = 0, float("inf"), float("nan")
+        monitor = ConvergenceMonitor(tol, max_sweeps)
+        sweeps, res, step, status = 0, float("inf"), float("nan"), None
         if not np.any(self._norm_b > 0) and x0 is None and not keep:
-            res = 0.0  # no source: the solution is exactly zero
-        while res > tol and sweeps < max_sweeps:
+            status, res = "converged", 0.0  # no source: the solution is exactly zero
+        while status is None:
             n_run = min(check_every, max_sweeps - sweeps)
             self.sweep(n_run - 1)
             old = g.unpack(self.state.read())[self._mask]
             self.sweep(1)
             new = g.unpack(self.state.read())[self._mask]
             sweeps += n_run
-            if not np.all(np.isfinite(new)):
+            with np.errstate(over="ignore", invalid="ignore"):
+                delta = (new - old).astype(np.float64)
+                num = np.linalg.norm(delta, axis=0)
+                ok = self._norm_b > 0
+                res = float(np.max(num[ok] / self._norm_b[ok])) if ok.any() else float(np.max(num))
+                step = float(np.linalg.norm(delta))
+            status = monitor.update(sweeps, res)
+            if not np.all(np.isfinite(new)) and status != "diverged":
+                status = "diverged"
+        if status == "diverged":
+            if self.precision == "fp16" and np.all(np.isfinite(old)):
                 raise SolverError(
-                    f"GLSL Jacobi produced non-finite values after {sweeps} sweeps "
-                    f"({self.precision} buffers); the inputs or the precision cannot represent "
-                    "this solution")
-            delta = (new - old).astype(np.float64)
-            num = np.linalg.norm(delta, axis=0)
-            ok = self._norm_b > 0
-            res = float(np.max(num[ok] / self._norm_b[ok])) if ok.any() else float(np.max(num))
-            step = float(np.linalg.norm(delta))
-            history.append((sweeps, res))
+                    f"GLSL Jacobi overflowed the fp16 buffers after {sweeps} sweeps (|value| > 65504); "
+                    "scale q down or use precision='fp32'")
+            raise SolverError(diverged_message(self.problem, "GLSL Jacobi", sweeps))
+        history = monitor.history
         x = self.unknown()
         phi = self.problem.to_phi(x)
-        converged = res <= tol
+        converged = status == "converged"
         if not converged:
-            logger.warning("GLSL Jacobi did not converge: residual %.3e after %d sweeps", res, sweeps)
+            logger.warning("GLSL Jacobi did not converge (%s): residual %.3e after %d sweeps",
+                           status, res, sweeps)
         report = SolveReport(
             f"glsl-jacobi-{self.precision}", nodes=g.n_active, sweeps=sweeps, residual=res,
-            seconds=time.perf_counter() - t0, converged=converged, residuals=history,
+            seconds=time.perf_counter() - t0, converged=converged, residuals=history, status=status,
             error_estimate=contraction_error_estimate(history, step, float(np.linalg.norm(x[self._mask]))),
             device=gl.describe(self.ctx), radiance=self.problem.exitant_radiance(phi))
         return phi, report

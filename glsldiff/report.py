@@ -32,6 +32,9 @@ class SolveReport:
         rho could not be estimated.
     error
         Relative L2 error against a reference solution, when the caller measured one.
+    status
+        ``"converged"``, ``"budget"`` (sweep budget spent) or ``"stalled"`` (the
+        residual stopped falling: the iterate is at the precision floor of its buffers).
     radiance
         Exitant radiance per face (see ``DiffusionProblem.exitant_radiance``).
     """
@@ -46,6 +49,7 @@ class SolveReport:
     error_estimate: float = float("nan")
     error: float | None = None
     device: str = "cpu"
+    status: str = "converged"
     radiance: dict[str, NDArray[np.float64]] = field(default_factory=dict, repr=False)
 
     @property
@@ -71,3 +75,37 @@ def contraction_error_estimate(residuals: list[tuple[int, float]], step_norm: fl
         return float("nan")
     rho = (r1 / r0) ** (1.0 / (n1 - n0))
     return step_norm / ((1.0 - rho) * x_norm)
+
+
+class ConvergenceMonitor:
+    """Stopping logic shared by the iterative solvers.
+
+    Fed the residual at each check, it answers ``"converged"`` (residual <= tol),
+    ``"diverged"`` (non-finite, or three rising checks ending 100x above the best:
+    the Jacobi matrix has spectral radius >= 1), ``"stalled"`` (the best residual
+    did not improve by 1 % over ``patience`` checks: rounding floor of the arithmetic),
+    ``"budget"`` (sweep budget spent) or ``None`` (keep going).
+    """
+
+    def __init__(self, tol: float, max_sweeps: int, patience: int = 8) -> None:
+        self.tol, self.max_sweeps, self.patience = tol, max_sweeps, patience
+        self.history: list[tuple[int, float]] = []
+        self._best = float("inf")
+        self._since_best = 0
+
+    def update(self, sweeps: int, res: float) -> str | None:
+        self.history.append((sweeps, res))
+        if not math.isfinite(res):
+            return "diverged"
+        if res <= self.tol:
+            return "converged"
+        last = [r for _, r in self.history[-4:]]
+        if len(last) == 4 and all(b > a for a, b in zip(last, last[1:])) and res > 100 * self._best:
+            return "diverged"
+        if res < 0.99 * self._best:
+            self._best, self._since_best = res, 0
+        else:
+            self._since_best += 1
+            if self._since_best >= self.patience:
+                return "stalled"
+        return "budget" if sweeps >= self.max_sweeps else None
