@@ -1,0 +1,114 @@
+"""Image and table files: OpenEXR (HDR, linear), PNG (tone-mapped), CSV. Writes are atomic.
+
+Every writer goes to a temporary file in the destination folder and renames it into
+place, so an interrupted run never leaves a truncated file under the final name.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.errors import GlsldiffError, InputError
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it to ``path`` on success."""
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=suffix or dest.suffix, dir=dest.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, dest)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _rgb(image: ArrayLike, name: str) -> NDArray[np.float32]:
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] != 3 or img.size == 0:
+        raise InputError(f"{name}: expected an (h, w, 3) or (h, w) image, got shape {np.shape(image)}")
+    if not np.all(np.isfinite(img)):
+        raise InputError(f"{name}: image has {int((~np.isfinite(img)).sum())} non-finite values; not written")
+    return img
+
+
+def write_exr(path: str | os.PathLike, image: ArrayLike,
+              attributes: Mapping[str, str] | None = None) -> Path:
+    """Write a linear float32 RGB image (row 0 = top) as ZIP-compressed OpenEXR."""
+    import OpenEXR
+
+    img = np.ascontiguousarray(_rgb(image, str(path)))
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update({k: str(v) for k, v in (attributes or {}).items()})
+    with atomic_path(path) as tmp, OpenEXR.File(header, {"RGB": img}) as f:
+        f.write(str(tmp))
+    return Path(path)
+
+
+def read_exr(path: str | os.PathLike) -> NDArray[np.float32]:
+    """Read the RGB channels of an OpenEXR file as ``(h, w, 3)`` float32."""
+    import OpenEXR
+
+    if not Path(path).is_file():
+        raise GlsldiffError(f"{path}: no such EXR file")
+    with OpenEXR.File(str(path)) as f:
+        ch = f.channels()
+        if "RGB" in ch:
+            return np.asarray(ch["RGB"].pixels, dtype=np.float32)
+        try:
+            return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1)
+        except KeyError as exc:
+            raise GlsldiffError(f"{path}: no R, G, B channels (has {sorted(ch)})") from exc
+
+
+def tonemap(image: ArrayLike, exposure: float, gamma: float = 2.2) -> NDArray[np.uint8]:
+    """``clip(exposure * L, 0, 1) ** (1 / gamma)`` as 8-bit sRGB-like values."""
+    img = np.clip(np.asarray(image, dtype=np.float64) * exposure, 0.0, 1.0) ** (1.0 / gamma)
+    return np.round(img * 255.0).astype(np.uint8)
+
+
+def write_png(path: str | os.PathLike, image8: NDArray[np.uint8]) -> Path:
+    """Write an 8-bit RGB image (row 0 = top) as PNG."""
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(image8), "RGB").save(tmp, format="PNG")
+    return Path(path)
+
+
+def contact_sheet(images: Sequence[ArrayLike], columns: int, exposure: float,
+                  pad: int = 2, gamma: float = 2.2, scale: int = 1) -> NDArray[np.uint8]:
+    """Tile equally sized HDR images into one tone-mapped 8-bit sheet (shared exposure),
+    each enlarged ``scale`` times by pixel replication."""
+    tiles = [np.repeat(np.repeat(tonemap(_rgb(im, "contact sheet tile"), exposure, gamma), scale, 0), scale, 1)
+             for im in images]
+    h, w = tiles[0].shape[:2]
+    rows = -(-len(tiles) // columns)
+    sheet = np.full((rows * (h + pad) + pad, columns * (w + pad) + pad, 3), 32, np.uint8)
+    for i, t in enumerate(tiles):
+        r, c = divmod(i, columns)
+        sheet[pad + r * (h + pad):pad + r * (h + pad) + h, pad + c * (w + pad):pad + c * (w + pad) + w] = t
+    return sheet
+
+
+def write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, object]]) -> Path:
+    """Write dict rows (same keys) as CSV."""
+    if not rows:
+        raise InputError(f"{path}: no rows to write")
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    return Path(path)
