@@ -27,7 +27,7 @@ from glsldiff.errors import InputError, SolverError
 from glsldiff.grid import RegularGrid
 from glsldiff.problem import DiffusionProblem
 from glsldiff.reference import diverged_message
-from glsldiff.report import ConvergenceMonitor, SolveReport, contraction_error_estimate
+from glsldiff.report import ConvergenceMonitor, SolveReport, channel_ratio, contraction_error_estimate
 
 logger = logging.getLogger(__name__)
 
@@ -125,8 +125,7 @@ class GlslDiffusion:
                 prog[name] = value
 
     def _set_norm(self) -> None:
-        first = self.problem.boundary_first_iterate()[self._mask]
-        self._norm_b = np.linalg.norm(first, axis=0)  # per channel
+        self._first = self.problem.boundary_first_iterate()[self._mask].T  # D^-1 b, (3, n)
 
     def set_q(self, q: ArrayLike | Mapping[str, ArrayLike]) -> None:
         """Replace the boundary source (the material textures stay on the GPU)."""
@@ -199,11 +198,11 @@ class GlslDiffusion:
             raise InputError("check_every must be >= 1 and max_sweeps >= 0")
         t0 = time.perf_counter()
         if not keep:
-            self.set_initial(x0 if x0 is not None else None)
+            self.set_initial(x0)
         g = self.problem.grid
         monitor = ConvergenceMonitor(tol, max_sweeps)
         sweeps, res, step, status = 0, float("inf"), float("nan"), None
-        if not np.any(self._norm_b > 0) and x0 is None and not keep:
+        if not np.any(self._first) and x0 is None and not keep:
             status, res = "converged", 0.0  # no source: the solution is exactly zero
         while status is None:
             n_run = min(check_every, max_sweeps - sweeps)
@@ -214,9 +213,7 @@ class GlslDiffusion:
             sweeps += n_run
             with np.errstate(over="ignore", invalid="ignore"):
                 delta = (new - old).astype(np.float64)
-                num = np.linalg.norm(delta, axis=0)
-                ok = self._norm_b > 0
-                res = float(np.max(num[ok] / self._norm_b[ok])) if ok.any() else float(np.max(num))
+                res = channel_ratio(delta.T, self._first)
                 step = float(np.linalg.norm(delta))
             status = monitor.update(sweeps, res)
             if not np.all(np.isfinite(new)) and status != "diverged":

@@ -22,7 +22,7 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.grid import BOUNDARY, INACTIVE, INTERIOR
 from glsldiff.problem import DiffusionProblem
 from glsldiff.errors import SolverError
-from glsldiff.report import ConvergenceMonitor, SolveReport, contraction_error_estimate
+from glsldiff.report import ConvergenceMonitor, SolveReport, channel_ratio, contraction_error_estimate
 
 logger = logging.getLogger(__name__)
 
@@ -66,7 +66,7 @@ class LinearSystem:
         """Jacobi-scaled relative residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``."""
         r = ((self.b - self.A @ x) / self.diag).reshape(3, self.n)
         s = (self.b / self.diag).reshape(3, self.n)
-        return _channel_ratio(r, s)
+        return channel_ratio(r, s)
 
 
 def jacobi_radius_bound(system: LinearSystem) -> float:
@@ -90,15 +90,6 @@ def diverged_message(problem: DiffusionProblem, method: str, sweeps: int) -> str
             "use stencil='conservative' or a smoother kappa." if problem.stencil == "paper" else "")
     return (f"{method} diverged after {sweeps} sweeps: the Jacobi matrix has spectral radius "
             f">= {bound:.3f} (bound from linked node pairs).{hint}")
-
-
-def _channel_ratio(num: NDArray, den: NDArray) -> float:
-    """``max_c ||num_c|| / ||den_c||`` over channels with a non-zero denominator."""
-    nn, dd = np.linalg.norm(num, axis=1), np.linalg.norm(den, axis=1)
-    ok = dd > 0
-    if not ok.any():
-        return float(np.max(nn))
-    return float(np.max(nn[ok] / dd[ok]))
 
 
 def _matrix(problem: DiffusionProblem, c: int) -> tuple[sp.csr_matrix, NDArray]:
@@ -277,7 +268,7 @@ def jacobi(problem: DiffusionProblem, x0: NDArray | None = None, tol: float = 1e
         x = x + delta
         sweeps += n_run
         with np.errstate(over="ignore", invalid="ignore"):
-            res = _channel_ratio(delta.reshape(3, s.n), scale)
+            res = channel_ratio(delta.reshape(3, s.n), scale)
             step = float(np.linalg.norm(delta))
         if residuals is not None:
             residuals.append(res)

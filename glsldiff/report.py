@@ -65,6 +65,19 @@ class SolveReport:
                 f"{self.seconds:.3f} s, {state}")
 
 
+def channel_ratio(num: NDArray, den: NDArray) -> float:
+    """``max_c ||num_c|| / ||den_c||`` over channels (rows) with a non-zero denominator.
+
+    With ``num = D^-1 (b - A x)`` and ``den = D^-1 b`` this is the Jacobi-scaled
+    residual every iterative solver reports.
+    """
+    nn, dd = np.linalg.norm(num, axis=1), np.linalg.norm(den, axis=1)
+    ok = dd > 0
+    if not ok.any():
+        return float(np.max(nn))
+    return float(np.max(nn[ok] / dd[ok]))
+
+
 def contraction_error_estimate(residuals: list[tuple[int, float]], step_norm: float,
                                x_norm: float) -> float:
     """Relative error estimate from the last two residual checks (see :class:`SolveReport`)."""
