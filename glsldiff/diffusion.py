@@ -9,13 +9,16 @@ z-1 and z+1 as flat vertex attributes) and the boundary pass (one rectangle per
 z-face, one 1-texel strip per side-face edge of each interior slice, the offset to the
 linked interior node as attribute). All three colour channels are updated at once.
 
-Convergence is checked by reading back two consecutive iterates every
-``check_every`` sweeps (see :class:`~glsldiff.report.SolveReport` for the residual).
+Convergence is checked by reading the iterate back every ``check_every`` sweeps and
+evaluating its Jacobi-scaled residual in float64 with the CPU system of
+:mod:`glsldiff.reference` (see :func:`glsldiff.reference.relax`), so an iterate frozen
+by fp16/fp32 rounding reports its true residual and is labelled "stalled".
 """
 from __future__ import annotations
 
 import logging
 import time
+from functools import cached_property
 from typing import Mapping
 
 import moderngl
@@ -26,8 +29,8 @@ from glsldiff import gl
 from glsldiff.errors import InputError, SolverError
 from glsldiff.grid import RegularGrid
 from glsldiff.problem import DiffusionProblem
-from glsldiff.reference import diverged_message
-from glsldiff.report import ConvergenceMonitor, SolveReport, channel_ratio, contraction_error_estimate
+from glsldiff.reference import LinearSystem, assemble, assemble_rhs, diverged_message, relax
+from glsldiff.report import SolveReport, contraction_error_estimate
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +97,7 @@ class GlslDiffusion:
         self.problem = problem
         self.precision = precision
         self.ctx = ctx if ctx is not None else gl.get_context()
+        gl.make_current(self.ctx)
         g = problem.grid
         self.size = g.texture_size
         self._kappa = gl.float_texture(self.ctx, self.size, g.pack(problem.kappa))
@@ -113,7 +117,6 @@ class GlslDiffusion:
                       else (vbo, "2f 2i 8x", "in_pos", "in_off0"))
             self._vaos.append(self.ctx.vertex_array(prog, [layout]))
         self._mask = g.active
-        self._set_norm()
 
     # ---- setup ----------------------------------------------------------------
     def _set_uniforms(self, prog: moderngl.Program) -> None:
@@ -124,18 +127,24 @@ class GlslDiffusion:
             if name in prog:
                 prog[name] = value
 
-    def _set_norm(self) -> None:
-        self._first = self.problem.boundary_first_iterate()[self._mask].T  # D^-1 b, (3, n)
+    @cached_property
+    def system(self) -> LinearSystem:
+        """The CPU system (assembled on first use) that checks the residual of read-backs."""
+        return assemble(self.problem)
 
     def set_q(self, q: ArrayLike | Mapping[str, ArrayLike]) -> None:
         """Replace the boundary source (the material textures stay on the GPU)."""
+        gl.make_current(self.ctx)
         self.problem = self.problem.with_q(q)
         self._q.write(np.ascontiguousarray(self.problem.grid.pack(self.problem.q)).tobytes(),
                       alignment=1)
-        self._set_norm()
+        if "system" in self.__dict__:
+            s = self.system
+            self.system = LinearSystem(s.A, assemble_rhs(self.problem), s.diag, s.active)
 
     def set_initial(self, phi: ArrayLike | None) -> None:
         """Start the next solve from fluence ``phi`` (volume) or from zero."""
+        gl.make_current(self.ctx)
         g = self.problem.grid
         if phi is None:
             x = np.zeros(g.shape + (3,))
@@ -149,6 +158,8 @@ class GlslDiffusion:
     # ---- iteration --------------------------------------------------------------
     def sweep(self, n: int = 1) -> None:
         """Run ``n`` Jacobi sweeps (interior pass + boundary pass each)."""
+        gl.make_current(self.ctx)
+        bound = self.ctx.fbo if self.ctx.fbo is not None else self.ctx.detect_framebuffer(0)
         self._kappa.use(_UNITS["u_kappa"])
         self._mu.use(_UNITS["u_mu"])
         self._q.use(_UNITS["u_q"])
@@ -158,9 +169,11 @@ class GlslDiffusion:
             for vao in self._vaos:
                 vao.render(moderngl.TRIANGLES)
             self.state.swap()
+        bound.use()  # leave the caller's framebuffer bound, never ours
 
     def unknown(self) -> NDArray[np.float64]:
         """Current iterate (``kappa phi`` or ``phi``) as a ``(nz, ny, nx, 3)`` float64 volume."""
+        gl.make_current(self.ctx)
         return self.problem.grid.unpack(self.state.read()).astype(np.float64)
 
     def fluence(self) -> NDArray[np.float64]:
@@ -192,55 +205,43 @@ class GlslDiffusion:
         Raises
         ------
         SolverError
-            The iterate became non-finite (e.g. fp16 overflow).
+            The iteration diverged (spectral radius >= 1) or overflowed the fp16 buffers.
         """
-        if check_every < 1 or max_sweeps < 0:
-            raise InputError("check_every must be >= 1 and max_sweeps >= 0")
         t0 = time.perf_counter()
         if not keep:
             self.set_initial(x0)
-        g = self.problem.grid
-        monitor = ConvergenceMonitor(tol, max_sweeps)
-        sweeps, res, step, status = 0, float("inf"), float("nan"), None
-        if not np.any(self._first) and x0 is None and not keep:
-            status, res = "converged", 0.0  # no source: the solution is exactly zero
-        while status is None:
-            n_run = min(check_every, max_sweeps - sweeps)
-            self.sweep(n_run - 1)
-            old = g.unpack(self.state.read())[self._mask]
-            self.sweep(1)
-            new = g.unpack(self.state.read())[self._mask]
-            sweeps += n_run
-            with np.errstate(over="ignore", invalid="ignore"):
-                delta = (new - old).astype(np.float64)
-                res = channel_ratio(delta.T, self._first)
-                step = float(np.linalg.norm(delta))
-            status = monitor.update(sweeps, res)
-            if not np.all(np.isfinite(new)) and status != "diverged":
-                status = "diverged"
-        if status == "diverged":
-            if self.precision == "fp16" and np.all(np.isfinite(old)):
+        system = self.system
+
+        def advance(n: int) -> NDArray:
+            self.sweep(n)
+            vol = self.unknown()
+            if self.precision == "fp16" and not np.all(np.abs(vol) < gl.FP16_MAX):
                 raise SolverError(
-                    f"GLSL Jacobi overflowed the fp16 buffers after {sweeps} sweeps (|value| > 65504); "
+                    f"GLSL Jacobi overflowed the fp16 buffers (|value| reached {gl.FP16_MAX:g}); "
                     "scale q down or use precision='fp32'")
+            return system.from_volume(vol)
+
+        x, status, history, step = relax(system, advance, system.from_volume(self.unknown()), tol,
+                                         max_sweeps, check_every)
+        sweeps, res = history[-1]
+        if status == "diverged":
             raise SolverError(diverged_message(self.problem, "GLSL Jacobi", sweeps))
-        history = monitor.history
-        x = self.unknown()
-        phi = self.problem.to_phi(x)
+        phi = self.problem.to_phi(system.to_volume(x, self.problem.grid.shape))
         converged = status == "converged"
         if not converged:
             logger.warning("GLSL Jacobi did not converge (%s): residual %.3e after %d sweeps",
                            status, res, sweeps)
         report = SolveReport(
-            f"glsl-jacobi-{self.precision}", nodes=g.n_active, sweeps=sweeps, residual=res,
+            f"glsl-jacobi-{self.precision}", nodes=system.n, sweeps=sweeps, residual=res,
             seconds=time.perf_counter() - t0, converged=converged, residuals=history, status=status,
-            error_estimate=contraction_error_estimate(history, step, float(np.linalg.norm(x[self._mask]))),
+            error_estimate=contraction_error_estimate(history, step, float(np.linalg.norm(x))),
             device=gl.describe(self.ctx), radiance=self.problem.exitant_radiance(phi))
         return phi, report
 
     # ---- lifetime ---------------------------------------------------------------
     def release(self) -> None:
         """Free every GPU object this solver created."""
+        gl.make_current(self.ctx)
         for obj in (*self._vaos, *self._buffers, *self._progs, self._kappa, self._mu, self._q):
             obj.release()
         self.state.release()

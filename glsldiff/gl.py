@@ -42,6 +42,7 @@ INSTALL_HINT = ("install Mesa's headless GL libraries, e.g. on Debian/Ubuntu: "
                 "apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri libosmesa6 "
                 "(on an NVIDIA machine the driver's libEGL_nvidia provides EGL)")
 DTYPES = {"fp32": "f4", "fp16": "f2"}
+FP16_MAX = 65504.0  # largest finite half float; llvmpipe clamps fp16 writes to it
 
 # OSMesa constants (GL/osmesa.h)
 _OSMESA_FORMAT, _OSMESA_RGBA, _OSMESA_DEPTH_BITS = 0x22, 0x1908, 0x30
@@ -77,6 +78,15 @@ class _OSMesaLoader:
         self._buffer = (ctypes.c_ubyte * 4)()
         if not lib.OSMesaMakeCurrent(handle, self._buffer, _GL_UNSIGNED_BYTE, 1, 1):
             raise BackendError("OSMesaMakeCurrent failed")
+
+    def __enter__(self) -> "_OSMesaLoader":
+        """Make this context current (moderngl's ``with ctx:`` and :func:`make_current`)."""
+        if not self._lib.OSMesaMakeCurrent(self._handle, self._buffer, _GL_UNSIGNED_BYTE, 1, 1):
+            raise BackendError("OSMesaMakeCurrent failed")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        """Leave the context current (OSMesa cannot restore another context's buffer)."""
 
     def load_opengl_function(self, name: str) -> int:
         return self._lib.OSMesaGetProcAddress(name.encode()) or 0
@@ -144,6 +154,11 @@ def _shared(backend: str) -> moderngl.Context:
 def get_context(backend: str | None = None) -> moderngl.Context:
     """The process-wide shared context for ``backend`` (created on first use)."""
     return _shared((backend or os.environ.get("GLSLDIFF_GL") or "egl").strip().lower())
+
+
+def make_current(ctx: moderngl.Context) -> None:
+    """Make ``ctx`` the current GL context of this thread (several may coexist)."""
+    ctx.mglo.__enter__()
 
 
 def renderer(ctx: moderngl.Context) -> str:

@@ -164,16 +164,6 @@ class DiffusionProblem:
         L = ft * (phi - self.q) / (2.0 * np.pi)
         return {name: self.grid.face(L, name) for name in ("x-", "x+", "y-", "y+", "z-", "z+")}
 
-    def boundary_first_iterate(self) -> NDArray[np.float64]:
-        """``D^-1 b``: one Jacobi sweep from zero, as a volume of the iterated unknown.
-
-        Its norm normalises the Jacobi residual ``||D^-1 (b - A x)|| / ||D^-1 b||``.
-        """
-        d, C = self.grid.h, float(self.C)
-        kb = self.kappa
-        phi_b = self.q * d / (d + 2.0 * C * kb)
-        return self.from_phi(phi_b)
-
 
 def relative_l2(x: ArrayLike, ref: ArrayLike, mask: NDArray[np.bool_] | None = None) -> float:
     """``||x - ref||_2 / ||ref||_2`` over all (masked) nodes and channels; 0 if both vanish."""

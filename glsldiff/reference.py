@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.grid import BOUNDARY, INACTIVE, INTERIOR
 from glsldiff.problem import DiffusionProblem
-from glsldiff.errors import SolverError
+from glsldiff.errors import InputError, SolverError
 from glsldiff.report import ConvergenceMonitor, SolveReport, channel_ratio, contraction_error_estimate
 
 logger = logging.getLogger(__name__)
@@ -230,11 +230,51 @@ def solve_amg(problem: DiffusionProblem, tol: float = 1e-12, maxiter: int = 200)
     return phi, rep
 
 
+def relax(system: LinearSystem, advance: Callable[[int], NDArray], x: NDArray, tol: float,
+          max_sweeps: int, check_every: int,
+          callback: Callable[[NDArray], None] | None = None) -> tuple[NDArray, str, list[tuple[int, float]], float]:
+    """Drive an iterative solver of ``system`` with periodic float64 residual checks.
+
+    ``advance(n)`` runs ``n`` more sweeps and returns the new iterate (channel-major
+    unknown vector). The residual of each returned iterate is evaluated here, in
+    float64, as ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||`` (so an iterate frozen by
+    rounding still shows its true residual), and fed to a :class:`ConvergenceMonitor`.
+
+    Returns
+    -------
+    x, status, history, step
+        Final iterate, monitor status, ``(sweeps, residual)`` pairs (the initial
+        guess at 0 sweeps first) and ``||D^-1 (b - A x)||`` of the final iterate.
+    """
+    if check_every < 1 or max_sweeps < 0:
+        raise InputError(f"check_every must be >= 1 and max_sweeps >= 0 (got check_every={check_every}, "
+                         f"max_sweeps={max_sweeps})")
+    scale = (system.b / system.diag).reshape(3, system.n)
+    monitor = ConvergenceMonitor(tol, max_sweeps)
+
+    def check(sweeps: int, x: NDArray) -> tuple[str | None, float]:
+        with np.errstate(over="ignore", invalid="ignore"):
+            r = (system.b - system.A @ x) / system.diag
+            res = channel_ratio(r.reshape(3, system.n), scale) if np.any(scale) else float(np.linalg.norm(r))
+            return monitor.update(sweeps, res), float(np.linalg.norm(r))
+
+    status, step = check(0, x)
+    sweeps = 0
+    while status is None:
+        n_run = min(check_every, max_sweeps - sweeps)
+        x = advance(n_run)
+        sweeps += n_run
+        status, step = check(sweeps, x)
+        if callback is not None:
+            callback(x)
+    return x, status, monitor.history, step
+
+
 def jacobi(problem: DiffusionProblem, x0: NDArray | None = None, tol: float = 1e-6,
            maxiter: int = 10000, check_every: int = 10,
            residuals: list[float] | None = None,
            callback: Callable[[NDArray], None] | None = None) -> tuple[NDArray, SolveReport]:
-    """Jacobi relaxation of the same system in numpy (float64).
+    """Jacobi relaxation ``x <- x + D^-1 (b - A x)`` of the same system in numpy (float64).
 
     Parameters
     ----------
@@ -247,43 +287,40 @@ def jacobi(problem: DiffusionProblem, x0: NDArray | None = None, tol: float = 1e
     check_every
         Sweeps between residual checks.
     residuals
-        If a list is given, the residual at each check is appended (pyamg convention).
+        If a list is given, the residual at each check (initial guess first) is
+        appended (pyamg convention).
     callback
         Called as ``callback(x)`` with the unknown vector after each check.
+
+    Raises
+    ------
+    SolverError
+        The iteration diverged (spectral radius >= 1).
     """
     t0 = time.perf_counter()
     s = assemble(problem)
-    shape = problem.grid.shape
-    x = np.zeros_like(s.b) if x0 is None else s.from_volume(problem.from_phi(np.asarray(x0)))
-    scale = (s.b / s.diag).reshape(3, s.n)
-    monitor = ConvergenceMonitor(tol, maxiter)
-    sweeps, res, step, status = 0, float("inf"), float("nan"), None
-    if not np.any(scale) and x0 is None:
-        status, res = "converged", 0.0  # no source: the solution is exactly zero
-    while status is None:
-        n_run = min(check_every, maxiter - sweeps)
-        for _ in range(n_run - 1):
-            x = x + (s.b - s.A @ x) / s.diag
-        delta = (s.b - s.A @ x) / s.diag
-        x = x + delta
-        sweeps += n_run
+    state = {"x": np.zeros_like(s.b) if x0 is None else s.from_volume(problem.from_phi(np.asarray(x0)))}
+
+    def advance(n: int) -> NDArray:
+        x = state["x"]
         with np.errstate(over="ignore", invalid="ignore"):
-            res = channel_ratio(delta.reshape(3, s.n), scale)
-            step = float(np.linalg.norm(delta))
-        if residuals is not None:
-            residuals.append(res)
-        if callback is not None:
-            callback(x)
-        status = monitor.update(sweeps, res)
+            for _ in range(n):
+                x = x + (s.b - s.A @ x) / s.diag
+        state["x"] = x
+        return x
+
+    x, status, history, step = relax(s, advance, state["x"], tol, maxiter, check_every, callback)
+    if residuals is not None:
+        residuals.extend(r for _, r in history)
+    sweeps = history[-1][0]
     if status == "diverged":
         raise SolverError(diverged_message(problem, "numpy Jacobi", sweeps))
     converged = status == "converged"
     if not converged:
         logger.warning("numpy Jacobi did not converge (%s): residual %.3e after %d sweeps",
-                       status, res, sweeps)
-    history = monitor.history
-    phi = problem.to_phi(s.to_volume(x, shape))
-    rep = SolveReport("numpy-jacobi", nodes=s.n, sweeps=sweeps, residual=res,
+                       status, history[-1][1], sweeps)
+    phi = problem.to_phi(s.to_volume(x, problem.grid.shape))
+    rep = SolveReport("numpy-jacobi", nodes=s.n, sweeps=sweeps, residual=history[-1][1],
                       seconds=time.perf_counter() - t0, converged=converged, residuals=history,
                       status=status,
                       error_estimate=contraction_error_estimate(history, step, float(np.linalg.norm(x))),

@@ -94,10 +94,11 @@ class ConvergenceMonitor:
     """Stopping logic shared by the iterative solvers.
 
     Fed the residual at each check, it answers ``"converged"`` (residual <= tol),
-    ``"diverged"`` (non-finite, or three rising checks ending 100x above the best:
-    the Jacobi matrix has spectral radius >= 1), ``"stalled"`` (the best residual
-    did not improve by 1 % over ``patience`` checks: rounding floor of the arithmetic),
-    ``"budget"`` (sweep budget spent) or ``None`` (keep going).
+    ``"diverged"`` (non-finite; four rising checks ending 100x above the best; or no
+    improvement for ``patience`` checks while the residual keeps rising: the Jacobi
+    matrix has spectral radius >= 1), ``"stalled"`` (no 1 % improvement of the best
+    residual for ``patience`` checks without a rising trend: the rounding floor of the
+    arithmetic or storage), ``"budget"`` (sweep budget spent) or ``None`` (go on).
     """
 
     def __init__(self, tol: float, max_sweeps: int, patience: int = 8) -> None:
@@ -120,5 +121,9 @@ class ConvergenceMonitor:
         else:
             self._since_best += 1
             if self._since_best >= self.patience:
+                window = [r for _, r in self.history[-(self.patience + 1):]]
+                rises = sum(b > a for a, b in zip(window, window[1:]))
+                if rises >= 0.75 * self.patience and window[-1] > 1.5 * window[0]:
+                    return "diverged"
                 return "stalled"
         return "budget" if sweeps >= self.max_sweeps else None
