@@ -88,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="back-lit marble slab, 4x4 projector regions (default job)")
     p.add_argument("--size", type=int, nargs=3, default=(64, 64, 12), metavar=("NX", "NY", "NZ"))
     p.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
-    p.add_argument("--tol", type=float, default=1e-7, help="Jacobi residual tolerance")
+    p.add_argument("--tol", type=float, default=5e-7, help="Jacobi residual tolerance")
     p.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="glsldiff-out")

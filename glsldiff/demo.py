@@ -39,7 +39,7 @@ class DemoConfig:
     regions: int = 4
     irradiance: float = 1.0      # projector irradiance on a lit region (arbitrary units)
     eta: float = 1.3
-    tol: float = 1e-7
+    tol: float = 5e-7
     max_sweeps: int = 20000
     precision: str = "fp32"
     seed: int = 0
