@@ -97,12 +97,17 @@ class ConvergenceMonitor:
     ``"diverged"`` (non-finite; four rising checks ending 100x above the best; or no
     improvement for ``patience`` checks while the residual keeps rising: the Jacobi
     matrix has spectral radius >= 1), ``"stalled"`` (no 1 % improvement of the best
-    residual for ``patience`` checks without a rising trend: the rounding floor of the
-    arithmetic or storage), ``"budget"`` (sweep budget spent) or ``None`` (go on).
+    residual for ``patience`` checks without a rising trend, at a residual below
+    ``floor_max``: the rounding floor of the arithmetic or storage; fp16 buffers floor
+    near 2e-3, fp32 near 3e-7), ``"budget"`` (sweep budget spent) or ``None`` (go on).
+    A residual above ``floor_max`` is never taken for a rounding floor: the iteration
+    goes on until it converges, diverges or spends its budget.
     """
 
-    def __init__(self, tol: float, max_sweeps: int, patience: int = 8) -> None:
+    def __init__(self, tol: float, max_sweeps: int, patience: int = 8,
+                 floor_max: float = 1e-2) -> None:
         self.tol, self.max_sweeps, self.patience = tol, max_sweeps, patience
+        self.floor_max = floor_max
         self.history: list[tuple[int, float]] = []
         self._best = float("inf")
         self._since_best = 0
@@ -125,5 +130,6 @@ class ConvergenceMonitor:
                 rises = sum(b > a for a, b in zip(window, window[1:]))
                 if rises >= 0.75 * self.patience and window[-1] > 1.5 * window[0]:
                     return "diverged"
-                return "stalled"
+                if res <= self.floor_max:
+                    return "stalled"
         return "budget" if sweeps >= self.max_sweeps else None
