@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -109,8 +109,7 @@ def run(cfg: DemoConfig, progress: bool = True) -> list[dict[str, object]]:
 def stencil_difference(problem: DiffusionProblem, ctx: object, cfg: DemoConfig) -> dict[str, object]:
     """Front-image difference between the paper stencil and the conservative one."""
     t0 = time.perf_counter()
-    cons = DiffusionProblem(problem.grid, problem.kappa, problem.mu, problem.q, problem.eta,
-                            problem.C, stencil="conservative")
+    cons = replace(problem, stencil="conservative")
     reps = []
     for p in (problem, cons):
         with GlslDiffusion(p, ctx, cfg.precision) as gpu:  # type: ignore[arg-type]

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from functools import cached_property
 from typing import Mapping
 
@@ -139,8 +140,7 @@ class GlslDiffusion:
         self._q.write(np.ascontiguousarray(self.problem.grid.pack(self.problem.q)).tobytes(),
                       alignment=1)
         if "system" in self.__dict__:
-            s = self.system
-            self.system = LinearSystem(s.A, assemble_rhs(self.problem), s.diag, s.active)
+            self.system = replace(self.system, b=assemble_rhs(self.problem))
 
     def set_initial(self, phi: ArrayLike | None) -> None:
         """Start the next solve from fluence ``phi`` (volume) or from zero."""

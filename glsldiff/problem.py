@@ -21,7 +21,7 @@ Both use the boundary row ``phi_b + 2 C kappa_b (phi_b - phi_j) / d = q_b`` with
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, Mapping
 
 import numpy as np
@@ -149,8 +149,7 @@ class DiffusionProblem:
 
     def with_q(self, q: ArrayLike | Mapping[str, ArrayLike]) -> "DiffusionProblem":
         """Same grid, material and options, new boundary source."""
-        return DiffusionProblem(self.grid, self.kappa, self.mu, q, self.eta, self.C,
-                                self.stencil, self.face_mean)
+        return replace(self, q=q)
 
     def exitant_radiance(self, phi: NDArray, cos_o: float = 1.0) -> dict[str, NDArray]:
         """Multiple-scattering radiance leaving each face, per node and channel.

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Callable, Mapping
 
 import numpy as np
@@ -62,11 +62,20 @@ class LinearSystem:
         """``(nz, ny, nx, 3)`` volume -> channel-major unknown vector."""
         return np.asarray(vol, dtype=np.float64).reshape(-1, 3)[self.active].T.reshape(-1)
 
-    def residual(self, x: NDArray) -> float:
-        """Jacobi-scaled relative residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``."""
-        r = ((self.b - self.A @ x) / self.diag).reshape(3, self.n)
-        s = (self.b / self.diag).reshape(3, self.n)
-        return channel_ratio(r, s)
+    def block(self, c: int) -> tuple[sp.csr_matrix, NDArray[np.float64]]:
+        """Matrix and right-hand side of channel ``c`` alone."""
+        sl = slice(c * self.n, (c + 1) * self.n)
+        return self.A[sl, sl], self.b[sl]
+
+    def jacobi_step(self, x: NDArray) -> NDArray[np.float64]:
+        """The Jacobi increment ``D^-1 (b - A x)``."""
+        return (self.b - self.A @ x) / self.diag
+
+    def residual(self, x: NDArray, step: NDArray | None = None) -> float:
+        """Jacobi-scaled relative residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``
+        (``step`` = :meth:`jacobi_step` of ``x`` when already computed)."""
+        r = self.jacobi_step(x) if step is None else step
+        return channel_ratio(r.reshape(3, self.n), (self.b / self.diag).reshape(3, self.n))
 
 
 def jacobi_radius_bound(system: LinearSystem) -> float:
@@ -156,9 +165,7 @@ class DirectSolver:
         t0 = time.perf_counter()
         self.problem = problem
         self.system = assemble(problem)
-        n = self.system.n
-        self._lu = [spla.splu(self.system.A[c * n:(c + 1) * n, c * n:(c + 1) * n].tocsc(),
-                               permc_spec="MMD_AT_PLUS_A")
+        self._lu = [spla.splu(self.system.block(c)[0].tocsc(), permc_spec="MMD_AT_PLUS_A")
                     for c in range(3)]
         self.factor_seconds = time.perf_counter() - t0
 
@@ -167,7 +174,7 @@ class DirectSolver:
         t0 = time.perf_counter()
         p, s = self.problem, self.system
         prob = p if q is None else p.with_q(q)
-        sysq = s if q is None else LinearSystem(s.A, assemble_rhs(prob), s.diag, s.active)
+        sysq = s if q is None else replace(s, b=assemble_rhs(prob))
         x = np.concatenate([self._lu[c].solve(sysq.b.reshape(3, s.n)[c]) for c in range(3)])
         seconds = time.perf_counter() - t0
         phi = prob.to_phi(s.to_volume(x, p.grid.shape))
@@ -213,7 +220,7 @@ def solve_amg(problem: DiffusionProblem, tol: float = 1e-12, maxiter: int = 200)
     n = s.n
     xs, cycles = [], 0
     for c in range(3):
-        A, b = s.A[c * n:(c + 1) * n, c * n:(c + 1) * n].tocsr(), s.b[c * n:(c + 1) * n]
+        A, b = s.block(c)
         if not b.any():
             xs.append(np.zeros(n))
             continue
@@ -249,13 +256,13 @@ def relax(system: LinearSystem, advance: Callable[[int], NDArray], x: NDArray, t
     if check_every < 1 or max_sweeps < 0:
         raise InputError(f"check_every must be >= 1 and max_sweeps >= 0 (got check_every={check_every}, "
                          f"max_sweeps={max_sweeps})")
-    scale = (system.b / system.diag).reshape(3, system.n)
+    zero_source = not np.any(system.b)
     monitor = ConvergenceMonitor(tol, max_sweeps)
 
     def check(sweeps: int, x: NDArray) -> tuple[str | None, float]:
         with np.errstate(over="ignore", invalid="ignore"):
-            r = (system.b - system.A @ x) / system.diag
-            res = channel_ratio(r.reshape(3, system.n), scale) if np.any(scale) else float(np.linalg.norm(r))
+            r = system.jacobi_step(x)
+            res = float(np.linalg.norm(r)) if zero_source else system.residual(x, r)
             return monitor.update(sweeps, res), float(np.linalg.norm(r))
 
     status, step = check(0, x)
@@ -305,7 +312,7 @@ def jacobi(problem: DiffusionProblem, x0: NDArray | None = None, tol: float = 1e
         x = state["x"]
         with np.errstate(over="ignore", invalid="ignore"):
             for _ in range(n):
-                x = x + (s.b - s.A @ x) / s.diag
+                x = x + s.jacobi_step(x)
         state["x"] = x
         return x
 
