@@ -42,8 +42,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.errors import InputError
+from glsldiff.graph import BOUNDARY, INACTIVE, INTERIOR, NodeGraph
+from glsldiff.packing import Mosaic
 
-INACTIVE, INTERIOR, BOUNDARY = 0, 1, 2
+__all__ = ["RegularGrid", "FACES", "INACTIVE", "INTERIOR", "BOUNDARY"]
 
 # face name -> (axis of the volume array [z, y, x], side index 0 or -1)
 FACES: dict[str, tuple[int, int]] = {
@@ -93,15 +95,7 @@ class RegularGrid:
                     "(one interior layer between two boundary faces); the grid is empty")
         if not (isinstance(self.h, (int, float, np.floating)) and math.isfinite(self.h) and self.h > 0):
             raise InputError(f"grid spacing h={self.h!r} mm must be a finite number > 0")
-        if self.nx > self.max_texture_size or self.ny > self.max_texture_size:
-            raise InputError(
-                f"a z-slice of {self.nx}x{self.ny} nodes exceeds the texture size limit "
-                f"{self.max_texture_size}; use a coarser grid")
-        w, hgt = self.texture_size
-        if hgt > self.max_texture_size:
-            raise InputError(
-                f"grid {self.nx}x{self.ny}x{self.nz} needs a {w}x{hgt} texture, over the "
-                f"limit {self.max_texture_size}; use fewer nodes")
+        self.mosaic  # validates the texture size
 
     # ---- node classification -------------------------------------------------
     @property
@@ -159,6 +153,18 @@ class RegularGrid:
             link[idx] = flat[tuple(inner)]
         return link
 
+    @cached_property
+    def graph(self) -> NodeGraph:
+        """Connectivity for the generic assembler: 6 neighbours of weight ``1/h^2`` (scaled
+        weight 1, row scale ``h^2``), boundary partner at ``d = h``."""
+        kind = self.kind.ravel()
+        interior = np.flatnonzero(kind == INTERIOR)
+        strides = (1, self.nx, self.nx * self.ny)
+        nb = np.stack([interior + sign * s for s in strides for sign in (-1, 1)], axis=1)
+        boundary = np.flatnonzero(kind == BOUNDARY)
+        return NodeGraph(kind, nb, np.ones(nb.shape), np.full(interior.size, float(self.h) ** 2),
+                         self.link.ravel()[boundary], np.full(boundary.size, float(self.h)))
+
     # ---- faces ---------------------------------------------------------------
     def face_shape(self, name: str) -> tuple[int, int]:
         """Shape of the face array of face ``name`` (see module docstring)."""
@@ -192,43 +198,32 @@ class RegularGrid:
 
     # ---- texture packing -----------------------------------------------------
     @cached_property
+    def mosaic(self) -> Mosaic:
+        """The z-slices as ``nx x ny`` texel blocks (see :class:`glsldiff.packing.Mosaic`)."""
+        return Mosaic(self.nx, self.ny, self.nz, self.max_texture_size)
+
+    @property
     def tiles(self) -> tuple[int, int]:
         """``(tiles_x, tiles_y)``: z-slice blocks per texture row and column."""
-        tiles_x = max(1, min(self.nz, round(math.sqrt(self.nz * self.ny / self.nx)),
-                             self.max_texture_size // self.nx))
-        return tiles_x, -(-self.nz // tiles_x)
+        return self.mosaic.tiles
 
     @property
     def texture_size(self) -> tuple[int, int]:
         """``(width, height)`` of the packed texture in texels."""
-        tx, ty = self.tiles
-        return tx * self.nx, ty * self.ny
+        return self.mosaic.texture_size
 
     def tile_origin(self, z: int) -> tuple[int, int]:
         """Texel ``(x, y)`` of node ``(x=0, y=0)`` of z-slice ``z``."""
-        tx = self.tiles[0]
-        return (z % tx) * self.nx, (z // tx) * self.ny
+        x, y = self.mosaic.block_origin(z)
+        return int(x), int(y)
 
     def pack(self, volume: ArrayLike, components: int = 4) -> NDArray[np.float32]:
         """``(nz, ny, nx[, c])`` volume -> ``(height, width, components)`` float32 texture."""
         vol = np.asarray(volume, dtype=np.float32)
         if vol.shape[:3] != self.shape:
             raise InputError(f"volume shape {vol.shape} does not match grid {self.shape}")
-        if vol.ndim == 3:
-            vol = vol[..., None]
-        c = vol.shape[3]
-        if c > components:
-            raise InputError(f"volume has {c} channels, texture only {components}")
-        w, h = self.texture_size
-        tx, ty = self.tiles
-        pad = np.zeros((tx * ty,) + self.shape[1:] + (components,), dtype=np.float32)
-        pad[: self.nz, ..., :c] = vol
-        # (ty, tx, ny, nx, C) -> rows of blocks
-        return pad.reshape(ty, tx, self.ny, self.nx, components).transpose(0, 2, 1, 3, 4).reshape(h, w, components)
+        return self.mosaic.pack(vol.reshape(self.size, -1), components)
 
     def unpack(self, texture: ArrayLike, channels: int = 3) -> NDArray[np.float32]:
         """Inverse of :meth:`pack`: ``(height, width, c)`` -> ``(nz, ny, nx, channels)``."""
-        tex = np.asarray(texture)
-        tx, ty = self.tiles
-        blocks = tex.reshape(ty, self.ny, tx, self.nx, tex.shape[-1]).transpose(0, 2, 1, 3, 4)
-        return blocks.reshape(tx * ty, self.ny, self.nx, tex.shape[-1])[: self.nz, ..., :channels]
+        return self.mosaic.unpack(texture, channels)

@@ -28,6 +28,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.errors import InputError
+from glsldiff.graph import NodeGraph
 from glsldiff.grid import BOUNDARY, RegularGrid
 from glsldiff.material import validate_coefficients
 from glsldiff.optics import boundary_constant, fresnel_transmittance
@@ -38,7 +39,7 @@ STENCILS = ("paper", "conservative")
 FACE_MEANS = ("arithmetic", "harmonic")
 
 
-def _as_volume(name: str, values: ArrayLike, shape: tuple[int, int, int]) -> NDArray[np.float64]:
+def _as_volume(name: str, values: ArrayLike, shape: tuple[int, ...]) -> NDArray[np.float64]:
     """A scalar, an RGB triple or a per-node array as a ``shape + (3,)`` volume."""
     arr = np.asarray(values, dtype=np.float64)
     if arr.ndim == 0 or arr.shape == (3,):
@@ -115,13 +116,21 @@ class DiffusionProblem:
     face_mean: FaceMean = "arithmetic"
 
     def __post_init__(self) -> None:
-        if not isinstance(self.grid, RegularGrid):
-            raise InputError(f"grid must be a RegularGrid, got {type(self.grid).__name__}")
+        if not (isinstance(self.grid, RegularGrid) or hasattr(self.grid, "source_volume")):
+            raise InputError(f"grid must be a RegularGrid or a Polygrid, got {type(self.grid).__name__}")
         shape = self.grid.shape
         kappa = _as_volume("kappa", self.kappa, shape)
         mu = _as_volume("mu", self.mu, shape)
+        if not isinstance(self.grid, RegularGrid):
+            # removed polygrid nodes hold placeholders so that packed textures stay finite
+            dead = ~self.grid.active
+            kappa, mu = kappa.copy(), mu.copy()
+            kappa[dead], mu[dead] = 1.0, 0.0
         self.kappa, self.mu = validate_coefficients(kappa, mu)
-        self.q = validate_q(self.grid, {} if self.q is None else self.q)
+        if isinstance(self.grid, RegularGrid):
+            self.q = validate_q(self.grid, {} if self.q is None else self.q)
+        else:
+            self.q = self.grid.source_volume(0.0 if self.q is None else self.q)
         if not np.isfinite(self.eta) or self.eta <= 0:
             raise InputError(f"eta={self.eta!r} must be a finite relative index > 0")
         if self.C is None:
@@ -134,6 +143,16 @@ class DiffusionProblem:
             raise InputError(f"face_mean={self.face_mean!r}; choose one of {FACE_MEANS}")
 
     # ---- derived quantities ------------------------------------------------------
+    @property
+    def graph(self) -> "NodeGraph":
+        """Node connectivity of the discretisation (:mod:`glsldiff.graph`)."""
+        return self.grid.graph
+
+    @property
+    def node_shape(self) -> tuple[int, ...]:
+        """Shape of the node arrays (``(nz, ny, nx)`` or a polygrid's ``(cubes, n, n, n)``)."""
+        return tuple(self.grid.shape)
+
     @property
     def unknown(self) -> str:
         """What a solver iterates on: ``"kappa*phi"`` (paper) or ``"phi"``."""
@@ -151,8 +170,9 @@ class DiffusionProblem:
         """Same grid, material and options, new boundary source."""
         return replace(self, q=q)
 
-    def exitant_radiance(self, phi: NDArray, cos_o: float = 1.0) -> dict[str, NDArray]:
-        """Multiple-scattering radiance leaving each face, per node and channel.
+    def exitant_radiance(self, phi: NDArray, cos_o: float = 1.0) -> dict[str, NDArray] | NDArray:
+        """Multiple-scattering radiance leaving each face (regular grid: dict of face
+        arrays) or each boundary node (polygrid: ``(n_boundary, 3)``), per channel.
 
         Paper eq. 3 with the boundary condition: ``L = F_t(eta, cos_o) (phi - q) / (2 pi)``,
         equal to ``-(C/pi) F_t kappa dphi/dn``. This is the *net* flux: it is negative
@@ -161,6 +181,8 @@ class DiffusionProblem:
         """
         ft = float(fresnel_transmittance(self.eta, cos_o))
         L = ft * (phi - self.q) / (2.0 * np.pi)
+        if not isinstance(self.grid, RegularGrid):
+            return self.grid.boundary_values(L)
         return {name: self.grid.face(L, name) for name in ("x-", "x+", "y-", "y+", "z-", "z+")}
 
 

@@ -19,7 +19,6 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.grid import BOUNDARY, INACTIVE, INTERIOR
 from glsldiff.problem import DiffusionProblem
 from glsldiff.errors import InputError, SolverError
 from glsldiff.report import ConvergenceMonitor, SolveReport, channel_ratio, contraction_error_estimate
@@ -102,41 +101,40 @@ def diverged_message(problem: DiffusionProblem, method: str, sweeps: int) -> str
 
 
 def _matrix(problem: DiffusionProblem, c: int) -> tuple[sp.csr_matrix, NDArray]:
-    """Matrix and its diagonal for channel ``c``."""
-    g = problem.grid
-    kind = g.kind.ravel()
-    k = problem.kappa[..., c].ravel()
-    m = problem.mu[..., c].ravel()
-    h, C = g.h, float(problem.C)
-    active = np.flatnonzero(kind != INACTIVE)
+    """Matrix and its diagonal for channel ``c`` (rows of :mod:`glsldiff.graph`).
+
+    Interior row ``i`` (times the row scale ``s_i``; ``w_j`` the scaled weights):
+    paper ``(sum_j w_j + s_i mu_i/kappa_i) u_i - sum_j w_j u_j``, conservative
+    ``(sum_j w_j k_ij + s_i mu_i) phi_i - sum_j w_j k_ij phi_j``. Boundary row ``b``
+    (times ``d_b``, and ``kappa_b`` for the paper's unknown): ``phi_b + 2 C kappa_b
+    (phi_b - phi_j) / d_b = q_b``.
+    """
+    g = problem.graph
+    k = problem.kappa.reshape(-1, 3)[:, c]
+    m = problem.mu.reshape(-1, 3)[:, c]
+    C = float(problem.C)
+    active = g.active
     pos = np.full(g.size, -1, dtype=np.int64)
     pos[active] = np.arange(active.size)
 
-    interior = np.flatnonzero(kind == INTERIOR)
+    interior, nb = g.interior, g.neighbours
+    if problem.stencil == "paper":
+        w = g.weights
+    else:
+        ki, kj = k[interior, None], k[nb]
+        face = 0.5 * (ki + kj) if problem.face_mean == "arithmetic" else 2.0 * ki * kj / (ki + kj)
+        w = g.weights * face
     diag = np.zeros(g.size)
-    rows, cols, vals = [], [], []
-    for stride in (1, g.nx, g.nx * g.ny):
-        for nb in (interior + stride, interior - stride):
-            if problem.stencil == "paper":
-                w = np.ones(interior.size)
-            elif problem.face_mean == "arithmetic":
-                w = 0.5 * (k[interior] + k[nb])
-            else:
-                w = 2.0 * k[interior] * k[nb] / (k[interior] + k[nb])
-            rows.append(interior), cols.append(nb), vals.append(-w)
-            diag[interior] += w
-    diag[interior] += h * h * (m[interior] / k[interior] if problem.stencil == "paper" else m[interior])
+    diag[interior] = w.sum(axis=1) + g.scale * (m[interior] / k[interior] if problem.stencil == "paper"
+                                                else m[interior])
+    boundary, j = g.boundary, g.link
+    kb = k[boundary]
+    diag[boundary] = g.d + 2.0 * C * kb
+    off_b = 2.0 * C * kb * kb / k[j] if problem.stencil == "paper" else 2.0 * C * kb
 
-    boundary = np.flatnonzero(kind == BOUNDARY)
-    j = g.link.ravel()[boundary]
-    kb, kj = k[boundary], k[j]
-    diag[boundary] = h + 2.0 * C * kb
-    rows.append(boundary), cols.append(j)
-    vals.append(-(2.0 * C * kb * kb / kj if problem.stencil == "paper" else 2.0 * C * kb))
-
-    r = np.concatenate(rows + [active])
-    cc = np.concatenate(cols + [active])
-    v = np.concatenate(vals + [diag[active]])
+    r = np.concatenate([np.repeat(interior, 6), boundary, active])
+    cc = np.concatenate([nb.ravel(), j, active])
+    v = np.concatenate([-w.ravel(), -off_b, diag[active]])
     A = sp.csr_matrix((v, (pos[r], pos[cc])), shape=(active.size, active.size))
     return A, diag[active]
 
@@ -144,7 +142,7 @@ def _matrix(problem: DiffusionProblem, c: int) -> tuple[sp.csr_matrix, NDArray]:
 def assemble(problem: DiffusionProblem) -> LinearSystem:
     """The discrete system of ``problem`` for all three channels (block diagonal)."""
     blocks = [_matrix(problem, c) for c in range(3)]
-    active = np.flatnonzero(problem.grid.kind.ravel() != INACTIVE)
+    active = problem.graph.active
     return LinearSystem(sp.block_diag([A for A, _ in blocks], format="csr"), assemble_rhs(problem),
                         np.concatenate([d for _, d in blocks]), active)
 
@@ -177,7 +175,7 @@ class DirectSolver:
         sysq = s if q is None else replace(s, b=assemble_rhs(prob))
         x = np.concatenate([self._lu[c].solve(sysq.b.reshape(3, s.n)[c]) for c in range(3)])
         seconds = time.perf_counter() - t0
-        phi = prob.to_phi(s.to_volume(x, p.grid.shape))
+        phi = prob.to_phi(s.to_volume(x, p.node_shape))
         rep = SolveReport("scipy-direct", nodes=s.n, residual=sysq.residual(x), seconds=seconds,
                           converged=True, error_estimate=0.0,
                           radiance=prob.exitant_radiance(phi))
@@ -185,14 +183,14 @@ class DirectSolver:
 
 
 def assemble_rhs(problem: DiffusionProblem) -> NDArray[np.float64]:
-    """Right-hand side ``b`` (channel-major over the active nodes): ``h kappa_b q_b``
-    (paper) or ``h q_b`` (conservative) at boundary nodes, 0 at interior nodes."""
-    g = problem.grid
-    kind = g.kind.ravel()
-    active = np.flatnonzero(kind != INACTIVE)
-    kb = problem.kappa.reshape(-1, 3)[active] if problem.stencil == "paper" else 1.0
-    scale = np.where((kind == BOUNDARY)[active, None], g.h * kb, 0.0)
-    return (scale * problem.q.reshape(-1, 3)[active]).T.reshape(-1)
+    """Right-hand side ``b`` (channel-major over the active nodes): ``d_b kappa_b q_b``
+    (paper) or ``d_b q_b`` (conservative) at boundary nodes, 0 at interior nodes."""
+    g = problem.graph
+    q = problem.q.reshape(-1, 3)
+    b = np.zeros((g.size, 3))
+    kb = problem.kappa.reshape(-1, 3)[g.boundary] if problem.stencil == "paper" else 1.0
+    b[g.boundary] = g.d[:, None] * kb * q[g.boundary]
+    return b[g.active].T.reshape(-1)
 
 
 def solve_direct(problem: DiffusionProblem) -> tuple[NDArray, SolveReport]:
@@ -229,7 +227,7 @@ def solve_amg(problem: DiffusionProblem, tol: float = 1e-12, maxiter: int = 200)
         xs.append(ml.solve(b, tol=tol, accel="gmres", maxiter=maxiter, residuals=res))
         cycles = max(cycles, len(res) - 1)
     x = np.concatenate(xs)
-    phi = problem.to_phi(s.to_volume(x, problem.grid.shape))
+    phi = problem.to_phi(s.to_volume(x, problem.node_shape))
     res_final = s.residual(x)
     rep = SolveReport("pyamg-sa-gmres", nodes=n, sweeps=cycles, residual=res_final,
                       seconds=time.perf_counter() - t0, converged=bool(np.isfinite(res_final)),
@@ -326,7 +324,7 @@ def jacobi(problem: DiffusionProblem, x0: NDArray | None = None, tol: float = 1e
     if not converged:
         logger.warning("numpy Jacobi did not converge (%s): residual %.3e after %d sweeps",
                        status, history[-1][1], sweeps)
-    phi = problem.to_phi(s.to_volume(x, problem.grid.shape))
+    phi = problem.to_phi(s.to_volume(x, problem.node_shape))
     rep = SolveReport("numpy-jacobi", nodes=s.n, sweeps=sweeps, residual=history[-1][1],
                       seconds=time.perf_counter() - t0, converged=converged, residuals=history,
                       status=status,

@@ -47,7 +47,7 @@ BAD_PROBLEMS = [
     ("face-mean", dict(stencil="conservative", face_mean="geometric"), r"face_mean='geometric'; choose one of"),
     ("eta", dict(eta=0.0), r"eta=0\.0 must be a finite relative index > 0"),
     ("C", dict(C=-1.0), r"C=-1\.0 must be finite and > 0"),
-    ("grid-type", dict(grid=(6, 5, 4)), r"grid must be a RegularGrid, got tuple"),
+    ("grid-type", dict(grid=(6, 5, 4)), r"grid must be a RegularGrid or a Polygrid, got tuple"),
 ]
 
 

@@ -1,0 +1,197 @@
+"""Texture packing and rasterisation primitives (Wang et al. 2008, section 5.2, figures 6-7).
+
+:class:`Mosaic` lays equal ``bw x bh`` texel blocks (x-y slices of a grid) row by row into
+one 2D texture, block ``k`` at ``((k % tiles_x) bw, (k // tiles_x) bh)``. A regular grid is
+one cube (its z-slices are the blocks); a polygrid is many cubes in scan-line order, each
+contributing its ``n`` slices by increasing z (figure 6). Node arrays are packed in flat
+node order (block-major, then y, then x).
+
+:func:`decompose` groups the texels of one solver pass by the texel offsets to their
+neighbours and cuts every group into axis-aligned rectangles; :func:`primitive_vertices`
+turns a rectangle into a quad (two triangles), a 1-texel-wide rectangle into a line and a
+single texel into a point, all carrying the offsets as vertex attributes (figure 7).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.errors import InputError
+
+# Vertex layout of the polygrid passes: texel-space position and six texel offsets.
+VERTEX = np.dtype([("pos", "f4", 2), ("off", "i4", 12)])
+
+
+@dataclass(frozen=True)
+class Mosaic:
+    """``n_blocks`` blocks of ``bw x bh`` texels tiled into a texture of at most
+    ``max_texture_size`` texels per edge."""
+
+    bw: int
+    bh: int
+    n_blocks: int
+    max_texture_size: int = 16384
+
+    def __post_init__(self) -> None:
+        if self.bw > self.max_texture_size or self.bh > self.max_texture_size:
+            raise InputError(f"a z-slice block of {self.bw}x{self.bh} texels exceeds the texture size limit "
+                             f"{self.max_texture_size}; use a coarser grid")
+        w, h = self.texture_size
+        if h > self.max_texture_size:
+            raise InputError(f"{self.n_blocks} blocks of {self.bw}x{self.bh} texels need a {w}x{h} "
+                             f"texture, over the limit {self.max_texture_size}; use fewer nodes")
+
+    @cached_property
+    def tiles(self) -> tuple[int, int]:
+        """``(tiles_x, tiles_y)``: blocks per texture row and column (near-square texture)."""
+        nb = self.n_blocks
+        tiles_x = max(1, min(nb, round(math.sqrt(nb * self.bh / self.bw)), self.max_texture_size // self.bw))
+        return tiles_x, -(-nb // tiles_x)
+
+    @property
+    def texture_size(self) -> tuple[int, int]:
+        """``(width, height)`` in texels."""
+        tx, ty = self.tiles
+        return tx * self.bw, ty * self.bh
+
+    def block_origin(self, k: ArrayLike) -> NDArray[np.int64]:
+        """Texel ``(x, y)`` of texel ``(0, 0)`` of block(s) ``k``."""
+        k = np.asarray(k, dtype=np.int64)
+        tx = self.tiles[0]
+        return np.stack([(k % tx) * self.bw, (k // tx) * self.bh], axis=-1)
+
+    def texel(self, flat: ArrayLike) -> NDArray[np.int64]:
+        """Texel ``(x, y)`` of flat node index(es) (block-major, then y, then x)."""
+        flat = np.asarray(flat, dtype=np.int64)
+        k, r = np.divmod(flat, self.bw * self.bh)
+        y, x = np.divmod(r, self.bw)
+        return self.block_origin(k) + np.stack([x, y], axis=-1)
+
+    def pack(self, nodes: ArrayLike, components: int = 4) -> NDArray[np.float32]:
+        """``(n_blocks, bh, bw[, c])`` (or any shape with that many nodes first) ->
+        ``(height, width, components)`` float32 texture, unused texels 0."""
+        arr = np.asarray(nodes, dtype=np.float32)
+        n = self.n_blocks * self.bh * self.bw
+        if arr.size == n:
+            arr = arr.reshape(n, 1)
+        elif arr.size % n == 0 and arr.shape[-1] * n == arr.size:
+            arr = arr.reshape(n, arr.shape[-1])
+        else:
+            raise InputError(f"node array of shape {arr.shape} does not hold {n} nodes")
+        c = arr.shape[1]
+        if c > components:
+            raise InputError(f"node array has {c} channels, texture only {components}")
+        tx, ty = self.tiles
+        pad = np.zeros((tx * ty * self.bh * self.bw, components), dtype=np.float32)
+        pad[:n, :c] = arr
+        w, h = self.texture_size
+        return pad.reshape(ty, tx, self.bh, self.bw, components).transpose(0, 2, 1, 3, 4).reshape(h, w, components)
+
+    def unpack(self, texture: ArrayLike, channels: int = 3) -> NDArray[np.float32]:
+        """Inverse of :meth:`pack`: ``(height, width, c)`` -> ``(n_blocks, bh, bw, channels)``."""
+        tex = np.asarray(texture)
+        tx, ty = self.tiles
+        blocks = tex.reshape(ty, self.bh, tx, self.bw, tex.shape[-1]).transpose(0, 2, 1, 3, 4)
+        return blocks.reshape(tx * ty, self.bh, self.bw, tex.shape[-1])[: self.n_blocks, ..., :channels]
+
+
+@dataclass(frozen=True)
+class Primitives:
+    """Rectangles ``(x0, y0, x1, y1)`` (end exclusive) of texels sharing one offset set.
+
+    ``offsets[i]`` is the ``(6, 2)`` texel offset array of rectangle ``i``.
+    """
+
+    rects: NDArray[np.int64]
+    offsets: NDArray[np.int64]
+
+    @property
+    def kinds(self) -> dict[str, int]:
+        """Counts of quads, lines and points."""
+        w = self.rects[:, 2] - self.rects[:, 0]
+        h = self.rects[:, 3] - self.rects[:, 1]
+        point = (w == 1) & (h == 1)
+        line = ((w == 1) | (h == 1)) & ~point
+        return {"quads": int((~point & ~line).sum()), "lines": int(line.sum()), "points": int(point.sum())}
+
+    @property
+    def texels(self) -> int:
+        return int(((self.rects[:, 2] - self.rects[:, 0]) * (self.rects[:, 3] - self.rects[:, 1])).sum())
+
+
+def decompose(texels: NDArray[np.int64], offsets: NDArray[np.int64]) -> Primitives:
+    """Cut a set of texels into rectangles of equal offsets.
+
+    Parameters
+    ----------
+    texels
+        ``(m, 2)`` texel ``(x, y)`` of the nodes of one pass (distinct).
+    offsets
+        ``(m, k, 2)`` texel offsets from each node to the ``k`` nodes it reads.
+
+    Runs of horizontally adjacent texels with identical offsets are found first, then
+    equal runs on consecutive rows are merged into rectangles. Every texel is covered
+    by exactly one rectangle whose offsets are its own.
+    """
+    m = texels.shape[0]
+    k = offsets.shape[1]
+    if m == 0:
+        return Primitives(np.zeros((0, 4), np.int64), np.zeros((0, 6, 2), np.int64))
+    _, key = np.unique(offsets.reshape(m, -1), axis=0, return_inverse=True)
+    key = key.ravel()
+    # horizontal runs: sort by (y, x), break where y, key or x-continuity changes
+    order = np.lexsort((texels[:, 0], texels[:, 1]))
+    x, y, kk = texels[order, 0], texels[order, 1], key[order]
+    brk = np.ones(m, dtype=bool)
+    brk[1:] = (y[1:] != y[:-1]) | (kk[1:] != kk[:-1]) | (x[1:] != x[:-1] + 1)
+    starts = np.flatnonzero(brk)
+    ends = np.append(starts[1:], m)
+    runs = np.stack([x[starts], y[starts], x[ends - 1] + 1, kk[starts]], axis=1)
+    first = order[starts]
+    # vertical merge of equal runs (x0, x1, key) on consecutive rows
+    o2 = np.lexsort((runs[:, 1], runs[:, 3], runs[:, 2], runs[:, 0]))
+    r = runs[o2]
+    same = np.ones(len(r), dtype=bool)
+    same[0] = False
+    same[1:] = ((r[1:, 0] == r[:-1, 0]) & (r[1:, 2] == r[:-1, 2]) & (r[1:, 3] == r[:-1, 3])
+                & (r[1:, 1] == r[:-1, 1] + 1))
+    gstart = np.flatnonzero(~same)
+    gend = np.append(gstart[1:], len(r))
+    rects = np.stack([r[gstart, 0], r[gstart, 1], r[gstart, 2], r[gend - 1, 1] + 1], axis=1)
+    offs = np.zeros((len(rects), 6, 2), dtype=np.int64)
+    offs[:, :k] = offsets[first[o2[gstart]]]
+    return Primitives(rects.astype(np.int64), offs)
+
+
+def primitive_vertices(prims: Primitives) -> dict[str, NDArray]:
+    """Vertex arrays (``VERTEX``) per GL mode: ``"triangles"`` (two per quad), ``"lines"``
+    (texel-centre to one-past-the-end centre: the half-open diamond-exit rule draws
+    exactly the run) and ``"points"`` (texel centres)."""
+    r = prims.rects
+    w, h = r[:, 2] - r[:, 0], r[:, 3] - r[:, 1]
+    point = (w == 1) & (h == 1)
+    hline = (h == 1) & (w > 1)
+    vline = (w == 1) & (h > 1)
+    quad = (w > 1) & (h > 1)
+
+    def verts(pos: NDArray, offs: NDArray) -> NDArray:
+        out = np.zeros(len(pos), dtype=VERTEX)
+        out["pos"] = pos
+        out["off"] = offs.reshape(len(pos), 12)
+        return out
+
+    q = r[quad]
+    corners = np.stack([q[:, [0, 1]], q[:, [2, 1]], q[:, [2, 3]], q[:, [0, 1]], q[:, [2, 3]], q[:, [0, 3]]], axis=1)
+    tri = verts(corners.reshape(-1, 2), np.repeat(prims.offsets[quad], 6, axis=0))
+    hl, vl = r[hline], r[vline]
+    hpos = np.stack([np.stack([hl[:, 0] + 0.5, hl[:, 1] + 0.5], 1), np.stack([hl[:, 2] + 0.5, hl[:, 1] + 0.5], 1)], 1)
+    vpos = np.stack([np.stack([vl[:, 0] + 0.5, vl[:, 1] + 0.5], 1), np.stack([vl[:, 0] + 0.5, vl[:, 3] + 0.5], 1)], 1)
+    lines = verts(np.concatenate([hpos, vpos]).reshape(-1, 2),
+                  np.repeat(np.concatenate([prims.offsets[hline], prims.offsets[vline]]), 2, axis=0))
+    p = r[point]
+    points = verts(p[:, :2] + 0.5, prims.offsets[point])
+    return {"triangles": tri, "lines": lines, "points": points}
