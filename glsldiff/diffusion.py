@@ -36,7 +36,6 @@ from glsldiff.report import SolveReport, contraction_error_estimate
 logger = logging.getLogger(__name__)
 
 _VERTEX = np.dtype([("pos", "f4", 2), ("off0", "i4", 2), ("off1", "i4", 2)])
-_UNITS = {"u_state": 0, "u_kappa": 1, "u_mu": 2, "u_q": 3}
 
 
 def _rect_vertices(rects: list[tuple[int, int, int, int, tuple[int, int], tuple[int, int]]]) -> NDArray:
@@ -101,30 +100,51 @@ class GlslDiffusion:
         gl.make_current(self.ctx)
         g = problem.grid
         self.size = g.texture_size
-        self._kappa = gl.float_texture(self.ctx, self.size, g.pack(problem.kappa))
-        self._mu = gl.float_texture(self.ctx, self.size, g.pack(problem.mu))
-        self._q = gl.float_texture(self.ctx, self.size, g.pack(problem.q))
+        self._textures: dict[str, moderngl.Texture] = {
+            "u_kappa": gl.float_texture(self.ctx, self.size, g.pack(problem.kappa)),
+            "u_mu": gl.float_texture(self.ctx, self.size, g.pack(problem.mu)),
+            "u_q": gl.float_texture(self.ctx, self.size, g.pack(problem.q)),
+        }
         self.state = gl.PingPong.create(self.ctx, self.size, precision)
-        defines = {"STENCIL_PAPER": int(problem.stencil == "paper"),
-                   "FACE_HARMONIC": int(problem.face_mean == "harmonic")}
-        self._progs = [gl.program(self.ctx, "grid.vert", f, defines)
-                       for f in ("interior.frag", "boundary.frag")]
-        self._buffers, self._vaos = [], []
-        for prog, verts in zip(self._progs, grid_primitives(g)):
-            self._set_uniforms(prog)
-            vbo = self.ctx.buffer(verts.tobytes())
-            self._buffers.append(vbo)
-            layout = ((vbo, "2f 2i 2i", "in_pos", "in_off0", "in_off1") if "in_off1" in prog
-                      else (vbo, "2f 2i 8x", "in_pos", "in_off0"))
-            self._vaos.append(self.ctx.vertex_array(prog, [layout]))
+        self._progs: list[moderngl.Program] = []
+        self._buffers: list[moderngl.Buffer] = []
+        self._draws: list[tuple[moderngl.VertexArray, int]] = []
+        self._build_passes({"STENCIL_PAPER": int(problem.stencil == "paper"),
+                            "FACE_HARMONIC": int(problem.face_mean == "harmonic")})
         self._mask = g.active
 
     # ---- setup ----------------------------------------------------------------
-    def _set_uniforms(self, prog: moderngl.Program) -> None:
+    def _build_passes(self, defines: dict[str, int]) -> None:
+        """Programs and vertex arrays of the interior pass and the boundary pass."""
+        for frag, verts in zip(("interior.frag", "boundary.frag"), grid_primitives(self.problem.grid)):
+            prog = self._program("grid.vert", frag, {**defines, "PER_NODE_D": 0})
+            layout = ((prog, "2f 2i 2i", "in_pos", "in_off0", "in_off1") if "in_off1" in prog
+                      else (prog, "2f 2i 8x", "in_pos", "in_off0"))
+            self._add_draw(layout, verts, moderngl.TRIANGLES)
+
+    def _program(self, vert: str, frag: str, defines: dict[str, int]) -> moderngl.Program:
+        prog = gl.program(self.ctx, vert, frag, defines)
+        self._progs.append(prog)
+        self._set_uniforms(prog)
+        return prog
+
+    def _add_draw(self, layout: tuple, verts: NDArray, mode: int) -> None:
+        """One vertex array (``layout = (program, format, *attributes)``) drawn with ``mode``."""
+        if len(verts) == 0:
+            return
+        prog, fmt, *attrs = layout
+        vbo = self.ctx.buffer(np.ascontiguousarray(verts).tobytes())
+        self._buffers.append(vbo)
+        self._draws.append((self.ctx.vertex_array(prog, [(vbo, fmt, *attrs)]), mode))
+
+    def _uniform_values(self) -> dict[str, object]:
         g, p = self.problem.grid, self.problem
-        values = {"u_size": tuple(float(s) for s in self.size), "u_h2": g.h * g.h,
-                  "u_C": float(p.C), "u_d": g.h, **_UNITS}
-        for name, value in values.items():
+        return {"u_size": tuple(float(s) for s in self.size), "u_h2": g.h * g.h,
+                "u_C": float(p.C), "u_d": g.h}
+
+    def _set_uniforms(self, prog: moderngl.Program) -> None:
+        units = {name: i + 1 for i, name in enumerate(self._textures)}
+        for name, value in {**self._uniform_values(), "u_state": 0, **units}.items():
             if name in prog:
                 prog[name] = value
 
@@ -137,8 +157,8 @@ class GlslDiffusion:
         """Replace the boundary source (the material textures stay on the GPU)."""
         gl.make_current(self.ctx)
         self.problem = self.problem.with_q(q)
-        self._q.write(np.ascontiguousarray(self.problem.grid.pack(self.problem.q)).tobytes(),
-                      alignment=1)
+        self._textures["u_q"].write(np.ascontiguousarray(self.problem.grid.pack(self.problem.q)).tobytes(),
+                                    alignment=1)
         if "system" in self.__dict__:
             self.system = replace(self.system, b=assemble_rhs(self.problem))
 
@@ -147,11 +167,11 @@ class GlslDiffusion:
         gl.make_current(self.ctx)
         g = self.problem.grid
         if phi is None:
-            x = np.zeros(g.shape + (3,))
+            x = np.zeros(tuple(g.shape) + (3,))
         else:
             phi = np.asarray(phi, dtype=np.float64)
-            if phi.shape != g.shape + (3,):
-                raise InputError(f"initial phi has shape {phi.shape}, expected {g.shape + (3,)}")
+            if phi.shape != tuple(g.shape) + (3,):
+                raise InputError(f"initial phi has shape {phi.shape}, expected {tuple(g.shape) + (3,)}")
             x = self.problem.from_phi(phi) * self._mask[..., None]
         self.state.write(g.pack(x))
 
@@ -160,14 +180,13 @@ class GlslDiffusion:
         """Run ``n`` Jacobi sweeps (interior pass + boundary pass each)."""
         gl.make_current(self.ctx)
         bound = self.ctx.fbo if self.ctx.fbo is not None else self.ctx.detect_framebuffer(0)
-        self._kappa.use(_UNITS["u_kappa"])
-        self._mu.use(_UNITS["u_mu"])
-        self._q.use(_UNITS["u_q"])
+        for unit, tex in enumerate(self._textures.values(), start=1):
+            tex.use(unit)
         for _ in range(n):
             self.state.dst.use()
-            self.state.src.use(_UNITS["u_state"])
-            for vao in self._vaos:
-                vao.render(moderngl.TRIANGLES)
+            self.state.src.use(0)
+            for vao, mode in self._draws:
+                vao.render(mode)
             self.state.swap()
         bound.use()  # leave the caller's framebuffer bound, never ours
 
@@ -226,7 +245,7 @@ class GlslDiffusion:
         sweeps, res = history[-1]
         if status == "diverged":
             raise SolverError(diverged_message(self.problem, "GLSL Jacobi", sweeps))
-        phi = self.problem.to_phi(system.to_volume(x, self.problem.grid.shape))
+        phi = self.problem.to_phi(system.to_volume(x, self.problem.node_shape))
         converged = status == "converged"
         if not converged:
             logger.warning("GLSL Jacobi did not converge (%s): residual %.3e after %d sweeps",
@@ -242,10 +261,10 @@ class GlslDiffusion:
     def release(self) -> None:
         """Free every GPU object this solver created."""
         gl.make_current(self.ctx)
-        for obj in (*self._vaos, *self._buffers, *self._progs, self._kappa, self._mu, self._q):
+        for obj in (*(vao for vao, _ in self._draws), *self._buffers, *self._progs, *self._textures.values()):
             obj.release()
         self.state.release()
-        self._vaos, self._buffers, self._progs = [], [], []
+        self._draws, self._buffers, self._progs, self._textures = [], [], [], {}
 
     def __enter__(self) -> "GlslDiffusion":
         return self

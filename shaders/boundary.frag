@@ -1,13 +1,16 @@
 #version 330 core
-// One Jacobi sweep at boundary nodes (Wang et al. 2008, eq. 8 second line):
-//   phi_b + 2 C kappa_b (phi_b - phi_j) / d = q_b,  j = interior partner, d = h.
+// One Jacobi sweep at boundary nodes (Wang et al. 2008, eq. 8/9 second line):
+//   phi_b + 2 C kappa_b (phi_b - phi_j) / d = q_b,  j = interior partner,
+//   d = h on a regular grid (PER_NODE_D = 0), d_b from T_w1.r on a polygrid (PER_NODE_D = 1).
+// Texture fetches: q, kappa_b, kappa_j, state_j (+ d_b): five on a polygrid.
 // STENCIL_PAPER = 1 (u = kappa*phi):
 //   u_b <- [q kappa_b kappa_j d + 2 C kappa_b^2 u_j] / [kappa_j d + 2 C kappa_b kappa_j]
 // STENCIL_PAPER = 0: phi_b <- [q d + 2 C kappa_b phi_j] / [d + 2 C kappa_b]
 #include "common.glsl"
 uniform sampler2D u_q;       // boundary source q per boundary node
 uniform float u_C;           // boundary constant (1 + Fdr) / (1 - Fdr)
-uniform float u_d;           // boundary-to-interior distance d = h, mm
+uniform float u_d;           // boundary-to-interior distance d = h, mm (regular grid)
+uniform sampler2D u_w1;      // polygrid: .r = d_b, mm, at boundary texels
 flat in ivec2 v_off0;        // texel offset to the linked interior node
 flat in ivec2 v_off1;
 layout(location = 0) out vec4 f_color;
@@ -18,11 +21,16 @@ void main() {
     vec3 kb = fetch(u_kappa, p);
     vec3 q = fetch(u_q, p);
     vec3 xj = fetch(u_state, pj);
+#if PER_NODE_D
+    float d = texelFetch(u_w1, p, 0).r;
+#else
+    float d = u_d;
+#endif
 #if STENCIL_PAPER
     vec3 kj = fetch(u_kappa, pj);
-    f_color = vec4((q * kb * kj * u_d + 2.0 * u_C * kb * kb * xj)
-                   / (kj * u_d + 2.0 * u_C * kb * kj), 0.0);
+    f_color = vec4((q * kb * kj * d + 2.0 * u_C * kb * kb * xj)
+                   / (kj * d + 2.0 * u_C * kb * kj), 0.0);
 #else
-    f_color = vec4((q * u_d + 2.0 * u_C * kb * xj) / (u_d + 2.0 * u_C * kb), 0.0);
+    f_color = vec4((q * d + 2.0 * u_C * kb * xj) / (d + 2.0 * u_C * kb), 0.0);
 #endif
 }

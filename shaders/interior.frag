@@ -9,16 +9,6 @@ flat in ivec2 v_off0;        // texel offset to the node at z-1
 flat in ivec2 v_off1;        // texel offset to the node at z+1
 layout(location = 0) out vec4 f_color;
 
-#if !STENCIL_PAPER
-vec3 face_k(vec3 a, vec3 b) {
-#if FACE_HARMONIC
-    return 2.0 * a * b / (a + b);
-#else
-    return 0.5 * (a + b);
-#endif
-}
-#endif
-
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     ivec2 nb[6] = ivec2[6](p + ivec2(1, 0), p - ivec2(1, 0), p + ivec2(0, 1), p - ivec2(0, 1),
