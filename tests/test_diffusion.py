@@ -285,8 +285,8 @@ def test_release_frees_every_gpu_object(bctx, smooth_kappa):
     p = _smooth_problem(smooth_kappa, (13, 9, 7), 0)
     solver = GlslDiffusion(p, bctx)
     solver.solve(tol=1e-6)
-    objs = [solver._kappa, solver._mu, solver._q, *solver.state.textures, *solver.state.framebuffers,
-            *solver._progs, *solver._buffers, *solver._vaos]
+    objs = [*solver._textures.values(), *solver.state.textures, *solver.state.framebuffers,
+            *solver._progs, *solver._buffers, *(vao for vao, _ in solver._draws)]
     assert len(objs) == 3 + 2 + 2 + 2 + 2 + 2 and not any(_released(o) for o in objs)
     solver.release()
     assert all(_released(o) for o in objs)
