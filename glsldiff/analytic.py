@@ -29,3 +29,26 @@ def slab_fluence(z: ArrayLike, thickness: float, kappa: float, mu: float, C: flo
     a, b = np.linalg.solve(M, [q_minus, q_plus])
     z = np.asarray(z, dtype=np.float64)
     return a * np.cosh(s * z) + b * sinhc(z)
+
+
+def sphere_fluence(r: ArrayLike, radius: float, kappa: float, mu: float, C: float,
+                   q: float) -> NDArray[np.float64]:
+    """Fluence of a homogeneous sphere of ``radius`` (mm) under a uniform boundary source ``q``.
+
+    Solves ``kappa Laplacian phi - mu phi = 0`` with ``phi + 2 C kappa dphi/dr = q`` at
+    ``r = radius``: ``phi(r) = a sinh(s r) / r``, ``s = sqrt(mu / kappa)`` (``phi = q``
+    everywhere for ``mu = 0``). ``r`` (mm) is the distance from the centre.
+    """
+    if kappa <= 0 or mu < 0 or radius <= 0:
+        raise ValueError("sphere_fluence needs kappa > 0, mu >= 0, radius > 0")
+    r = np.asarray(r, dtype=np.float64)
+    if mu == 0:
+        return np.full_like(r, float(q))
+    s = np.sqrt(mu / kappa)
+    R = radius
+    shape = np.sinh(s * R) / R
+    slope = s * np.cosh(s * R) / R - np.sinh(s * R) / R ** 2
+    a = q / (shape + 2.0 * C * kappa * slope)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = a * np.sinh(s * r) / r
+    return np.where(r > 1e-12 * R, out, a * s)

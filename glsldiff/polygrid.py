@@ -268,3 +268,25 @@ def build_polygrid(mesh: "Mesh", n: int = 16, cube_size: float | None = None, n_
 
 
 __all__ = ["Polygrid", "build_polygrid", "box_polygrid", "lattice_polygrid", "INTERIOR", "BOUNDARY", "INACTIVE"]
+
+
+def polygrid_figure(pg: Polygrid, path: str, size: tuple[int, int] = (900, 900), slab: float = 0.5,
+                    view: "Any | None" = None, ctx: Any = None) -> str:
+    """Paper figure 5: boundary nodes (red) on the translucent mesh, interior nodes (blue) in
+    a slab of half-width ``slab`` cube edges around the median z of the interior nodes, and
+    the boundary-to-partner links (grey)."""
+    from glsldiff.figure import View, save_nodes_png
+
+    if pg.mesh is None:
+        raise InputError("polygrid_figure needs a polygrid built from a mesh")
+    lat = pg.lattice
+    inner = pg.positions[lat.interior]
+    zc = float(np.median(inner[:, 2]))
+    half = max(slab * lat.size, 0.6 * lat.h)
+    clip = [((0.0, 0.0, 1.0), zc + half), ((0.0, 0.0, -1.0), -(zc - half))]
+    links = np.stack([pg.boundary_positions, pg.positions[lat.link]], axis=1)
+    save_nodes_png(path, pg.mesh.vertices, pg.mesh.faces,
+                   [(pg.boundary_positions, (0.85, 0.1, 0.1), False), (inner, (0.1, 0.25, 0.85))],
+                   size=size, view=view if view is not None else View(), clip=clip,
+                   lines=[(links, (0.3, 0.3, 0.3))], ctx=ctx, point_size_px=2.5)
+    return path
