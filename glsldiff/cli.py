@@ -133,6 +133,18 @@ def check_solve(pg: "object", tol: float) -> list[dict[str, object]]:
             for r, ph in ((rep_d, phi_d), (rep_g, phi_g))]
 
 
+def cmd_bench_sphere(args: argparse.Namespace) -> int:
+    from glsldiff.convergence import sphere_study
+
+    rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
+                        out=Path(args.out))
+    print_table(f"polygrid sphere R = {args.radius} mm vs closed form (relative L2 of phi)", rows)
+    print("err_*_blend: default weights (blend fallback); _axis / _none: the other fallbacks on the same "
+          "nodes; glsl_vs_direct: GPU Jacobi vs SuperLU of the same system.")
+    print(f"wrote sphere.csv and sphere.png to {args.out}/")
+    return 0
+
+
 def cmd_info(args: argparse.Namespace) -> int:
     from glsldiff import gl
 
@@ -194,6 +206,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="polygrid-out")
     _add_gl(p)
     p.set_defaults(func=cmd_polygrid)
+
+    b = bsub.add_parser("sphere", help="polygrid sphere vs the closed form, grid refinement")
+    b.add_argument("--n", type=int, nargs="+", default=[4, 6, 8, 12], help="nodes per cube edge")
+    b.add_argument("--radius", type=float, default=10.0, help="sphere radius, mm")
+    b.add_argument("--cube-size", type=float, default=5.0, help="polycube cube edge, mm")
+    b.add_argument("--no-glsl", action="store_true", help="skip the GLSL solve (direct solves only)")
+    b.add_argument("--out", default="bench-out")
+    _add_gl(b)
+    b.set_defaults(func=cmd_bench_sphere)
 
     p = sub.add_parser("info", help="report the available GL backends and renderers")
     p.set_defaults(func=cmd_info)

@@ -13,7 +13,9 @@
    nodes and partners fixed (sparse CG solve), then the paper's objective
    ``sum_i Var({|v_i - v_j|})``, minimised with L-BFGS over these free nodes (the sum runs
    over them too: a partner's short link ``d`` is there by design, and its variance
-   would pull the next layer towards the surface).
+   would pull the next layer towards the surface). The objective does not see orientation
+   and, left alone, folds cells; so only the largest fraction of the move away from the
+   harmonic placement is kept that inverts no cell and keeps every free node inside.
 
 Every stage records what it achieved in :class:`MappingStats`.
 """
@@ -48,6 +50,7 @@ class MappingStats:
     variance_harmonic: float = float("nan")     # mean link-length variance / h^2, harmonic placement
     variance_final: float = float("nan")        # ... after the variance minimisation
     variance_iterations: int = 0
+    variance_step: float = float("nan")         # fraction of the L-BFGS move kept (fold/containment guard)
     inverted: int = 0                           # interior nodes whose local frame is left-handed
     outside_checked: int = 0                    # interior nodes tested for containment
     outside: int = 0                            # of those, outside the mesh
@@ -69,6 +72,14 @@ def _adjacency(pairs: NDArray[np.int64], index: NDArray[np.int64], n: int) -> sp
 
 def _pair_lengths(x: NDArray, pairs_local: NDArray) -> NDArray:
     return np.linalg.norm(x[pairs_local[:, 0]] - x[pairs_local[:, 1]], axis=1)
+
+
+def _inverted(pos: NDArray, nbrs: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Interior nodes whose lattice axes (x+ - x-, y+ - y-, z+ - z-) are not right-handed."""
+    ex = pos[nbrs[:, 1]] - pos[nbrs[:, 0]]
+    ey = pos[nbrs[:, 3]] - pos[nbrs[:, 2]]
+    ez = pos[nbrs[:, 5]] - pos[nbrs[:, 4]]
+    return np.einsum("ij,ij->i", np.cross(ex, ey), ez) <= 0
 
 
 def link_variance(pos: NDArray, centers: NDArray[np.int64], nbrs: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -195,20 +206,28 @@ def map_to_mesh(lattice: Lattice, mesh: "Mesh", relax_iterations: int = 10, rela
     st.seconds["harmonic"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     if free.size and variance_iterations > 0:
-        res = so.minimize(_variance_objective, pos[free].ravel(), jac=True, method="L-BFGS-B",
+        harmonic = pos[free].copy()
+        res = so.minimize(_variance_objective, harmonic.ravel(), jac=True, method="L-BFGS-B",
                           args=(pos, free, free, free_nbrs, h2),
                           options={"maxiter": variance_iterations, "maxcor": 10})
-        pos[free] = res.x.reshape(-1, 3)
         st.variance_iterations = int(res.nit)
+        # The variance objective is blind to orientation: unconstrained it folds cells.
+        # Keep the largest step from the harmonic placement that inverts no cell and
+        # moves no sampled node out of the mesh that was inside.
+        base_inv = _inverted(pos, nbrs)
+        optimum = res.x.reshape(-1, 3)
+        for alpha in (1.0, 0.5, 0.25, 0.125, 0.0625, 0.0):
+            pos[free] = harmonic + alpha * (optimum - harmonic)
+            if alpha == 0.0 or (np.sum(_inverted(pos, nbrs) & ~base_inv) == 0
+                                and contains(mesh, pos[free]).all()):
+                break
+        st.variance_step = alpha
     st.variance_final = float(link_variance(pos, free, free_nbrs).mean() / h2) if free.size else 0.0
     st.seconds["variance"] = time.perf_counter() - t3
 
     # checks: left-handed local frames, interior nodes outside the mesh
     p = pos
-    ex = p[nbrs[:, 1]] - p[nbrs[:, 0]]
-    ey = p[nbrs[:, 3]] - p[nbrs[:, 2]]
-    ez = p[nbrs[:, 5]] - p[nbrs[:, 4]]
-    st.inverted = int((np.einsum("ij,ij->i", np.cross(ex, ey), ez) <= 0).sum())
+    st.inverted = int(_inverted(p, nbrs).sum())
     rng = np.random.default_rng(seed)
     sample = interior if interior.size <= containment_samples else rng.choice(interior, containment_samples,
                                                                                replace=False)

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.errors import InputError
+from glsldiff.errors import InputError, SolverError
 from glsldiff.graph import BOUNDARY, INACTIVE, INTERIOR, NodeGraph
 from glsldiff.lattice import Lattice
 from glsldiff.packing import Mosaic
@@ -109,15 +109,29 @@ class Polygrid:
     # ---- the discrete system ---------------------------------------------------------
     @cached_property
     def d(self) -> NDArray[np.float64]:
-        """``(n_boundary,)`` distance of each boundary node to its partner, mm."""
+        """``(n_boundary,)`` distance of each boundary node to its partner along the inward
+        normal, mm: ``(p_b - p_j) . n_b`` (paper: "the distance ... along the inward normal
+        direction"). It equals the full distance where the partner lies on the normal; a
+        partner shared by two or three boundary nodes at a polycube edge lies off their
+        normals, and the normal component keeps ``(phi_b - phi_j) / d`` an approximation of
+        the normal derivative. Clamped below at 5 % of the full distance."""
         lat = self.lattice
-        return np.linalg.norm(self.positions[lat.boundary] - self.positions[lat.link], axis=1)
+        delta = self.positions[lat.boundary] - self.positions[lat.link]
+        full = np.linalg.norm(delta, axis=1)
+        normal = np.einsum("ij,ij->i", delta, self.normals)
+        return np.maximum(normal, 0.05 * full)
 
     @cached_property
     def graph(self) -> NodeGraph:
         """Connectivity with scaled weights ``w_j * 6 / sum_j w_j`` and row scale ``6 / sum_j w_j``."""
         lat = self.lattice
-        scale = 6.0 / self.weights.sum(axis=1)
+        total = self.weights.sum(axis=1)
+        bad = ~(total > 0)
+        if bad.any():
+            raise SolverError(f"the Laplacian weights of {int(bad.sum())} interior nodes sum to <= 0 or NaN "
+                              "(distorted stencils without a fallback); build the weights with "
+                              "fallback='blend' or 'axis'")
+        scale = 6.0 / total
         g = NodeGraph(lat.kind, lat.neighbours, self.weights * scale[:, None], scale, lat.link, self.d)
         g.check()
         return g

@@ -163,7 +163,7 @@ class DirectSolver:
         t0 = time.perf_counter()
         self.problem = problem
         self.system = assemble(problem)
-        self._lu = [spla.splu(self.system.block(c)[0].tocsc(), permc_spec="MMD_AT_PLUS_A")
+        self._lu = [spla.splu(self.system.block(c)[0].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1)
                     for c in range(3)]
         self.factor_seconds = time.perf_counter() - t0
 
