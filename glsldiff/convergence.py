@@ -22,7 +22,7 @@ from glsldiff import io
 from glsldiff.errors import GlsldiffError
 from glsldiff.analytic import sphere_fluence
 from glsldiff.optics import boundary_constant
-from glsldiff.polygrid import Polygrid, build_polygrid
+from glsldiff.polygrid import Polygrid, build_polygrid, with_weights
 from glsldiff.problem import DiffusionProblem, relative_l2
 from glsldiff.reference import solve_direct
 
@@ -32,14 +32,6 @@ def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, fl
     lat = pg.lattice
     return (relative_l2(flat[lat.boundary], exact[lat.boundary]),
             relative_l2(flat[lat.interior], exact[lat.interior]))
-
-
-def _with_weights(pg: Polygrid, fallback: str) -> Polygrid:
-    from glsldiff.weights import laplacian_weights
-
-    lat = pg.lattice
-    w, ws = laplacian_weights(pg.positions[lat.interior], pg.positions[lat.neighbours], fallback=fallback)
-    return Polygrid(lat, pg.positions, pg.normals, w, ws, pg.mapping, pg.mesh, pg.polycube, pg.seconds)
 
 
 def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_size: float = 5.0,
@@ -65,7 +57,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
                                   "nodes": pg.n_active, "build_s": build,
                                   "fallback_nodes": pg.weight_stats.fallback if pg.weight_stats else 0}
         for fallback in ("blend", "axis", "none"):
-            g = pg if fallback == "blend" else _with_weights(pg, fallback)
+            g = pg if fallback == "blend" else with_weights(pg, fallback=fallback)
             t1 = time.perf_counter()
             try:
                 p = DiffusionProblem(g, kappa, mu, q, C=C)

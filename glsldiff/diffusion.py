@@ -90,6 +90,8 @@ class GlslDiffusion:
         ``"fp32"`` or ``"fp16"`` for the ping-pong buffers (materials are always fp32).
     """
 
+    method = "glsl-jacobi"  # report name (before the precision suffix)
+
     def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
                  precision: str = "fp32") -> None:
         if precision not in gl.DTYPES:
@@ -251,7 +253,7 @@ class GlslDiffusion:
             logger.warning("GLSL Jacobi did not converge (%s): residual %.3e after %d sweeps",
                            status, res, sweeps)
         report = SolveReport(
-            f"glsl-jacobi-{self.precision}", nodes=system.n, sweeps=sweeps, residual=res,
+            f"{self.method}-{self.precision}", nodes=system.n, sweeps=sweeps, residual=res,
             seconds=time.perf_counter() - t0, converged=converged, residuals=history, status=status,
             error_estimate=contraction_error_estimate(history, step, float(np.linalg.norm(x))),
             device=gl.describe(self.ctx), radiance=self.problem.exitant_radiance(phi))

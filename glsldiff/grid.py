@@ -39,6 +39,8 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from typing import Mapping
+
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.errors import InputError
@@ -195,6 +197,44 @@ class RegularGrid:
                     f"{want + (channels,)} for a {self.nx}x{self.ny}x{self.nz} grid")
             out[_face_index(name)] = arr
         return out
+
+    def source_volume(self, q: ArrayLike | Mapping[str, ArrayLike] | None) -> NDArray[np.float64]:
+        """Boundary source ``q`` as a ``(nz, ny, nx, 3)`` volume, 0 off the boundary.
+
+        ``q`` is either a mapping face name -> face array (see :mod:`glsldiff.grid`) or a
+        full volume of shape ``(nz, ny, nx)`` / ``(nz, ny, nx, 3)`` that is zero at every
+        non-boundary node; ``None`` is zero. Negative values are allowed (adjoint sources
+        are signed).
+        """
+        if q is None:
+            q = {}
+        if isinstance(q, Mapping):
+            vol = self.face_volume(q)
+        else:
+            vol = np.asarray(q, dtype=np.float64)
+            if vol.shape == self.shape:
+                vol = vol[..., None]
+            if vol.shape[:3] != self.shape or vol.ndim != 4 or vol.shape[3] not in (1, 3):
+                raise InputError(
+                    f"q has shape {np.shape(q)}; expected {self.shape} or {self.shape + (3,)} "
+                    "(or a dict of face arrays)")
+            vol = np.broadcast_to(vol, self.shape + (3,)).copy()
+            off = (self.kind != BOUNDARY) & np.any(vol != 0, axis=-1)
+            if off.any():
+                z, y, x = np.argwhere(off)[0]
+                raise InputError(
+                    f"q is non-zero at {int(off.sum())} nodes that are not boundary nodes "
+                    f"(e.g. x={x}, y={y}, z={z}); q is only defined on the six faces, "
+                    "edges and corners excluded")
+        bad = ~np.isfinite(vol)
+        if bad.any():
+            z, y, x, c = np.argwhere(bad)[0]
+            raise InputError(f"q has {int(bad.sum())} non-finite values (e.g. x={x}, y={y}, z={z}, channel {c})")
+        return vol
+
+    def boundary_values(self, volume: ArrayLike) -> dict[str, NDArray]:
+        """The boundary-node values of a volume array, as a dict of face arrays."""
+        return {name: self.face(volume, name) for name in FACES}
 
     # ---- texture packing -----------------------------------------------------
     @cached_property

@@ -120,13 +120,19 @@ class Lattice:
         """``(N, 3)`` node positions in the polycube (cell centres), mm."""
         return self.origin + (self.coords + 0.5) * self.h
 
+    @cached_property
+    def _cube_table(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Dense cube-coordinate lookup (cube index or -1) over the cubes' bounding box, and its origin."""
+        lo = self.cubes.min(axis=0)
+        table = np.full(tuple(self.cubes.max(axis=0) - lo + 1), -1, dtype=np.int64)
+        table[tuple((self.cubes - lo).T)] = np.arange(len(self.cubes))
+        return table, lo
+
     def index_of(self, g: NDArray[np.int64]) -> NDArray[np.int64]:
         """Flat node index of global lattice coordinates ``(..., 3)``; -1 outside the polycube."""
         n = self.n
-        lo = self.cubes.min(axis=0)
-        dims = self.cubes.max(axis=0) - lo + 1
-        table = np.full(tuple(dims), -1, dtype=np.int64)
-        table[tuple((self.cubes - lo).T)] = np.arange(len(self.cubes))
+        table, lo = self._cube_table
+        dims = np.array(table.shape)
         c = np.floor_divide(g, n) - lo
         inside = np.all((c >= 0) & (c < dims), axis=-1)
         cube = np.full(g.shape[:-1], -1, dtype=np.int64)

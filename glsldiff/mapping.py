@@ -24,6 +24,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.optimize as so
@@ -32,6 +33,9 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from glsldiff.lattice import Lattice
+
+if TYPE_CHECKING:
+    from glsldiff.mesh import Mesh
 
 logger = logging.getLogger(__name__)
 

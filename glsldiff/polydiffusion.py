@@ -62,6 +62,8 @@ class PolygridDiffusion(GlslDiffusion):
     ``(n_boundary, 3)`` exitant radiance.
     """
 
+    method = "glsl-polygrid"
+
     def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
                  precision: str = "fp32") -> None:
         if not isinstance(problem.grid, Polygrid):
@@ -103,6 +105,4 @@ def solve_polygrid(problem: DiffusionProblem, ctx: moderngl.Context | None = Non
                    precision: str = "fp32", **kwargs: object) -> tuple[NDArray, SolveReport]:
     """One-shot GLSL polygrid solve; ``kwargs`` go to :meth:`GlslDiffusion.solve`."""
     with PolygridDiffusion(problem, ctx, precision) as solver:
-        phi, rep = solver.solve(**kwargs)  # type: ignore[arg-type]
-    rep.method = rep.method.replace("glsl-jacobi", "glsl-polygrid")
-    return phi, rep
+        return solver.solve(**kwargs)  # type: ignore[arg-type]

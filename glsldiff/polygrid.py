@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import cached_property
 from typing import TYPE_CHECKING, Any
 
@@ -158,15 +158,15 @@ class Polygrid:
         return self.mosaic.unpack(texture, channels).reshape(self.shape + (channels,))
 
     # ---- boundary data -------------------------------------------------------------------
-    def source_volume(self, q: ArrayLike) -> NDArray[np.float64]:
+    def source_volume(self, q: ArrayLike | None) -> NDArray[np.float64]:
         """Boundary source as a ``shape + (3,)`` node array, 0 off the boundary.
 
         ``q`` is a scalar or RGB triple (every boundary node), a ``(n_boundary,)`` or
         ``(n_boundary, 3)`` array in boundary-node order, or a full node array that is
-        zero off the boundary. Negative values are allowed (adjoint sources).
+        zero off the boundary; ``None`` is zero. Negative values are allowed (adjoint sources).
         """
         nb = self.n_boundary
-        arr = np.asarray(q, dtype=np.float64)
+        arr = np.asarray(0.0 if q is None else q, dtype=np.float64)
         out = np.zeros((self.size, 3))
         if arr.ndim == 0 or arr.shape == (3,):
             out[self.lattice.boundary] = arr
@@ -212,7 +212,8 @@ class Polygrid:
         return out
 
 
-def _weights(positions: NDArray, lattice: Lattice, **options: Any) -> tuple[NDArray, "WeightStats"]:
+def node_weights(positions: NDArray, lattice: Lattice, **options: Any) -> tuple[NDArray, "WeightStats"]:
+    """Laplacian weights of every interior node (options of :func:`glsldiff.weights.laplacian_weights`)."""
     from glsldiff.weights import laplacian_weights
     return laplacian_weights(positions[lattice.interior], positions[lattice.neighbours], **options)
 
@@ -222,7 +223,7 @@ def lattice_polygrid(lattice: Lattice, max_texture_size: int = 16384, **weight_o
     outside their partners, weights ``1/h^2``."""
     t0 = time.perf_counter()
     pos = lattice.lattice_positions.copy()
-    w, ws = _weights(pos, lattice, **weight_options)
+    w, ws = node_weights(pos, lattice, **weight_options)
     return Polygrid(lattice, pos, lattice.outward.copy(), w, ws, seconds={"total": time.perf_counter() - t0},
                     max_texture_size=max_texture_size)
 
@@ -273,7 +274,7 @@ def build_polygrid(mesh: "Mesh", n: int = 16, cube_size: float | None = None, n_
     pos, normals, mstats = map_to_mesh(lattice, mesh, **(mapping or {}))
     seconds["mapping"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    w, wstats = _weights(pos, lattice, **(weights or {}))
+    w, wstats = node_weights(pos, lattice, **(weights or {}))
     seconds["weights"] = time.perf_counter() - t3
     seconds["total"] = time.perf_counter() - t0
     pg = Polygrid(lattice, pos, normals, w, wstats, mstats, mesh, polycube, seconds, max_texture_size)
@@ -282,6 +283,12 @@ def build_polygrid(mesh: "Mesh", n: int = 16, cube_size: float | None = None, n_
 
 
 __all__ = ["Polygrid", "build_polygrid", "box_polygrid", "lattice_polygrid", "INTERIOR", "BOUNDARY", "INACTIVE"]
+
+
+def with_weights(pg: Polygrid, **weight_options: Any) -> Polygrid:
+    """The same nodes with weights rebuilt under other options (e.g. another fallback)."""
+    w, ws = node_weights(pg.positions, pg.lattice, **weight_options)
+    return replace(pg, weights=w, weight_stats=ws)
 
 
 def polygrid_figure(pg: Polygrid, path: str, size: tuple[int, int] = (900, 900), slab: float = 0.5,

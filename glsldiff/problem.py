@@ -22,16 +22,19 @@ Both use the boundary row ``phi_b + 2 C kappa_b (phi_b - phi_j) / d = q_b`` with
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Literal, Mapping
+from typing import TYPE_CHECKING, Literal, Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.errors import InputError
 from glsldiff.graph import NodeGraph
-from glsldiff.grid import BOUNDARY, RegularGrid
+from glsldiff.grid import RegularGrid
 from glsldiff.material import validate_coefficients
 from glsldiff.optics import boundary_constant, fresnel_transmittance
+
+if TYPE_CHECKING:
+    from glsldiff.polygrid import Polygrid
 
 Stencil = Literal["paper", "conservative"]
 FaceMean = Literal["arithmetic", "harmonic"]
@@ -51,38 +54,6 @@ def _as_volume(name: str, values: ArrayLike, shape: tuple[int, ...]) -> NDArray[
     raise InputError(f"{name} has shape {arr.shape}; the grid needs a scalar, (3,), {shape} or {shape + (3,)}")
 
 
-def validate_q(grid: RegularGrid, q: ArrayLike | Mapping[str, ArrayLike]) -> NDArray[np.float64]:
-    """Boundary source ``q`` as a ``(nz, ny, nx, 3)`` volume, 0 off the boundary.
-
-    ``q`` is either a mapping face name -> face array (see :mod:`glsldiff.grid`) or a
-    full volume of shape ``(nz, ny, nx)`` / ``(nz, ny, nx, 3)`` that is zero at every
-    non-boundary node. Negative values are allowed (adjoint sources are signed).
-    """
-    if isinstance(q, Mapping):
-        vol = grid.face_volume(q)
-    else:
-        vol = np.asarray(q, dtype=np.float64)
-        if vol.shape == grid.shape:
-            vol = vol[..., None]
-        if vol.shape[:3] != grid.shape or vol.ndim != 4 or vol.shape[3] not in (1, 3):
-            raise InputError(
-                f"q has shape {np.shape(q)}; expected {grid.shape} or {grid.shape + (3,)} "
-                "(or a dict of face arrays)")
-        vol = np.broadcast_to(vol, grid.shape + (3,)).copy()
-        off = (grid.kind != BOUNDARY) & np.any(vol != 0, axis=-1)
-        if off.any():
-            z, y, x = np.argwhere(off)[0]
-            raise InputError(
-                f"q is non-zero at {int(off.sum())} nodes that are not boundary nodes "
-                f"(e.g. x={x}, y={y}, z={z}); q is only defined on the six faces, "
-                "edges and corners excluded")
-    bad = ~np.isfinite(vol)
-    if bad.any():
-        z, y, x, c = np.argwhere(bad)[0]
-        raise InputError(f"q has {int(bad.sum())} non-finite values (e.g. x={x}, y={y}, z={z}, channel {c})")
-    return vol
-
-
 @dataclass
 class DiffusionProblem:
     """Grid, material, boundary source and discretisation choices, validated.
@@ -95,7 +66,8 @@ class DiffusionProblem:
         Diffusion coefficient (mm) and absorption (mm^-1) per node: shape
         ``(nz, ny, nx)`` or ``(nz, ny, nx, 3)``, or scalars / ``(3,)`` for homogeneous.
     q
-        Boundary source (see :func:`validate_q`); defaults to zero.
+        Boundary source (see ``grid.source_volume``: face arrays on a regular grid,
+        per-boundary-node values on a polygrid); defaults to zero.
     eta
         Relative refractive index (used for ``F_t`` in the exitant radiance and, when
         ``C`` is not given, ``C = boundary_constant(eta)``).
@@ -106,7 +78,7 @@ class DiffusionProblem:
         Interior discretisation (module docstring).
     """
 
-    grid: RegularGrid
+    grid: "RegularGrid | Polygrid"
     kappa: ArrayLike
     mu: ArrayLike
     q: ArrayLike | Mapping[str, ArrayLike] | None = None
@@ -116,7 +88,7 @@ class DiffusionProblem:
     face_mean: FaceMean = "arithmetic"
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.grid, RegularGrid) or hasattr(self.grid, "source_volume")):
+        if not hasattr(self.grid, "source_volume"):
             raise InputError(f"grid must be a RegularGrid or a Polygrid, got {type(self.grid).__name__}")
         shape = self.grid.shape
         kappa = _as_volume("kappa", self.kappa, shape)
@@ -127,10 +99,7 @@ class DiffusionProblem:
             kappa, mu = kappa.copy(), mu.copy()
             kappa[dead], mu[dead] = 1.0, 0.0
         self.kappa, self.mu = validate_coefficients(kappa, mu)
-        if isinstance(self.grid, RegularGrid):
-            self.q = validate_q(self.grid, {} if self.q is None else self.q)
-        else:
-            self.q = self.grid.source_volume(0.0 if self.q is None else self.q)
+        self.q = self.grid.source_volume(self.q)
         if not np.isfinite(self.eta) or self.eta <= 0:
             raise InputError(f"eta={self.eta!r} must be a finite relative index > 0")
         if self.C is None:
@@ -181,9 +150,7 @@ class DiffusionProblem:
         """
         ft = float(fresnel_transmittance(self.eta, cos_o))
         L = ft * (phi - self.q) / (2.0 * np.pi)
-        if not isinstance(self.grid, RegularGrid):
-            return self.grid.boundary_values(L)
-        return {name: self.grid.face(L, name) for name in ("x-", "x+", "y-", "y+", "z-", "z+")}
+        return self.grid.boundary_values(L)
 
 
 def relative_l2(x: ArrayLike, ref: ArrayLike, mask: NDArray[np.bool_] | None = None) -> float:

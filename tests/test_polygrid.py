@@ -15,10 +15,9 @@ from glsldiff.grid import RegularGrid
 from glsldiff.lattice import OPPOSITE, STEPS, Lattice
 from glsldiff.packing import Mosaic, decompose
 from glsldiff.polydiffusion import PolygridDiffusion, polygrid_primitives, solve_polygrid
-from glsldiff.polygrid import Polygrid, box_polygrid, lattice_polygrid
+from glsldiff.polygrid import Polygrid, box_polygrid, lattice_polygrid, node_weights
 from glsldiff.problem import DiffusionProblem, relative_l2
 from glsldiff.reference import assemble, solve_direct
-from glsldiff.weights import laplacian_weights
 
 L_SHAPE = [[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [0, 2, 0], [0, 0, 1]]
 # a ring of 8 cubes around a hole (genus 1), two layers thick
@@ -50,7 +49,7 @@ def _distorted(lat: Lattice, amplitude: float) -> Polygrid:
     disp = amplitude * lat.h * np.stack([np.sin(p[:, 1] / s * 3 + p[:, 2] / s), np.sin(p[:, 2] / s * 2 + p[:, 0] / s),
                                          np.sin(p[:, 0] / s * 2.5 + p[:, 1] / s)], axis=1)
     pos = p + disp
-    w, ws = laplacian_weights(pos[lat.interior], pos[lat.neighbours])
+    w, ws = node_weights(pos, lat)
     return Polygrid(lat, pos, lat.outward.copy(), w, ws)
 
 
