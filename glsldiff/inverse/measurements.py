@@ -1,0 +1,205 @@
+"""Measurements of a block sample: what inverse diffusion fits (paper section 4.1-4.2).
+
+For each of ``M`` illumination conditions a measurement holds
+
+* ``incoming`` -- the diffuse incoming light ``q`` (paper eq. 2, already Fresnel-transmitted)
+  at every boundary node of the lit face, per RGB channel;
+* ``radiance`` -- the measured multiple-scattering radiance ``L_o`` at every boundary node
+  of the observed face, per RGB channel;
+* ``mask`` -- which observed values to use: thick front-lit samples use only nodes that are
+  not directly lit, and saturated pixels are dropped.
+
+Face arrays follow :mod:`glsldiff.grid` (``z-`` face: ``(ny-2, nx-2)``, indexed ``[y, x]``).
+Back-lit thin samples: ``lit_face="z-"``, ``observed_face="z+"``; front-lit thick samples:
+both ``"z-"``.
+
+``.npz`` layout (:func:`save_measurements` / :func:`load_measurements`)::
+
+    shape          int (3,)      grid nodes (nz, ny, nx), boundary layer included
+    h              float         node spacing, mm
+    eta            float         relative refractive index
+    lit_face       str           e.g. "z-"
+    observed_face  str           e.g. "z+"
+    incoming       (M, a, b, 3)  q on the lit face (radiometric units of the camera)
+    radiance       (M, c, d, 3)  measured L_o on the observed face (same units)
+    mask           (M, c, d) or (M, c, d, 3) bool, optional (default: all observed)
+    saturation     float, optional: radiance >= saturation is masked out
+    C              float, optional: boundary constant (default from eta)
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.errors import InputError
+from glsldiff.grid import FACES, RegularGrid
+from glsldiff.io import atomic_path
+
+REQUIRED = ("shape", "h", "lit_face", "observed_face", "incoming", "radiance")
+
+
+@dataclass
+class Measurements:
+    """Validated measurements of one block sample (see the module docstring)."""
+
+    shape: tuple[int, int, int]
+    h: float
+    lit_face: str
+    observed_face: str
+    incoming: NDArray[np.float64]
+    radiance: NDArray[np.float64]
+    mask: NDArray[np.bool_] | None = None
+    eta: float = 1.3
+    saturation: float | None = None
+    C: float | None = None
+
+    def __post_init__(self) -> None:
+        shape = tuple(int(s) for s in np.asarray(self.shape).ravel())
+        if len(shape) != 3:
+            raise InputError(f"shape must be (nz, ny, nx), got {self.shape!r}")
+        self.shape = shape  # type: ignore[assignment]
+        nz, ny, nx = shape
+        self.grid = RegularGrid(nx, ny, nz, h=float(self.h))  # validates sizes and h
+        for name in ("lit_face", "observed_face"):
+            face = str(getattr(self, name))
+            if face not in FACES:
+                raise InputError(f"{name}={face!r}; valid faces: {', '.join(FACES)}")
+            setattr(self, name, face)
+        if not (np.isfinite(self.eta) and self.eta > 0):
+            raise InputError(f"eta={self.eta!r} must be a finite relative index > 0")
+        self.incoming = self._face_stack("incoming", self.incoming, self.lit_face)
+        self.radiance = self._face_stack("radiance", self.radiance, self.observed_face)
+        M = self.incoming.shape[0]
+        if M == 0:
+            raise InputError("incoming/radiance hold M = 0 illumination conditions; at least one is needed")
+        if self.radiance.shape[0] != M:
+            raise InputError(f"incoming has M = {M} illumination conditions but radiance has "
+                             f"{self.radiance.shape[0]}")
+        if np.any(self.incoming < 0):
+            raise InputError(f"incoming has {int((self.incoming < 0).sum())} negative values; "
+                             "incoming light q must be >= 0")
+        if not np.any(self.incoming > 0):
+            raise InputError("incoming is zero everywhere: no illumination condition lights the sample")
+        self.mask = self._mask()
+        if np.any(self.radiance[self.mask] < 0):
+            raise InputError(f"radiance has {int((self.radiance[self.mask] < 0).sum())} negative values "
+                             "among the used (masked-in) nodes; radiance must be >= 0 (subtract the "
+                             "black level and clip, or mask those pixels out)")
+        if not self.mask.any():
+            raise InputError("the mask observes nothing: no radiance value is used")
+        for c in range(3):
+            if not self.mask[..., c].any():
+                raise InputError(f"the mask observes nothing in channel {c}")
+            if not np.any(self.radiance[..., c][self.mask[..., c]] > 0):
+                raise InputError(f"every used radiance value of channel {c} is 0; nothing to fit")
+        if self.C is not None and not (np.isfinite(self.C) and self.C > 0):
+            raise InputError(f"C={self.C!r} must be finite and > 0")
+
+    def _face_stack(self, name: str, values: ArrayLike, face: str) -> NDArray[np.float64]:
+        arr = np.asarray(values, dtype=np.float64)
+        want = self.grid.face_shape(face)
+        if arr.ndim == 3 and arr.shape[1:] == want:
+            arr = np.repeat(arr[..., None], 3, axis=-1)
+        if arr.ndim != 4 or arr.shape[1:3] != want or arr.shape[3] != 3:
+            raise InputError(f"{name} has shape {arr.shape}; face {face!r} of a {self.shape} grid needs "
+                             f"(M, {want[0]}, {want[1]}, 3) or (M, {want[0]}, {want[1]})")
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            m, a, b, c = np.argwhere(bad)[0]
+            raise InputError(f"{name} has {int(bad.sum())} non-finite values "
+                             f"(e.g. condition {m}, node [{a}, {b}], channel {c})")
+        return arr
+
+    def _mask(self) -> NDArray[np.bool_]:
+        shape = self.radiance.shape
+        if self.mask is None:
+            mask = np.ones(shape, dtype=bool)
+        else:
+            mask = np.asarray(self.mask)
+            if mask.dtype != bool:
+                raise InputError(f"mask must be boolean, got dtype {mask.dtype}")
+            if mask.shape == shape[:3]:
+                mask = np.repeat(mask[..., None], 3, axis=-1)
+            if mask.shape != shape:
+                raise InputError(f"mask has shape {mask.shape}; expected {shape[:3]} or {shape}")
+            mask = mask.copy()
+        if self.saturation is not None:
+            if not (np.isfinite(self.saturation) and self.saturation > 0):
+                raise InputError(f"saturation={self.saturation!r} must be finite and > 0")
+            mask &= self.radiance < self.saturation
+        return mask
+
+    # ---- derived --------------------------------------------------------------
+    @property
+    def M(self) -> int:
+        return int(self.incoming.shape[0])
+
+    @property
+    def saturated(self) -> int:
+        """Number of (condition, node, channel) values dropped as saturated."""
+        if self.saturation is None:
+            return 0
+        return int(np.sum(self.radiance >= self.saturation))
+
+    def channel(self, c: int) -> tuple[NDArray, NDArray, NDArray]:
+        """Sources ``Q``, measurements ``Y`` and weights ``W``, each ``(n_boundary, M)`` in the
+        order of ``grid.graph.boundary``, for channel ``c``."""
+        g = self.grid
+        b = g.graph.boundary
+        Q = np.stack([g.face_volume({self.lit_face: self.incoming[m, ..., c]}, 1).reshape(-1)[b]
+                      for m in range(self.M)], axis=1)
+        Y = np.stack([g.face_volume({self.observed_face: self.radiance[m, ..., c]}, 1).reshape(-1)[b]
+                      for m in range(self.M)], axis=1)
+        W = np.stack([g.face_volume({self.observed_face: self.mask[m, ..., c].astype(float)}, 1).reshape(-1)[b]
+                      for m in range(self.M)], axis=1)
+        return Q, Y, W
+
+    def grey(self) -> bool:
+        """True when the three channels hold identical data (one fit serves all three)."""
+        return all(np.array_equal(a[..., 0], a[..., c]) for a in (self.incoming, self.radiance, self.mask)
+                   for c in (1, 2))
+
+
+def save_measurements(path: str | os.PathLike, m: Measurements) -> Path:
+    """Write ``m`` to an ``.npz`` file atomically (no half-written file on failure)."""
+    arrays: dict[str, object] = dict(shape=np.array(m.shape), h=m.h, eta=m.eta, lit_face=m.lit_face,
+                                     observed_face=m.observed_face, incoming=m.incoming,
+                                     radiance=m.radiance, mask=m.mask)
+    if m.saturation is not None:
+        arrays["saturation"] = m.saturation
+    if m.C is not None:
+        arrays["C"] = m.C
+    with atomic_path(path, ".npz") as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+    return Path(path)
+
+
+def load_measurements(path: str | os.PathLike) -> Measurements:
+    """Read and validate an ``.npz`` measurement file (layout in the module docstring)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"measurements file {str(p)!r} does not exist")
+    try:
+        data = np.load(p, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read measurements file {str(p)!r}: {exc}") from None
+    with data:
+        missing = [k for k in REQUIRED if k not in data.files]
+        if missing:
+            raise InputError(f"measurements file {str(p)!r} lacks {', '.join(missing)} "
+                             f"(needs {', '.join(REQUIRED)})")
+
+        def scalar(key: str, default: float | None) -> float | None:
+            return float(data[key]) if key in data.files else default
+
+        return Measurements(shape=tuple(data["shape"]), h=float(data["h"]),
+                            lit_face=str(data["lit_face"]), observed_face=str(data["observed_face"]),
+                            incoming=data["incoming"], radiance=data["radiance"],
+                            mask=data["mask"] if "mask" in data.files else None,
+                            eta=scalar("eta", 1.3), saturation=scalar("saturation", None),
+                            C=scalar("C", None))
