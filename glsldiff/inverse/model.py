@@ -228,8 +228,8 @@ class Factorized:
 
 def regularizer_matrix(model: ForwardModel) -> sp.csr_matrix:
     """Forward-difference operator ``D`` over lattice edges between active nodes, scaled so
-    that ``||D kappa||^2`` is the volume mean of ``|grad kappa|^2`` (dimensionless):
-    ``sum_edges ((kappa_i - kappa_j) / h)^2 / n_active``."""
+    that ``||D kappa||^2 = sum_x |grad kappa(x)|^2`` (paper section 4.2; dimensionless):
+    ``sum_edges ((kappa_i - kappa_j) / h)^2``."""
     g = model.grid
     act = g.active
     pos = np.full(g.shape, -1, dtype=np.int64)
@@ -246,6 +246,6 @@ def regularizer_matrix(model: ForwardModel) -> sp.csr_matrix:
         cols += [i, j]
         vals += [np.full(i.size, -1.0), np.full(i.size, 1.0)]
         e += i.size
-    s = 1.0 / (g.h * np.sqrt(model.n))
+    s = 1.0 / g.h
     return sp.csr_matrix((np.concatenate(vals) * s, (np.concatenate(rows), np.concatenate(cols))),
                          shape=(e, model.n))

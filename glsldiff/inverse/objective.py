@@ -2,14 +2,16 @@
 
 ::
 
-    f(kappa, mu) = sum_m sum_x W_xm (L_m(x) - Y_m(x))^2 / sum W Y^2  +  lambda mean_x |grad kappa(x)|^2
+    f(kappa, mu) = sum_m sum_x W_xm (L_m(x) - Y_m(x))^2 / sum W Y^2  +  lambda sum_x |grad kappa(x)|^2
 
 ``L_m`` is the predicted radiance (:mod:`glsldiff.inverse.model`), ``Y_m`` the measurement,
-``W`` the mask. Both terms are dimensionless: the data term is normalised by the measured
-energy, so the paper's stop criterion ``f_M < 1e-4 sum L_o^2`` reads ``data < 1e-4`` and
-``lambda`` does not depend on the camera's exposure scale; the regulariser is the volume mean
-of ``|grad kappa|^2`` (forward differences), so it does not depend on the grid resolution.
-(The paper sums both terms without normalisation; its lambda = 1e-5 is in unstated units.)
+``W`` the mask. Both terms are dimensionless. The data term is normalised by the measured
+energy, so the paper's stop criterion ``f_M < 1e-4 sum L_o^2`` reads ``f < 1e-4`` and
+``lambda`` does not depend on the camera's exposure scale (the paper leaves the data term
+unnormalised, in unstated units). The regulariser is the paper's sum over nodes of
+``|grad kappa|^2`` (forward differences, kappa in mm, gradient in mm^-1); with the
+normalised data term the paper's lambda = 1e-4 ... 1e-6 spans too smooth ... too noisy
+(see the regularisation study in the README).
 
 The gradient costs one factorisation, M forward and M adjoint solves (all with the same
 factor) and is exact for this discrete objective.
@@ -71,7 +73,7 @@ class Objective:
         self._t0 = time.perf_counter()
 
     def regularizer(self, kappa: Array) -> tuple[float, Array]:
-        """mean |grad kappa|^2 and its gradient."""
+        """sum_x |grad kappa|^2 and its gradient."""
         dk = self.D @ kappa
         return float(dk @ dk), 2.0 * (self.D.T @ dk)
 

@@ -1,0 +1,232 @@
+"""Minimisers of f_M: NLopt (quasi-Newton, truncated Newton) and the paper's Table I CG.
+
+Every method works on scaled variables ``z = (kappa / kappa_s, mu / mu_s)`` (the scales are
+the homogeneous fit), with bound constraints that keep kappa > 0 and mu >= 0. Each
+evaluation is recorded in a :class:`Trace` (time, f, data term, gradient norm), so that
+error against time and iterations can be plotted for every method alike.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.errors import InputError, SolverError
+from glsldiff.inverse.objective import Objective
+
+Array = NDArray[np.float64]
+
+NLOPT_METHODS = {"lbfgs": "LD_LBFGS", "tnewton": "LD_TNEWTON_PRECOND_RESTART", "var2": "LD_VAR2"}
+METHODS = (*NLOPT_METHODS, "cg")
+KAPPA_RANGE = (1e-2, 1e2)   # kappa stays within these factors of its homogeneous value
+MU_MAX = 1e3                # mu <= MU_MAX * its homogeneous value (and >= 0)
+
+
+@dataclass
+class Record:
+    """One evaluation of f during a minimisation."""
+
+    evaluation: int
+    seconds: float
+    value: float
+    data: float
+    grad_norm: float  # nan for line-search evaluations without a gradient
+
+
+@dataclass
+class Trace:
+    """What a minimisation did: evaluations, gradients, time, how it stopped."""
+
+    method: str
+    records: list[Record] = field(default_factory=list)
+    iterations: int = 0
+    status: str = "running"
+    converged: bool = False
+    seconds: float = 0.0
+
+    @property
+    def best(self) -> Record:
+        return min(self.records, key=lambda r: r.value)
+
+
+class Budget(Exception):
+    """Raised inside an objective callback when the evaluation/time budget is spent."""
+
+
+@dataclass
+class ScaledProblem:
+    """f(z) over the scaled variables, with bounds, budgets and a trace."""
+
+    objective: Objective
+    kappa_scale: float
+    mu_scale: float
+    method: str = "lbfgs"
+    max_evals: int = 200
+    max_seconds: float = math.inf
+    callback: Callable[[Record], None] | None = None
+
+    def __post_init__(self) -> None:
+        n = self.objective.model.n
+        self.n = n
+        self.lower = np.concatenate([np.full(n, KAPPA_RANGE[0]), np.zeros(n)])
+        self.upper = np.concatenate([np.full(n, KAPPA_RANGE[1]), np.full(n, MU_MAX)])
+        self.trace = Trace(self.method)
+        self._t0 = time.perf_counter()
+        self.best_z: Array | None = None
+        self.stop: Callable[[], None] | None = None  # set by optimisers that stop gracefully
+
+    def material(self, z: Array) -> tuple[Array, Array]:
+        return z[: self.n] * self.kappa_scale, z[self.n:] * self.mu_scale
+
+    def __call__(self, z: Array, grad: Array | None) -> float:
+        """Objective in NLopt's convention (fills ``grad`` in place when it is non-empty)."""
+        tr = self.trace
+        if len(tr.records) >= self.max_evals or time.perf_counter() - self._t0 > self.max_seconds:
+            tr.status = "budget spent"
+            if self.stop is None:
+                raise Budget
+            self.stop()  # NLopt: force_stop, then return any finite value
+            if grad is not None and grad.size > 0:
+                grad[:] = 0.0
+            return tr.best.value
+        want = grad is not None and grad.size > 0
+        ev = self.objective.evaluate(*self.material(np.asarray(z)), gradient=want)
+        gnorm = float("nan")
+        if want:
+            grad[: self.n] = ev.grad_kappa * self.kappa_scale
+            grad[self.n:] = ev.grad_mu * self.mu_scale
+            gnorm = float(np.linalg.norm(grad))
+        rec = Record(len(tr.records) + 1, time.perf_counter() - self._t0, ev.value, ev.data, gnorm)
+        if not tr.records or ev.value < tr.best.value:
+            self.best_z = np.array(z, dtype=np.float64)
+        tr.records.append(rec)
+        if self.callback is not None:
+            self.callback(rec)
+        return ev.value
+
+    def gradient(self, z: Array) -> tuple[float, Array]:
+        g = np.empty_like(z)
+        return self(z, g), g
+
+
+def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float = 1e-7) -> Array:
+    """Minimise from ``z0`` until ``f < stopval``, the relative change of f falls below
+    ``ftol_rel``, or the budget is spent. Returns the best ``z``; ``problem.trace`` says why
+    it stopped."""
+    if problem.method not in METHODS:
+        raise InputError(f"method={problem.method!r}; choose one of {METHODS}")
+    z0 = np.clip(np.asarray(z0, dtype=np.float64), problem.lower, problem.upper)
+    tr = problem.trace
+    try:
+        if problem.method == "cg":
+            table1_cg(problem, z0, stopval, ftol_rel)
+        else:
+            _nlopt(problem, z0, stopval, ftol_rel)
+    except Budget:
+        tr.status = "budget spent"
+    tr.seconds = time.perf_counter() - problem._t0
+    tr.converged = tr.status.startswith("converged")
+    if problem.best_z is None:
+        raise SolverError(f"{problem.method}: no evaluation of the objective was possible")
+    return problem.best_z
+
+
+def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -> None:
+    import nlopt
+
+    opt = nlopt.opt(getattr(nlopt, NLOPT_METHODS[problem.method]), z0.size)
+    opt.set_min_objective(problem)
+    opt.set_lower_bounds(problem.lower)
+    opt.set_upper_bounds(problem.upper)
+    opt.set_stopval(stopval)
+    opt.set_ftol_rel(ftol_rel)
+    problem.stop = opt.force_stop
+    if problem.method == "lbfgs":
+        opt.set_vector_storage(10)
+    try:
+        opt.optimize(z0)
+        code = opt.last_optimize_result()
+    except nlopt.RoundoffLimited:
+        code = "roundoff"
+    except nlopt.ForcedStop:
+        code = nlopt.FORCED_STOP
+    problem.trace.iterations = sum(1 for r in problem.trace.records if not math.isnan(r.grad_norm))
+    if code == nlopt.FORCED_STOP:
+        return  # budget: status already set
+    problem.trace.status = {"roundoff": "converged (roundoff limited)",nlopt.STOPVAL_REACHED: "converged (f < eps)",
+                            nlopt.FTOL_REACHED: "converged (f stopped changing)",
+                            nlopt.XTOL_REACHED: "converged (x stopped changing)",
+                            nlopt.SUCCESS: "converged",
+                            nlopt.MAXEVAL_REACHED: "budget spent"}.get(code, f"nlopt code {code}")
+
+
+GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
+
+
+def _line_search(problem: ScaledProblem, z: Array, f0: float, d: Array, max_evals: int = 10) -> tuple[float, float]:
+    """Golden-section search of ``t -> f(z + t d)`` on ``[0, t_max]`` (bounds respected);
+    returns ``(t, f)``, ``t = 0`` if no step decreases f."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        room = np.where(d > 0, (problem.upper - z) / d, np.where(d < 0, (problem.lower - z) / d, np.inf))
+    t_max = float(np.min(room))
+    t = min(t_max, 0.3 / max(float(np.max(np.abs(d))), 1e-300))  # first trial: <= 30 % change of a variable
+    f = lambda s: problem(z + s * d, None)  # noqa: E731
+    a, fa, b, fb = 0.0, f0, t, f(t)
+    n = 1
+    while fb < fa and b < t_max and n < max_evals // 2:  # expand the bracket while f falls
+        a, fa = b, fb
+        b = min(t_max, b / GOLDEN**2)
+        fb = f(b)
+        n += 1
+    lo, hi = (0.0, b) if a == 0.0 else (a * GOLDEN**2, b)
+    x1, x2 = hi - GOLDEN * (hi - lo), lo + GOLDEN * (hi - lo)
+    f1, f2 = f(x1), f(x2)
+    best = min((f0, 0.0), (fa, a), (fb, b), (f1, x1), (f2, x2))
+    while n < max_evals:
+        if f1 < f2:
+            hi, x2, f2 = x2, x1, f1
+            x1 = hi - GOLDEN * (hi - lo)
+            f1 = f(x1)
+            best = min(best, (f1, x1))
+        else:
+            lo, x1, f1 = x1, x2, f2
+            x2 = lo + GOLDEN * (hi - lo)
+            f2 = f(x2)
+            best = min(best, (f2, x2))
+        n += 1
+    return best[1], best[0]
+
+
+def table1_cg(problem: ScaledProblem, z: Array, stopval: float, ftol_rel: float) -> None:
+    """The paper's Table I: Polak-Ribiere conjugate gradient with a golden-section line search
+    along ``d`` (kappa and mu move together), stopping at ``f < stopval``."""
+    tr = problem.trace
+    f, g = problem.gradient(z)
+    p = -g
+    d = p.copy()
+    while True:
+        if f < stopval:
+            tr.status = "converged (f < eps)"
+            return
+        free = ~(((z <= problem.lower) & (d < 0)) | ((z >= problem.upper) & (d > 0)))
+        d = np.where(free, d, 0.0)
+        if float(d @ p) <= 0:  # not a descent direction any more: restart along -g
+            d = np.where(free, p, 0.0)
+        t, f_new = _line_search(problem, z, f, d)
+        tr.iterations += 1
+        if t == 0.0:
+            tr.status = "converged (no descent along the search direction)"
+            return
+        z = np.clip(z + t * d, problem.lower, problem.upper)
+        if abs(f - f_new) <= ftol_rel * abs(f):
+            tr.status = "converged (f stopped changing)"
+            return
+        f, g = problem.gradient(z)
+        p_new = -g
+        beta = max(float(p_new @ (p_new - p)) / max(float(p @ p), 1e-300), 0.0)
+        d = p_new + beta * d
+        p = p_new
