@@ -1,4 +1,5 @@
-"""The ``glsldiff`` command: ``demo`` (default job), ``bench forward``, ``polygrid``, ``info``.
+"""The ``glsldiff`` command: ``demo`` (default job), ``bench forward|sphere|fit``, ``polygrid``,
+``synth``, ``fit``, ``info``.
 
 Errors a user can cause are printed as one line without a traceback (exit code 2).
 """
@@ -215,6 +216,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_sphere)
+
+    from glsldiff.inverse.commands import add_parsers
+    add_parsers(sub, bsub)
 
     p = sub.add_parser("info", help="report the available GL backends and renderers")
     p.set_defaults(func=cmd_info)

@@ -164,6 +164,16 @@ class GlslDiffusion:
         if "system" in self.__dict__:
             self.system = replace(self.system, b=assemble_rhs(self.problem))
 
+    def set_material(self, kappa: ArrayLike, mu: ArrayLike) -> None:
+        """Replace kappa (mm) and mu (mm^-1) in place (same grid, source and options): an
+        edit or an optimiser step re-uses the textures, programs and vertex buffers."""
+        gl.make_current(self.ctx)
+        self.problem = replace(self.problem, kappa=kappa, mu=mu)
+        g = self.problem.grid
+        for name, vol in (("u_kappa", self.problem.kappa), ("u_mu", self.problem.mu)):
+            self._textures[name].write(np.ascontiguousarray(g.pack(vol)).tobytes(), alignment=1)
+        self.__dict__.pop("system", None)
+
     def set_initial(self, phi: ArrayLike | None) -> None:
         """Start the next solve from fluence ``phi`` (volume) or from zero."""
         gl.make_current(self.ctx)

@@ -80,6 +80,7 @@ class Objective:
     def evaluate(self, kappa: Array, mu: Array, gradient: bool = True) -> Evaluation:
         """f (and its gradient over the active nodes) at material ``(kappa, mu)``."""
         fac = self.model.factorize(kappa, mu)
+        self.last_material = (fac.kappa, fac.mu)
         X = fac.solve(self.Q)
         E = fac.radiance(X, self.Q) - self.Y
         R = self.W * E

@@ -1,7 +1,9 @@
 """Minimisers of f_M: NLopt (quasi-Newton, truncated Newton) and the paper's Table I CG.
 
-Every method works on scaled variables ``z = (kappa / kappa_s, mu / mu_s)`` (the scales are
-the homogeneous fit), with bound constraints that keep kappa > 0 and mu >= 0. Each
+Every method works on scaled variables, ``z = (kappa / kappa_s, mu / mu_s)`` ("linear") or
+``z = log(kappa / kappa_s), log(mu / mu_s)`` ("log", the default: chosen by measurement, the
+linear form stalls NLopt's L-BFGS where mu sits on its bound 0), with the scales from the
+homogeneous fit and bound constraints that keep kappa > 0 and mu >= 0. Each
 evaluation is recorded in a :class:`Trace` (time, f, data term, gradient norm), so that
 error against time and iterations can be plotted for every method alike.
 """
@@ -23,7 +25,8 @@ Array = NDArray[np.float64]
 NLOPT_METHODS = {"lbfgs": "LD_LBFGS", "tnewton": "LD_TNEWTON_PRECOND_RESTART", "var2": "LD_VAR2"}
 METHODS = (*NLOPT_METHODS, "cg")
 KAPPA_RANGE = (1e-2, 1e2)   # kappa stays within these factors of its homogeneous value
-MU_MAX = 1e3                # mu <= MU_MAX * its homogeneous value (and >= 0)
+MU_RANGE = (1e-6, 1e3)      # mu within these factors of its scale ("linear": lower bound 0)
+PARAMETERIZATIONS = ("log", "linear")
 
 
 @dataclass
@@ -68,19 +71,38 @@ class ScaledProblem:
     max_evals: int = 200
     max_seconds: float = math.inf
     callback: Callable[[Record], None] | None = None
+    snapshot_every: int = 0  # keep (record, z) every this many gradient evaluations (0: none)
+    parameterization: str = "log"
 
     def __post_init__(self) -> None:
+        self.snapshots: list[tuple[Record, Array]] = []
         n = self.objective.model.n
         self.n = n
-        self.lower = np.concatenate([np.full(n, KAPPA_RANGE[0]), np.zeros(n)])
-        self.upper = np.concatenate([np.full(n, KAPPA_RANGE[1]), np.full(n, MU_MAX)])
+        if self.parameterization not in PARAMETERIZATIONS:
+            raise InputError(f"parameterization={self.parameterization!r}; choose one of {PARAMETERIZATIONS}")
+        lo = np.concatenate([np.full(n, KAPPA_RANGE[0]), np.full(n, MU_RANGE[0])])
+        hi = np.concatenate([np.full(n, KAPPA_RANGE[1]), np.full(n, MU_RANGE[1])])
+        if self.parameterization == "log":
+            self.lower, self.upper = np.log(lo), np.log(hi)
+        else:
+            lo[n:] = 0.0
+            self.lower, self.upper = lo, hi
         self.trace = Trace(self.method)
         self._t0 = time.perf_counter()
         self.best_z: Array | None = None
         self.stop: Callable[[], None] | None = None  # set by optimisers that stop gracefully
 
     def material(self, z: Array) -> tuple[Array, Array]:
-        return z[: self.n] * self.kappa_scale, z[self.n:] * self.mu_scale
+        """``(kappa, mu)`` over the active nodes for variables ``z``."""
+        v = np.exp(z) if self.parameterization == "log" else np.asarray(z)
+        return v[: self.n] * self.kappa_scale, v[self.n:] * self.mu_scale
+
+    def variables(self, kappa: Array, mu: Array) -> Array:
+        """Inverse of :meth:`material`, clipped to the bounds."""
+        v = np.concatenate([kappa / self.kappa_scale, mu / self.mu_scale])
+        if self.parameterization == "log":
+            v = np.log(np.maximum(v, np.exp(self.lower)))
+        return np.clip(v, self.lower, self.upper)
 
     def __call__(self, z: Array, grad: Array | None) -> float:
         """Objective in NLopt's convention (fills ``grad`` in place when it is non-empty)."""
@@ -97,10 +119,16 @@ class ScaledProblem:
         ev = self.objective.evaluate(*self.material(np.asarray(z)), gradient=want)
         gnorm = float("nan")
         if want:
-            grad[: self.n] = ev.grad_kappa * self.kappa_scale
-            grad[self.n:] = ev.grad_mu * self.mu_scale
+            kappa, mu = self.objective.last_material
+            if self.parameterization == "log":  # d/dlog v = v d/dv
+                grad[: self.n], grad[self.n:] = ev.grad_kappa * kappa, ev.grad_mu * mu
+            else:
+                grad[: self.n], grad[self.n:] = ev.grad_kappa * self.kappa_scale, ev.grad_mu * self.mu_scale
             gnorm = float(np.linalg.norm(grad))
         rec = Record(len(tr.records) + 1, time.perf_counter() - self._t0, ev.value, ev.data, gnorm)
+        n_grad = sum(1 for r in tr.records if not math.isnan(r.grad_norm)) + int(want)
+        if want and self.snapshot_every and (n_grad - 1) % self.snapshot_every == 0:
+            self.snapshots.append((rec, np.array(z, dtype=np.float64)))
         if not tr.records or ev.value < tr.best.value:
             self.best_z = np.array(z, dtype=np.float64)
         tr.records.append(rec)

@@ -1,0 +1,279 @@
+"""Inverse diffusion: exact discrete adjoint gradient, fits, measurements and bad input."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from glsldiff.errors import InputError
+from glsldiff.grid import RegularGrid
+from glsldiff.inverse.fit import FitOptions, fit_channel, fit_measurements
+from glsldiff.inverse.measurements import Measurements, load_measurements, save_measurements
+from glsldiff.inverse.model import ForwardModel
+from glsldiff.inverse.objective import Objective
+from glsldiff.inverse.optimize import ScaledProblem, minimize
+from glsldiff.inverse.synthetic import (bssrdf_error, region_patterns, synthetic_measurements,
+                                        synthetic_volume)
+
+
+def _random_problem(model: ForwardModel, M: int, seed: int) -> tuple[np.ndarray, ...]:
+    rng = np.random.default_rng(seed)
+    n, nb = model.n, model.n_boundary
+    Q = rng.uniform(0, 1, (nb, M))
+    Y = rng.uniform(0, 0.1, (nb, M))
+    W = (rng.uniform(size=(nb, M)) > 0.3).astype(float)
+    kappa = rng.uniform(0.2, 0.5, n)
+    mu = rng.uniform(0.01, 0.2, n)
+    return Q, Y, W, kappa, mu
+
+
+def _fd_gradient(obj: Objective, kappa: np.ndarray, mu: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    n = kappa.size
+    out = np.zeros(2 * n)
+    for i in range(2 * n):
+        e = np.zeros(2 * n)
+        e[i] = eps
+        fp = obj.evaluate(kappa + e[:n], mu + e[n:], gradient=False).value
+        fm = obj.evaluate(kappa - e[:n], mu - e[n:], gradient=False).value
+        out[i] = (fp - fm) / (2 * eps)
+    return out
+
+
+@pytest.mark.parametrize("stencil,face_mean", [("conservative", "arithmetic"), ("conservative", "harmonic"),
+                                               ("paper", "arithmetic")])
+def test_adjoint_gradient_matches_finite_differences(stencil: str, face_mean: str) -> None:
+    model = ForwardModel(RegularGrid(5, 4, 4, h=0.5), stencil=stencil, face_mean=face_mean)
+    Q, Y, W, kappa, mu = _random_problem(model, 3, 0)
+    obj = Objective(model, Q, Y, W, lam=1e-2)
+    ev = obj.evaluate(kappa, mu)
+    fd = _fd_gradient(obj, kappa, mu)
+    g = np.concatenate([ev.grad_kappa, ev.grad_mu])
+    assert np.linalg.norm(g - fd) / np.linalg.norm(fd) <= 1e-4
+    # 2M solves per gradient with one factorisation
+    assert model.stats.solves >= 2 * 3
+
+
+def test_tangent_matches_finite_differences() -> None:
+    model = ForwardModel(RegularGrid(5, 5, 4, h=0.5), stencil="paper")
+    Q, _, _, kappa, mu = _random_problem(model, 2, 1)
+    fac = model.factorize(kappa, mu)
+    X = fac.solve(Q)
+    rng = np.random.default_rng(3)
+    dk, dm = rng.standard_normal(model.n) * 0.01, rng.standard_normal(model.n) * 0.01
+    dL = fac.radiance_tangent(X, fac.tangent(X, Q, dk, dm), dk)
+    eps = 1e-5
+    fp, fm = model.factorize(kappa + eps * dk, mu + eps * dm), model.factorize(kappa - eps * dk, mu - eps * dm)
+    fd = (fp.radiance(fp.solve(Q), Q) - fm.radiance(fm.solve(Q), Q)) / (2 * eps)
+    assert np.linalg.norm(dL - fd) / np.linalg.norm(fd) <= 1e-5
+
+
+def test_glsl_path_gradient_equals_cpu() -> None:
+    """The GLSL path solves the adjoint with the forward shaders (symmetrised boundary rows)."""
+    from glsldiff.inverse.glsl import GlslForwardModel
+
+    grid = RegularGrid(8, 7, 5, h=0.5)
+    for stencil in ("conservative", "paper"):
+        cpu = ForwardModel(grid, stencil=stencil)
+        gpu = GlslForwardModel(grid, stencil=stencil, tol=1e-7)
+        try:
+            Q, Y, W, kappa, mu = _random_problem(cpu, 4, 2)
+            e1 = Objective(cpu, Q, Y, W).evaluate(kappa, mu)
+            e2 = Objective(gpu, Q, Y, W).evaluate(kappa, mu)
+            g1 = np.concatenate([e1.grad_kappa, e1.grad_mu])
+            g2 = np.concatenate([e2.grad_kappa, e2.grad_mu])
+            assert abs(e2.value - e1.value) <= 1e-5 * e1.value
+            assert np.linalg.norm(g2 - g1) / np.linalg.norm(g1) <= 1e-4
+            assert gpu.sweeps > 0
+        finally:
+            gpu.release()
+
+
+def test_regularizer_is_sum_of_squared_gradients() -> None:
+    grid = RegularGrid(5, 5, 5, h=0.5)
+    model = ForwardModel(grid)
+    Q, Y, W, _, _ = _random_problem(model, 1, 0)
+    obj = Objective(model, Q, Y, W)
+    z, y, x = np.meshgrid(*[np.arange(5) * 0.5] * 3, indexing="ij")
+    kappa = model.active_values(0.1 + 0.02 * x)  # |grad kappa| = 0.02 along x only
+    reg, grad = obj.regularizer(kappa)
+    act = grid.active
+    n_x_edges = int(np.sum(act[:, :, :-1] & act[:, :, 1:]))
+    assert reg == pytest.approx(n_x_edges * 0.02**2, rel=1e-12)
+    # gradient of a quadratic: <grad, kappa> = 2 reg
+    assert float(grad @ kappa) == pytest.approx(2 * reg, rel=1e-10)
+
+
+# ---- fitting --------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def small_case() -> tuple[np.ndarray, np.ndarray, Measurements]:
+    k, m = synthetic_volume((6, 14, 14), "mixed", seed=3)
+    k, m = np.repeat(k[..., 1:2], 3, -1), np.repeat(m[..., 1:2], 3, -1)
+    meas = synthetic_measurements(k, m, 0.5, 3, "back", noise=0.0, read_noise=0.0)
+    return k, m, meas
+
+
+def test_fit_recovers_surface_appearance(small_case) -> None:
+    k, m, meas = small_case
+    assert meas.grey()
+    res = fit_measurements(meas, FitOptions(max_evals=80))
+    assert res.shared and len(res.channels) == 3
+    f = res.channels[0]
+    hom = (np.full_like(k, f.homogeneous[0]), np.full_like(m, f.homogeneous[1]))
+    E_h = bssrdf_error(meas.grid, (k, m), hom, channels=(1,))
+    E = bssrdf_error(meas.grid, (k, m), (res.kappa, res.mu), channels=(1,))
+    assert f.data < 1e-4, f.trace.status  # the paper's stop criterion, noise-free data
+    assert E < 0.2 * E_h and E < 5e-3, (E, E_h)  # issue target E <= 0.005
+    assert np.all(res.kappa > 0) and np.all(res.mu >= 0)
+    assert np.all(np.isfinite(res.kappa)) and np.all(np.isfinite(res.mu))
+
+
+@pytest.mark.parametrize("method", ["lbfgs", "tnewton", "var2", "cg"])
+def test_every_method_decreases_the_objective(small_case, method: str) -> None:
+    _, _, meas = small_case
+    model = ForwardModel(meas.grid)
+    fit = fit_channel(model, *meas.channel(1), FitOptions(method=method, max_evals=25))
+    first = fit.trace.records[0].value
+    assert fit.trace.best.value < 0.5 * first
+    assert len(fit.trace.records) <= 25
+    assert fit.trace.status
+
+
+def test_budget_is_reported_not_hidden(small_case) -> None:
+    _, _, meas = small_case
+    model = ForwardModel(meas.grid)
+    fit = fit_channel(model, *meas.channel(1), FitOptions(max_evals=3))
+    assert fit.trace.status == "budget spent" and not fit.converged
+
+
+def test_cg_line_search_respects_bounds(small_case) -> None:
+    _, _, meas = small_case
+    model = ForwardModel(meas.grid)
+    obj = Objective(model, *meas.channel(1))
+    prob = ScaledProblem(obj, 0.1, 0.01, "cg", max_evals=30, parameterization="linear")
+    z = minimize(prob, np.concatenate([np.ones(model.n), np.full(model.n, 1e-3)]), stopval=0.0)
+    assert np.all(z >= prob.lower) and np.all(z <= prob.upper)
+
+
+# ---- stiff cases ----------------------------------------------------------------------
+@pytest.mark.parametrize("nz,sa_scale,noise,saturate", [
+    (4, 1.0, 0.01, False),     # very thin: 2 interior layers
+    (6, 1.0, 0.01, False),     # thin: 4 interior layers
+    (24, 1.0, 0.01, False),    # thick (12 mm of marble)
+    (8, 1e-4, 0.01, False),    # high albedo, mu -> 0
+    (8, 300.0, 0.01, False),   # high absorption
+    (8, 1.0, 0.2, False),      # very noisy
+    (8, 1.0, 0.01, True),      # saturated highlights
+])
+def test_stiff_cases_stay_finite_and_positive(nz: int, sa_scale: float, noise: float, saturate: bool) -> None:
+    k, m = synthetic_volume((nz, 10, 10), "inclusions", seed=1)
+    sa = m * sa_scale
+    ss = 1.0 / (3.0 * k) - m
+    k, m = 1.0 / (3.0 * (sa + ss)), sa
+    meas0 = synthetic_measurements(k, m, 0.5, 2, "back", noise=0.0)
+    sat = float(np.percentile(meas0.radiance, 95)) if saturate else None
+    meas = synthetic_measurements(k, m, 0.5, 2, "back", noise=noise, saturation=sat, seed=5)
+    if saturate:
+        assert meas.saturated > 0 and not meas.mask.all()
+    res = fit_measurements(meas, FitOptions(max_evals=15))
+    assert np.all(np.isfinite(res.kappa)) and np.all(np.isfinite(res.mu))
+    assert np.all(res.kappa > 0) and np.all(res.mu >= 0)
+    for f in res.channels:
+        assert f.trace.status in ("budget spent",) or f.trace.status.startswith("converged")
+        assert f.data <= f.trace.records[0].data
+
+
+# ---- measurements ---------------------------------------------------------------------
+def _meas_args(M: int = 2) -> dict:
+    grid = RegularGrid(6, 5, 4, h=0.5)
+    fy, fx = grid.face_shape("z-")
+    return dict(shape=(4, 5, 6), h=0.5, lit_face="z-", observed_face="z+",
+                incoming=np.ones((M, fy, fx, 3)), radiance=np.full((M, fy, fx, 3), 0.1))
+
+
+@pytest.mark.parametrize("change,match", [
+    (dict(incoming=np.ones((2, 3, 3, 3))), "incoming has shape"),
+    (dict(radiance=np.full((3, 3, 4, 3), 0.1)), "M = 2 .* radiance has 3"),
+    (dict(incoming=np.ones((0, 3, 4, 3)), radiance=np.ones((0, 3, 4, 3))), "M = 0"),
+    (dict(radiance=np.where(np.arange(4)[:, None] == 1, np.nan, 0.1) * np.ones((2, 3, 4, 3))), "non-finite"),
+    (dict(radiance=-0.1 * np.ones((2, 3, 4, 3))), "negative"),
+    (dict(incoming=-np.ones((2, 3, 4, 3))), "incoming has .* negative"),
+    (dict(incoming=np.zeros((2, 3, 4, 3))), "no illumination"),
+    (dict(mask=np.zeros((2, 3, 4), dtype=bool)), "observes nothing"),
+    (dict(mask=np.ones((2, 3, 4))), "boolean"),
+    (dict(lit_face="top"), "valid faces"),
+    (dict(shape=(4, 5)), r"\(nz, ny, nx\)"),
+    (dict(h=-1.0), "spacing"),
+    (dict(radiance=np.zeros((2, 3, 4, 3))), "every used radiance value"),
+])
+def test_bad_measurements_raise_clear_errors(change: dict, match: str) -> None:
+    args = _meas_args()
+    args.update(change)
+    with pytest.raises(InputError, match=match):
+        Measurements(**args)
+
+
+def test_front_setup_with_one_region_observes_nothing() -> None:
+    k, m = synthetic_volume((5, 8, 8), "layers")
+    with pytest.raises(InputError, match="observes nothing"):
+        synthetic_measurements(k, m, 0.5, 1, "front")
+
+
+def test_front_setup_masks_lit_nodes() -> None:
+    k, m = synthetic_volume((5, 8, 8), "layers")
+    meas = synthetic_measurements(k, m, 0.5, 2, "front", noise=0.0)
+    assert meas.observed_face == meas.lit_face
+    assert not np.any(meas.mask & (meas.incoming > 0))
+    assert np.all(meas.radiance[meas.mask] > 0)
+
+
+def test_measurements_roundtrip_and_file_errors(tmp_path) -> None:
+    meas = Measurements(**_meas_args(), saturation=5.0)
+    path = save_measurements(tmp_path / "m.npz", meas)
+    back = load_measurements(path)
+    assert back.shape == meas.shape and back.saturation == 5.0
+    np.testing.assert_array_equal(back.radiance, meas.radiance)
+    np.testing.assert_array_equal(back.mask, meas.mask)
+    with pytest.raises(InputError, match="does not exist"):
+        load_measurements(tmp_path / "missing.npz")
+    np.savez(tmp_path / "partial.npz", h=0.5)
+    with pytest.raises(InputError, match="lacks"):
+        load_measurements(tmp_path / "partial.npz")
+    (tmp_path / "junk.npz").write_bytes(b"not a zip")
+    with pytest.raises(InputError, match="cannot read"):
+        load_measurements(tmp_path / "junk.npz")
+
+
+def test_region_patterns_tile_the_face() -> None:
+    grid = RegularGrid(10, 9, 4)
+    pats = region_patterns(grid, "z-", 3)
+    assert len(pats) == 9
+    np.testing.assert_array_equal(sum(pats), np.ones(grid.face_shape("z-")))
+    with pytest.raises(InputError):
+        region_patterns(grid, "z-", 0)
+
+
+# ---- command line ---------------------------------------------------------------------
+def test_cli_synth_and_fit(tmp_path, capsys) -> None:
+    from glsldiff.cli import main
+
+    meas = tmp_path / "m.npz"
+    assert main(["synth", str(meas), "--size", "10", "10", "5", "--n", "2", "--noise", "0.005"]) == 0
+    out = tmp_path / "mat.npz"
+    assert main(["fit", str(meas), "-o", str(out), "--max-evals", "8", "--truth",
+                 str(tmp_path / "m_truth.npz")]) == 0
+    text = capsys.readouterr().out
+    assert "figure-11 error E" in text and "|grad|" in text
+    with np.load(out) as d:
+        assert d["kappa"].shape == (5, 10, 10, 3) and np.all(d["kappa"] > 0)
+    assert (tmp_path / "mat_slices.png").stat().st_size > 0
+    assert (tmp_path / "mat_trace.csv").stat().st_size > 0
+
+
+def test_cli_fit_fails_before_work_on_unwritable_output(tmp_path, capsys) -> None:
+    from glsldiff.cli import main
+
+    assert main(["fit", str(tmp_path / "nothing.npz"), "-o", str(tmp_path / "no" / "dir" / "m.npz")]) == 2
+    err = capsys.readouterr().err
+    assert "does not exist" in err and "no/dir" in err and err.count("\n") == 1
+    assert main(["fit", str(tmp_path / "nothing.npz"), "-o", str(tmp_path / "m.npz")]) == 2
+    assert "measurements file" in capsys.readouterr().err
+    assert not (tmp_path / "m.npz").exists()
