@@ -266,6 +266,12 @@ def test_cli_synth_and_fit(tmp_path, capsys) -> None:
         assert d["kappa"].shape == (5, 10, 10, 3) and np.all(d["kappa"] > 0)
     assert (tmp_path / "mat_slices.png").stat().st_size > 0
     assert (tmp_path / "mat_trace.csv").stat().st_size > 0
+    # the same fit with GLSL forward/adjoint solves
+    assert main(["fit", str(meas), "-o", str(tmp_path / "mat_gl.npz"), "--max-evals", "3", "--backend", "glsl",
+                 "--no-png"]) == 0
+    capsys.readouterr()
+    with np.load(tmp_path / "mat_gl.npz") as d:
+        assert str(d["backend"]) == "glsl" and np.all(d["kappa"] > 0)
 
 
 def test_cli_fit_fails_before_work_on_unwritable_output(tmp_path, capsys) -> None:

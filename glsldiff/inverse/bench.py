@@ -66,7 +66,7 @@ def measurements_study(case: Case, ns: list[int], methods: list[str], max_evals:
     for n in ns:
         meas = case.measurements(n, noise)
         for method in methods:
-            snap = 5 if n == n_curve else 0
+            snap = (1 if method == "cg" else 5) if n == n_curve else 0  # CG: few, long iterations
             fit, seconds, model = _fit(case, meas, method, lam, max_evals, snap)
             E_h = case.error(np.full(model.n, fit.homogeneous[0]), np.full(model.n, fit.homogeneous[1]))
             E = case.error(fit.kappa, fit.mu)

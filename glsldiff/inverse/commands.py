@@ -44,6 +44,9 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                    help="optimiser (cg = the paper's Table I)")
     p.add_argument("--lam", type=float, default=1e-5, help="kappa-gradient regularisation weight")
     p.add_argument("--stencil", choices=("conservative", "paper"), default="conservative")
+    p.add_argument("--backend", choices=("cpu", "glsl"), default="cpu",
+                   help="forward/adjoint solves: one SuperLU factor (cpu) or GLSL Jacobi (glsl)")
+    p.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for --backend glsl")
     p.add_argument("--max-evals", type=int, default=200, help="evaluations per channel")
     p.add_argument("--max-seconds", type=float, default=math.inf, help="time budget per channel")
     p.add_argument("--kappa0", type=float, default=0.3, help="initial kappa of the homogeneous fit, mm")
@@ -113,7 +116,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
     out = check_writable(args.out)
     options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,
-                         mu0=args.mu0, max_evals=args.max_evals, max_seconds=args.max_seconds)
+                         mu0=args.mu0, max_evals=args.max_evals, max_seconds=args.max_seconds,
+                         backend=args.backend)
     meas = load_measurements(args.measurements)
     truth = _load_truth(args.truth, meas.shape) if args.truth else None
     rows: list[dict[str, object]] = []
@@ -143,7 +147,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
         E = bssrdf_error(meas.grid, truth, (result.kappa, result.mu), sources=(meas.lit_face,),
                          receivers=(meas.observed_face,), stencil=options.stencil, eta=meas.eta)
     print_table(f"inverse diffusion, {meas.M} measurements, {meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} "
-                f"nodes, method {options.method}, lambda {options.lam:g}", table)
+                f"nodes, method {options.method}, lambda {options.lam:g}, {options.backend} solves", table)
     for note in result.notes:
         print(note)
     if E is not None:

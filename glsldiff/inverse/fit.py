@@ -33,6 +33,7 @@ from glsldiff.io import atomic_path
 Array = NDArray[np.float64]
 
 STOP_FRACTION = 1e-4  # paper: stop when f_M < 1e-4 sum L_o^2
+BACKENDS = ("cpu", "glsl")
 
 
 @dataclass
@@ -49,8 +50,11 @@ class FitOptions:
     max_seconds: float = math.inf  # heterogeneous stage, per channel
     homogeneous_evals: int = 40
     parameterization: str = "log"
+    backend: str = "cpu"          # "cpu": one SuperLU factor per material; "glsl": GPU Jacobi
 
     def __post_init__(self) -> None:
+        if self.backend not in BACKENDS:
+            raise InputError(f"backend={self.backend!r}; choose one of {BACKENDS}")
         if self.method not in METHODS:
             raise InputError(f"method={self.method!r}; choose one of {METHODS}")
         for name in ("kappa0", "mu0"):
@@ -176,12 +180,20 @@ def fit_measurements(meas: Measurements, options: FitOptions | None = None,
     """Fit every channel of ``meas``; ``callback(channel, record)`` after each evaluation."""
     options = options or FitOptions()
     t0 = time.perf_counter()
-    model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)
+    if options.backend == "glsl":
+        from glsldiff.inverse.glsl import GlslForwardModel
+        model: ForwardModel = GlslForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)
+    else:
+        model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)
     shared = meas.grey()
     fits: list[ChannelFit] = []
-    for c in range(1 if shared else 3):
-        cb = (lambda rec, c=c: callback(c, rec)) if callback else None
-        fits.append(fit_channel(model, *meas.channel(c), options, cb))
+    try:
+        for c in range(1 if shared else 3):
+            cb = (lambda rec, c=c: callback(c, rec)) if callback else None
+            fits.append(fit_channel(model, *meas.channel(c), options, cb))
+    finally:
+        if hasattr(model, "release"):
+            model.release()
     if shared:
         fits = fits * 3
     g = meas.grid
@@ -200,7 +212,7 @@ def save_material(path: str | os.PathLike, result: FitResult) -> Path:
     """Write the fitted material (kappa mm, mu mm^-1, ``(nz, ny, nx, 3)``) and fit summary
     to ``.npz`` atomically."""
     o = result.options
-    arrays = dict(kappa=result.kappa, mu=result.mu, h=result.h, method=o.method, lam=o.lam,
+    arrays = dict(kappa=result.kappa, mu=result.mu, h=result.h, method=o.method, lam=o.lam, backend=o.backend,
                   stencil=o.stencil, face_mean=o.face_mean, seconds=result.seconds,
                   data_error=np.array([f.data for f in result.channels]),
                   converged=np.array([f.converged for f in result.channels]),
