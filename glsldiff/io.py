@@ -45,11 +45,17 @@ def _rgb(image: ArrayLike, name: str) -> NDArray[np.float32]:
 
 
 def write_exr(path: str | os.PathLike, image: ArrayLike,
-              attributes: Mapping[str, str] | None = None) -> Path:
-    """Write a linear float32 RGB image (row 0 = top) as ZIP-compressed OpenEXR."""
+              attributes: Mapping[str, str] | None = None, half: bool = False) -> Path:
+    """Write a linear RGB image (row 0 = top) as ZIP-compressed OpenEXR: float32 pixels, or
+    16-bit half floats with ``half=True`` (values beyond the half range, 65504, are refused)."""
     import OpenEXR
 
     img = np.ascontiguousarray(_rgb(image, str(path)))
+    if half:
+        if np.abs(img).max() > np.finfo(np.float16).max:
+            raise InputError(f"{path}: values up to {np.abs(img).max():.4g} exceed the half-float range "
+                             f"(65504); write float32 instead or rescale")
+        img = img.astype(np.float16)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update({k: str(v) for k, v in (attributes or {}).items()})
     with atomic_path(path) as tmp, OpenEXR.File(header, {"RGB": img}) as f:

@@ -1,0 +1,455 @@
+"""Camera response (Debevec and Malik 1997) and HDR merging of exposure brackets, with OpenCV.
+
+A *bracket* is one folder of 8-bit images of a static scene taken with different exposure
+times, plus the times: a sidecar file (``exposures.json`` ``{"img_00.png": 0.0333, ...}``,
+or ``exposures.csv`` / ``exposures.txt`` with two columns ``file, seconds``; seconds may be
+written ``1/30``) or, without a sidecar, each image's EXIF ``ExposureTime``. Images are read
+with OpenCV and kept as RGB ``(rows, cols, 3)`` uint8 (grey images are expanded to three
+equal channels, an alpha channel is dropped). OpenCV's Debevec calibration and merge accept
+8-bit images only: a 16-bit image is refused with an error (rescaling it to 8 bits would
+throw away exactly what a 16-bit camera measures).
+
+Units: the *response* is OpenCV's inverse camera response, ``(256, 3)`` float (columns R, G,
+B): the relative sensor exposure (irradiance x seconds, arbitrary units) that produces each
+pixel value. Debevec-Malik fixes each channel's scale separately (OpenCV: ``response[128] =
+1``, one noisy point); :func:`calibrate_response` rescales each channel so that the geometric
+mean of the response over the trusted pixel values ``LO..HI`` is 1, so equal pixel values mean
+equal exposure on average in every channel. A merged image is linear relative radiance
+(response units per second). Its colour balance follows that per-channel normalisation, which
+is why white-balance gains (:mod:`glsldiff.calibration.color`) must be computed with the same
+response as the images they correct.
+
+Response file (JSON)::
+
+    {"format": "glsldiff-camera-response", "version": 1, "channels": ["R", "G", "B"],
+     "description": "...", "response": [[r, g, b], ...  256 rows, pixel values 0..255]}
+
+Any positive ``(256, 3)`` table is accepted on reading (e.g. OpenCV's own normalisation).
+
+Command line: ``python -m glsldiff.calibration.hdr {response,merge} --help``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+from dataclasses import dataclass
+from fractions import Fraction
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.errors import GlsldiffError, InputError
+from glsldiff.io import atomic_path, read_exr, write_exr
+
+Array = NDArray[np.float64]
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
+SIDECARS = ("exposures.json", "exposures.csv", "exposures.txt")
+RESPONSE_FORMAT = "glsldiff-camera-response"
+LO, HI = 20, 235  # trusted pixel values: outside [LO, HI] noise, quantisation or clipping dominate
+
+
+@dataclass(frozen=True)
+class Bracket:
+    """One exposure bracket: RGB uint8 images ``(rows, cols, 3)``, their exposure times
+    (seconds, ascending) and source files (for messages; ``bracket/image k`` in memory)."""
+
+    images: tuple[NDArray[np.uint8], ...]
+    times: Array
+    files: tuple[Path, ...]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.images[0].shape[:2]
+
+
+def make_bracket(images: Sequence[ArrayLike], times: Sequence[float],
+                 files: Sequence[str | os.PathLike] | None = None) -> Bracket:
+    """Validate and sort (by time) a bracket: 8-bit RGB images of one size, at least two
+    distinct positive exposure times (seconds)."""
+    names = ([Path(f) for f in files] if files is not None
+             else [Path("bracket", f"image {k}") for k in range(len(images))])
+    if not (len(images) == len(times) == len(names)):
+        raise InputError(f"bracket: {len(images)} images, {len(times)} exposure times and {len(names)} names")
+    imgs = []
+    for img, name in zip(images, names):
+        img = np.asarray(img)
+        if img.dtype != np.uint8:
+            raise InputError(f"{name}: {img.dtype} image; OpenCV's Debevec response and merge need 8-bit "
+                             f"images (convert the camera output to 8-bit RGB)")
+        if img.ndim != 3 or img.shape[2] != 3 or img.size == 0:
+            raise InputError(f"{name}: expected an (rows, cols, 3) RGB image, got shape {img.shape}")
+        if imgs and img.shape != imgs[0].shape:
+            raise InputError(f"{name}: image size {img.shape[1]}x{img.shape[0]} differs from "
+                             f"{names[0]} ({imgs[0].shape[1]}x{imgs[0].shape[0]}); a bracket needs equal sizes")
+        imgs.append(np.ascontiguousarray(img))
+    t = np.asarray(times, dtype=np.float64)
+    for ti, name in zip(t, names):
+        if not (np.isfinite(ti) and ti > 0):
+            raise InputError(f"{name}: exposure time {ti!r} s must be a positive number of seconds")
+    if len(np.unique(t)) < 2:
+        where = names[0].parent if names else "bracket"
+        raise InputError(f"{where}: {len(imgs)} image(s) with {len(np.unique(t))} distinct exposure time(s); "
+                         f"an HDR bracket needs at least two different exposures")
+    order = np.argsort(t, kind="stable")
+    return Bracket(tuple(imgs[k] for k in order), t[order], tuple(names[k] for k in order))
+
+
+# ----------------------------------------------------------------------------- reading
+
+def parse_seconds(text: object, where: str) -> float:
+    """Seconds from a number or a string such as ``"0.5"`` or ``"1/30"``; InputError naming
+    ``where`` otherwise."""
+    try:
+        value = float(Fraction(str(text).strip())) if isinstance(text, str) else float(text)
+    except (ValueError, TypeError, ZeroDivisionError):
+        raise InputError(f"{where}: exposure time {text!r} is not a number of seconds") from None
+    if not (math.isfinite(value) and value > 0):
+        raise InputError(f"{where}: exposure time {text!r} must be positive and finite")
+    return value
+
+
+def read_sidecar(path: Path) -> dict[str, float]:
+    """``{file name: seconds}`` from ``exposures.json`` or a two-column CSV/text file."""
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read the exposure-time file ({exc})") from None
+    if path.suffix == ".json":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise InputError(f"{path}: not valid JSON ({exc})") from None
+        if not isinstance(data, dict):
+            raise InputError(f"{path}: expected an object {{file name: seconds}}")
+        return {str(k): parse_seconds(v, f"{path}: {k}") for k, v in data.items()}
+    out = {}
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    for k, line in enumerate(lines):
+        row = [c.strip() for c in next(csv.reader([line]))] if "," in line else line.split()
+        if len(row) != 2:
+            raise InputError(f"{path}: line {line!r}: expected two columns 'file, seconds'")
+        if k == 0 and not _is_number(row[1]):  # header line
+            continue
+        out[row[0]] = parse_seconds(row[1], f"{path}: {row[0]}")
+    return out
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(Fraction(text.strip()))
+        return True
+    except (ValueError, ZeroDivisionError):
+        return False
+
+
+def exif_exposure_time(path: str | os.PathLike) -> float | None:
+    """EXIF ``ExposureTime`` (seconds) of an image file with Pillow; None when absent."""
+    from PIL import ExifTags, Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            im.load()  # PNG keeps its eXIf chunk after the pixels
+            exif = im.getexif()
+    except (OSError, UnidentifiedImageError):
+        return None
+    value = exif.get_ifd(ExifTags.IFD.Exif).get(ExifTags.Base.ExposureTime, exif.get(ExifTags.Base.ExposureTime))
+    return None if value is None else parse_seconds(float(value), f"{path}: EXIF ExposureTime")
+
+
+def read_image8(path: str | os.PathLike) -> NDArray[np.uint8]:
+    """An 8-bit RGB image ``(rows, cols, 3)`` (grey expanded, alpha dropped); InputError
+    naming the file when it cannot be read or is not 8-bit."""
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise InputError(f"{path}: cannot read the image (missing, not an image or unsupported format)")
+    if img.dtype != np.uint8:
+        raise InputError(f"{path}: {img.dtype} image; OpenCV's Debevec response and merge need 8-bit images")
+    if img.ndim == 2:
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
+    return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
+
+
+def load_bracket(folder: str | os.PathLike) -> Bracket:
+    """Read a bracket folder (images + exposure times, see the module docstring)."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise InputError(f"{root}: no such bracket folder")
+    files = sorted(p for p in root.iterdir()
+                   if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file())
+    if not files:
+        raise InputError(f"{root}: no images ({', '.join(IMAGE_SUFFIXES)}) in the bracket folder")
+    images = [read_image8(f) for f in files]
+    sidecars = [root / s for s in SIDECARS if (root / s).is_file()]
+    if len(sidecars) > 1:
+        raise InputError(f"{root}: several exposure-time files ({', '.join(s.name for s in sidecars)}); keep one")
+    if sidecars:
+        table = read_sidecar(sidecars[0])
+        for name in table:
+            if not (root / name).is_file():
+                raise InputError(f"{sidecars[0]}: lists {name!r}, which is not in {root}")
+        missing = [f.name for f in files if f.name not in table]
+        if missing:
+            raise InputError(f"{root / missing[0]}: no exposure time in {sidecars[0]} "
+                             f"({len(missing)} image(s) missing there)")
+        times = [table[f.name] for f in files]
+    else:
+        times = []
+        for f in files:
+            t = exif_exposure_time(f)
+            if t is None:
+                raise InputError(f"{f}: no EXIF ExposureTime and no exposure-time file "
+                                 f"({' / '.join(SIDECARS)}) in {root}")
+            times.append(t)
+    return make_bracket(images, times, files)
+
+
+def read_hdr(path: str | os.PathLike) -> NDArray[np.float32]:
+    """An OpenEXR image ``(rows, cols, 3)`` float32; InputError naming the file when it is
+    missing or unreadable."""
+    try:
+        img = read_exr(path)
+    except (GlsldiffError, RuntimeError, OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read the OpenEXR image ({exc})") from None
+    if not np.all(np.isfinite(img)):
+        raise InputError(f"{path}: {int((~np.isfinite(img)).sum())} non-finite pixel values")
+    return img
+
+
+# ----------------------------------------------------------------------------- response
+
+def _as_brackets(brackets: Bracket | Sequence[Bracket]) -> list[Bracket]:
+    out = [brackets] if isinstance(brackets, Bracket) else list(brackets)
+    if not out:
+        raise InputError("no exposure bracket given")
+    for b in out[1:]:
+        if b.times.shape != out[0].times.shape or not np.allclose(b.times, out[0].times, rtol=1e-6):
+            raise InputError(f"{b.files[0].parent}: exposure times {b.times.tolist()} differ from "
+                             f"{out[0].files[0].parent} ({out[0].times.tolist()}); calibrate brackets of "
+                             f"one exposure series together")
+    return out
+
+
+def sample_pixels(brackets: Sequence[Bracket], samples: int, seed: int = 0) -> NDArray[np.uint8]:
+    """``(exposures, samples, 3)`` pixel values of pixels picked from all brackets so that
+    their brightness (summed over the bracket) covers its range evenly."""
+    rng = np.random.default_rng(seed)
+    cand = []
+    for b in brackets:
+        stack = np.stack([im.reshape(-1, 3) for im in b.images])  # (exposures, pixels, 3)
+        pick = rng.choice(stack.shape[1], size=min(stack.shape[1], 20000), replace=False)
+        cand.append(stack[:, pick])
+    stack = np.concatenate(cand, axis=1)
+    informative = ((stack > 0) & (stack < 255)).any(axis=(0, 2))
+    if informative.sum() < 2:
+        raise InputError(f"{brackets[0].files[0].parent}: every pixel is black or saturated in every exposure")
+    stack = stack[:, informative]
+    key = stack.astype(np.float64).sum(axis=(0, 2))
+    order = np.argsort(key, kind="stable")
+    targets = np.linspace(key[order[0]], key[order[-1]], samples)
+    chosen = np.unique(np.clip(np.searchsorted(key[order], targets), 0, len(order) - 1))
+    picked = order[chosen]
+    if len(picked) < samples:  # few distinct levels: top up with random pixels
+        rest = np.setdiff1d(np.arange(stack.shape[1]), picked)
+        extra = rng.choice(rest, size=min(len(rest), samples - len(picked)), replace=False)
+        picked = np.concatenate([picked, extra])
+    return stack[:, picked]
+
+
+def calibrate_response(brackets: Bracket | Sequence[Bracket], samples: int = 256, smoothness: float = 50.0,
+                       seed: int = 0) -> Array:
+    """Inverse camera response ``(256, 3)`` (see the module docstring) from one or more
+    brackets with the same exposure times, by ``cv2.createCalibrateDebevec``.
+
+    ``samples`` pixels are picked over all brackets (:func:`sample_pixels`) and laid out as
+    blocks of a small mosaic whose block centres are the grid OpenCV samples; ``smoothness``
+    is Debevec-Malik's lambda (with OpenCV's default 10, 8-bit quantisation and sensor noise
+    make the curve wiggle by up to 5 % on the simulated camera; 50 keeps it within ~3.5 %)."""
+    bs = _as_brackets(brackets)
+    side = max(2, math.ceil(math.sqrt(samples)))
+    vals = sample_pixels(bs, side * side, seed)
+    if vals.shape[1] < side * side:  # fewer candidate pixels than blocks: repeat them
+        vals = vals[:, np.resize(np.arange(vals.shape[1]), side * side)]
+    block = 4  # OpenCV samples a side x side grid at step/2 + k step: one point per block
+    mosaic = [np.ascontiguousarray(np.repeat(np.repeat(v.reshape(side, side, 3), block, 0), block, 1))
+              for v in vals]
+    cal = cv2.createCalibrateDebevec(samples=side * side, lambda_=float(smoothness), random=False)
+    resp = cal.process(mosaic, bs[0].times.astype(np.float32)).reshape(256, 3).astype(np.float64)
+    if not (np.all(np.isfinite(resp)) and np.all(resp > 0)):
+        raise InputError(f"{bs[0].files[0].parent}: the recovered camera response is not finite and "
+                         f"positive; the bracket does not constrain it (too few exposures or levels)")
+    return resp / np.exp(np.log(resp[LO:HI + 1]).mean(axis=0))
+
+
+def inverse_response_error(response: ArrayLike, truth: ArrayLike | Callable[[Array], Array],
+                           lo: int = LO, hi: int = HI) -> float:
+    """Max relative error, over pixel values ``lo..hi`` and channels, of a recovered inverse
+    response against the true one (``(256,)``/``(256, 3)`` or a function of the pixel value
+    ``z = 0..255``), after fitting the unknown per-channel scale by relative least squares."""
+    r = np.asarray(response, dtype=np.float64).reshape(256, -1)
+    z = np.arange(256, dtype=np.float64)
+    t = np.asarray(truth(z) if callable(truth) else truth, dtype=np.float64)
+    t = np.broadcast_to(t.reshape(256, -1), r.shape)[lo:hi + 1]
+    q = r[lo:hi + 1] / t
+    scale = q.sum(axis=0) / (q * q).sum(axis=0)  # argmin_s sum (s r / t - 1)^2
+    return float(np.max(np.abs(scale * q - 1.0)))
+
+
+def save_response(path: str | os.PathLike, response: ArrayLike, description: str = "") -> Path:
+    """Write a ``(256, 3)`` response as the JSON file of the module docstring (atomically)."""
+    r = _check_response(response, str(path))
+    data = {"format": RESPONSE_FORMAT, "version": 1, "channels": ["R", "G", "B"],
+            "description": description or "inverse camera response (Debevec-Malik, OpenCV): relative "
+                                          "exposure per 8-bit pixel value",
+            "response": [[float(f"{v:.9g}") for v in row] for row in r]}
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1))
+    return Path(path)
+
+
+def load_response(path: str | os.PathLike) -> Array:
+    """Read a response JSON file; InputError naming the file when it is not one."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise InputError(f"{path}: cannot read the response file ({exc})") from None
+    if not isinstance(data, dict) or data.get("format") != RESPONSE_FORMAT or "response" not in data:
+        raise InputError(f"{path}: not a {RESPONSE_FORMAT} JSON file")
+    return _check_response(data["response"], str(path))
+
+
+def _check_response(response: ArrayLike, name: str) -> Array:
+    try:
+        r = np.asarray(response, dtype=np.float64)
+    except (ValueError, TypeError):
+        raise InputError(f"{name}: response is not a numeric (256, 3) table") from None
+    if r.shape != (256, 3):
+        raise InputError(f"{name}: response has shape {r.shape}; expected (256, 3)")
+    if not (np.all(np.isfinite(r)) and np.all(r > 0)):
+        raise InputError(f"{name}: response values must be finite and positive")
+    return r
+
+
+# ----------------------------------------------------------------------------- merge
+
+def unusable_mask(bracket: Bracket, lo: int = LO, hi: int = HI) -> NDArray[np.bool_]:
+    """``(rows, cols, 3)`` True where a channel has no exposure with ``lo <= z <= hi``
+    (dark in every exposure, saturated in every exposure, or both in turn)."""
+    usable = np.zeros(bracket.images[0].shape, dtype=bool)
+    for im in bracket.images:
+        usable |= (im >= lo) & (im <= hi)
+    return ~usable
+
+
+def merge_bracket(bracket: Bracket, response: ArrayLike | None = None, lo: int = LO,
+                  hi: int = HI) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
+    """Linear relative radiance ``(rows, cols, 3)`` float32 and the :func:`unusable_mask`.
+
+    ``cv2.createMergeDebevec`` averages ``log(response[z] / t)`` over the exposures with
+    triangle weights (zero at 0 and 255). Values outside ``[lo, hi]`` are set to 0 / 255
+    first, so they get no weight (below ``lo`` an 8-bit gamma camera's noise and quantisation
+    step exceed 5 %), and it runs per channel so that a channel saturated in an exposure does
+    not borrow the weights of the others. Masked pixels get a bound instead: too bright in
+    every exposure ``response[hi] / t_min`` (a lower bound), too dark in every exposure
+    ``response[lo] / t_max`` (an upper bound, up to noise). Without ``response`` it is
+    calibrated from this bracket."""
+    if not 0 < lo < hi < 255:
+        raise InputError(f"lo={lo}, hi={hi}: need 0 < lo < hi < 255")
+    resp = calibrate_response(bracket) if response is None else _check_response(response, "response")
+    times = bracket.times.astype(np.float32)
+    merger = cv2.createMergeDebevec()
+    out = np.empty(bracket.images[0].shape, dtype=np.float32)
+    for c in range(3):
+        chans = [np.where(im[..., c] < lo, 0, np.where(im[..., c] > hi, 255, im[..., c])).astype(np.uint8)
+                 for im in bracket.images]
+        out[..., c] = merger.process(chans, times, np.ascontiguousarray(resp[:, c:c + 1], dtype=np.float32))
+    mask = unusable_mask(bracket, lo, hi)
+    bright = np.all([im > hi for im in bracket.images], axis=0)
+    dark = np.all([im < lo for im in bracket.images], axis=0)
+    out = np.where(bright, (resp[hi] / bracket.times[0]).astype(np.float32), out)
+    out = np.where(dark, (resp[lo] / bracket.times[-1]).astype(np.float32), out)
+    if not np.all(np.isfinite(out)):
+        raise InputError(f"{bracket.files[0].parent}: the merge produced non-finite values; check the response")
+    return out, mask
+
+
+# ----------------------------------------------------------------------------- command line
+
+class CommandParser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors raise InputError (one error line, status 2)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise InputError(f"{self.prog}: {message} (see --help)")
+
+
+def run_command(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
+    """Parse ``argv`` and run ``args.func(args)``; user errors print one line
+    ``glsldiff-calibration: error: ...`` to stderr and return 2."""
+    try:
+        args = parser.parse_args(argv)
+        return int(args.func(args) or 0)
+    except SystemExit as exc:  # --help
+        return exc.code if isinstance(exc.code, int) else 2
+    except GlsldiffError as exc:
+        print(f"glsldiff-calibration: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _cmd_response(args: argparse.Namespace) -> int:
+    brackets = [load_bracket(f) for f in args.folders]
+    resp = calibrate_response(brackets, samples=args.samples, smoothness=args.smoothness)
+    save_response(args.output, resp, f"inverse camera response (Debevec-Malik, OpenCV) from "
+                                     f"{', '.join(str(f) for f in args.folders)}")
+    print(f"{args.output}: response from {len(brackets)} bracket(s) of {len(brackets[0].times)} exposures")
+    return 0
+
+
+def _cmd_merge(args: argparse.Namespace) -> int:
+    bracket = load_bracket(args.folder)
+    resp = load_response(args.response) if args.response else calibrate_response(bracket)
+    img, mask = merge_bracket(bracket, resp)
+    png = cv2.imencode(".png", (mask[..., ::-1] * 255).astype(np.uint8))[1] if args.mask else None
+    attrs = {"glsldiff": "linear relative radiance (Debevec-Malik merge, OpenCV)",
+             "exposures_s": " ".join(f"{t:.6g}" for t in bracket.times)}
+    write_exr(args.output, img, attrs, half=args.half)  # validates before writing anything
+    if png is not None:
+        with atomic_path(args.mask) as tmp:
+            tmp.write_bytes(png.tobytes())
+    print(f"{args.output}: {img.shape[1]}x{img.shape[0]} HDR from {len(bracket.times)} exposures; "
+          f"{int(mask.any(axis=2).sum())} pixels unusable (dark or saturated in every exposure)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = CommandParser(prog="python -m glsldiff.calibration.hdr",
+                                     description="Camera response (Debevec-Malik) and HDR merge of exposure "
+                                                 "brackets (folders of 8-bit images + exposure times).")
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("response", help="recover the camera response from one or more brackets")
+    p.add_argument("folders", nargs="+", metavar="FOLDER", help="bracket folder(s) with the same exposure times")
+    p.add_argument("-o", "--output", required=True, help="response JSON file to write")
+    p.add_argument("--samples", type=int, default=256, help="pixels used by the solve (default 256)")
+    p.add_argument("--smoothness", type=float, default=50.0, help="Debevec-Malik lambda (default 50)")
+    p.set_defaults(func=_cmd_response)
+    p = sub.add_parser("merge", help="merge one bracket into a linear OpenEXR image")
+    p.add_argument("folder", metavar="FOLDER", help="bracket folder")
+    p.add_argument("-o", "--output", required=True, help="OpenEXR file to write")
+    p.add_argument("--response", help="response JSON (default: recovered from this bracket)")
+    p.add_argument("--half", action="store_true", help="write 16-bit half floats instead of float32")
+    p.add_argument("--mask", help="also write an 8-bit PNG, 255 where a channel is unusable")
+    p.set_defaults(func=_cmd_merge)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_command(build_parser(), argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

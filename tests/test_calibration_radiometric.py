@@ -1,0 +1,314 @@
+"""Radiometric calibration (paper section 4.1) on simulated captures: camera response
+(Debevec-Malik), HDR merge, white balance and projector black level from a ColorChecker,
+file formats, commands and bad input.
+
+Simulation (``glsldiff.calibration.synth_radiometric``): an 8-bit camera with response
+``x^(1/2.2)``, shot and read noise and 10 % vignetting; brackets at 1/30, 1/8, 1/2, 2, 8 s.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from glsldiff.calibration import color, hdr
+from glsldiff.calibration import synth_radiometric as sr
+from glsldiff.errors import InputError
+from glsldiff.io import read_exr, write_exr
+
+ERR = "glsldiff-calibration: error: "
+
+
+@pytest.fixture(scope="module")
+def ramp():
+    """A 1e-4 .. 1e3 radiance ramp (columns), 128 rows of equal radiance, and its bracket."""
+    cam = sr.camera((256, 128), gain=0.1)
+    radiance = sr.ramp_radiance((128, 256))
+    bracket = hdr.make_bracket(sr.capture_bracket(cam, radiance, seed=1), sr.EXPOSURES)
+    return cam, radiance * cam.vignette()[..., None], bracket
+
+
+@pytest.fixture(scope="module")
+def response(ramp):
+    return hdr.calibrate_response(ramp[2])
+
+
+@pytest.fixture(scope="module")
+def chart(response):
+    """HDR images of the ColorChecker under projected white and black (colour cast CAST,
+    projector black level 1 %), merged with the recovered response."""
+    cam, proj = sr.camera((640, 480), gain=20.0), sr.projector(black=0.01)
+    out = {}
+    for k, (name, value) in enumerate((("white", 1.0), ("black", 0.0))):
+        bracket = hdr.make_bracket(sr.capture_bracket(cam, sr.chart_radiance(pattern=value, proj=proj), seed=2 + k),
+                                   sr.EXPOSURES)
+        out[name], out[name + "_mask"] = hdr.merge_bracket(bracket, response)
+        out[name + "_bracket"] = bracket
+    return out
+
+
+def expected_gains() -> np.ndarray:
+    cast = np.asarray(sr.CAST)
+    return cast[1] / cast
+
+
+# ----------------------------------------------------------------------------- accuracy
+
+def test_response_matches_simulated_gamma(ramp, response):
+    """Max relative error of the recovered inverse response over pixel values 20..235 < 5 %."""
+    cam, _, _ = ramp
+    err = hdr.inverse_response_error(response, sr.true_inverse_response(cam))
+    print(f"\nresponse max relative error (z = 20..235): {err:.4f}")
+    assert response.shape == (256, 3) and np.all(np.diff(response[hdr.LO:hdr.HI + 1], axis=0) > 0)
+    assert err < 0.05
+
+
+def test_response_from_two_brackets(ramp, chart):
+    """Brackets of one exposure series calibrate together; different series are refused."""
+    cam, _, bracket = ramp
+    resp = hdr.calibrate_response([bracket, chart["white_bracket"]])
+    err = hdr.inverse_response_error(resp, sr.true_inverse_response(cam))
+    print(f"\nresponse from two brackets: max relative error {err:.4f}")
+    assert err < 0.05
+    other = hdr.make_bracket(bracket.images[:3], bracket.times[:3])
+    with pytest.raises(InputError, match="exposure times"):
+        hdr.calibrate_response([bracket, other])
+
+
+def test_hdr_merge_error_and_masks(ramp, response):
+    """Merged radiance vs truth (up to scale): the mean over each column of equal radiance
+    within 5 % wherever every pixel has an exposure in 20..235; per pixel the median within
+    5 % (the dark end is noise-limited: SNR ~7 at pixel value 20); both ends of the 1e7 ramp
+    are masked, with bounds in the right direction."""
+    _, truth, bracket = ramp
+    img, mask = hdr.merge_bracket(bracket, response)
+    assert img.dtype == np.float32 and np.all(np.isfinite(img)) and mask.shape == img.shape
+    good = ~mask
+    ratio = img / truth
+    scale = np.exp(np.median(np.log(ratio[good])))
+    per_pixel = np.abs(ratio[good] / scale - 1)
+    full = good.all(axis=(0, 2))
+    column = np.abs(ratio[:, full].mean(axis=0) / scale - 1)
+    print(f"\nHDR: {full.sum()} fully exposed columns, column-mean max error {column.max():.4f}; per pixel "
+          f"median {np.median(per_pixel):.4f}, p95 {np.percentile(per_pixel, 95):.4f}, max {per_pixel.max():.4f}; "
+          f"masked {mask.mean():.3f}")
+    assert full.sum() > 150 and column.max() < 0.05 and np.median(per_pixel) < 0.05
+    bright = np.all([im > hdr.HI for im in bracket.images], axis=0)
+    dark = np.all([im < hdr.LO for im in bracket.images], axis=0)
+    assert bright[:, -20:].all() and dark[:, :20].all()
+    assert np.array_equal(mask, bright | dark)
+    assert np.all(img[bright] <= truth[bright] * scale * 1.01)   # lower bound
+    assert np.median(img[dark] / (truth[dark] * scale)) > 1.0   # upper bound (up to noise)
+
+
+def test_white_balance_mcc(chart):
+    """cv2.mcc finds the synthetic chart; gains within 2 % of the simulated colour cast."""
+    wb = color.white_balance(chart["white"])
+    err = np.abs(wb.gains / expected_gains() - 1)
+    print(f"\nwhite balance (mcc): gains {np.round(wb.gains, 4)}, expected {np.round(expected_gains(), 4)}, "
+          f"error {np.round(err, 4)}")
+    assert wb.method == "mcc" and wb.gains[1] == 1.0
+    assert err.max() < 0.02
+    wb_all = color.white_balance(chart["white"], patches="all")
+    assert np.abs(wb_all.gains / expected_gains() - 1).max() < 0.02
+
+
+def test_white_balance_corners(chart):
+    """The corner-point path gives the same gains; no chart and no corners is a clear error."""
+    wb = color.white_balance(chart["white"], corners=sr.CHART_CORNERS)
+    err = np.abs(wb.gains / expected_gains() - 1)
+    print(f"\nwhite balance (corners): error {np.round(err, 4)}")
+    assert wb.method == "corners" and err.max() < 0.02
+    blank = np.full((120, 160, 3), 0.5, np.float32)
+    with pytest.raises(InputError, match=r"blank\.exr: no ColorChecker found.*corner"):
+        color.white_balance(blank, name="blank.exr")
+    with pytest.raises(InputError, match="decreasing grey ramp"):
+        color.white_balance(chart["white"], corners=np.asarray(sr.CHART_CORNERS)[[1, 0, 3, 2]])
+
+
+def test_black_level(chart):
+    """Projector black level (1 %) from the chart under black and white: within 10 %."""
+    polys = color.detect_chart(chart["white"])
+    assert polys is not None
+    bl = color.black_level(chart["black"], chart["white"], polys, "mcc")
+    err = np.abs(bl.mean / 0.01 - 1)
+    print(f"\nblack level: {np.round(bl.mean, 5)} +- {np.round(bl.std, 5)} over {bl.count} patches, "
+          f"error {np.round(err, 4)}")
+    assert bl.count == 24 and err.max() < 0.10 and np.all(bl.std < 0.002)
+    roi = color.black_level(chart["black"], chart["white"], color.roi_cells((20, 20, 100, 60)), "roi")
+    assert np.abs(roi.mean / 0.01 - 1).max() < 0.10
+    with pytest.raises(InputError, match="not brighter"):
+        color.black_level(chart["white"], chart["black"], polys)
+
+
+# ----------------------------------------------------------------------------- files
+
+@pytest.mark.parametrize("half", [False, True])
+def test_exr_round_trip(tmp_path, ramp, response, half):
+    img, _ = hdr.merge_bracket(ramp[2], response)
+    path = write_exr(tmp_path / "hdr.exr", img, {"note": "test"}, half=half)
+    back = read_exr(path)
+    assert back.shape == img.shape and back.dtype == np.float32
+    tol = 1e-3 if half else 0.0  # half: 10-bit mantissa
+    assert np.all(np.abs(back - img) <= tol * np.abs(img) + 1e-7)
+    assert [p.name for p in tmp_path.iterdir()] == ["hdr.exr"]
+
+
+def test_half_overflow_refused(tmp_path):
+    with pytest.raises(InputError, match="half-float range"):
+        write_exr(tmp_path / "big.exr", np.full((2, 2, 3), 1e5), half=True)
+    assert not any(tmp_path.iterdir())
+
+
+def test_response_file_round_trip(tmp_path, response):
+    path = hdr.save_response(tmp_path / "response.json", response)
+    assert np.allclose(hdr.load_response(path), response, rtol=1e-8)
+    data = json.loads(path.read_text())
+    assert data["format"] == "glsldiff-camera-response" and len(data["response"]) == 256
+    (tmp_path / "bad.json").write_text('{"format": "glsldiff-camera-response", "response": [[1, 2, 3]]}')
+    with pytest.raises(InputError, match=r"bad\.json: response has shape \(1, 3\)"):
+        hdr.load_response(tmp_path / "bad.json")
+
+
+@pytest.fixture(scope="module")
+def small_bracket():
+    """A small ramp bracket (images, times) for the file and command tests."""
+    cam = sr.camera((128, 16), gain=0.1)
+    return sr.capture_bracket(cam, sr.ramp_radiance((16, 128), 1e-3, 1e2), seed=5), sr.EXPOSURES
+
+
+@pytest.mark.parametrize("sidecar", ["json", "csv", "exif"])
+def test_exposure_times_sources(tmp_path, small_bracket, sidecar):
+    images, times = small_bracket
+    folder = sr.write_bracket(tmp_path / sidecar, images, times, sidecar)
+    bracket = hdr.load_bracket(folder)
+    assert np.allclose(bracket.times, times, rtol=1e-6)
+    assert all(np.array_equal(a, b) for a, b in zip(bracket.images, images))
+
+
+def test_sidecar_fractions(tmp_path, small_bracket):
+    images, _ = small_bracket
+    folder = sr.write_bracket(tmp_path / "b", images[:2], (1 / 30, 0.5), "json")
+    (folder / "exposures.json").unlink()
+    (folder / "exposures.txt").write_text("# file seconds\nimg_00.png 1/30\nimg_01.png   0.5\n")
+    assert np.allclose(hdr.load_bracket(folder).times, [1 / 30, 0.5])
+
+
+def test_commands(tmp_path, small_bracket, capsys):
+    images, times = small_bracket
+    a = sr.write_bracket(tmp_path / "a", images, times)
+    b = sr.write_bracket(tmp_path / "b", [np.ascontiguousarray(im[:, ::-1]) for im in images], times, "csv")
+    assert hdr.main(["response", str(a), str(b), "-o", str(tmp_path / "r.json")]) == 0
+    assert hdr.load_response(tmp_path / "r.json").shape == (256, 3)
+    assert hdr.main(["merge", str(a), "-o", str(tmp_path / "m.exr"), "--response", str(tmp_path / "r.json"),
+                     "--half", "--mask", str(tmp_path / "mask.png")]) == 0
+    assert read_exr(tmp_path / "m.exr").shape == (16, 128, 3)
+    assert cv2.imread(str(tmp_path / "mask.png")).shape == (16, 128, 3)
+    assert hdr.main(["merge", str(a), "-o", str(tmp_path / "self.exr")]) == 0  # response from the bracket
+    assert hdr.main(["--help"]) == 0
+    assert "merge" in capsys.readouterr().out
+
+
+def test_color_commands(tmp_path, chart):
+    write_exr(tmp_path / "white.exr", chart["white"])
+    write_exr(tmp_path / "black.exr", chart["black"])
+    assert color.main(["white-balance", str(tmp_path / "white.exr"), "-o", str(tmp_path / "wb.json")]) == 0
+    wb = json.loads((tmp_path / "wb.json").read_text())
+    assert wb["method"] == "mcc" and np.abs(np.asarray(wb["gains"]) / expected_gains() - 1).max() < 0.02
+    corners = [f"{x},{y}" for x, y in sr.CHART_CORNERS]
+    assert color.main(["black-level", str(tmp_path / "black.exr"), str(tmp_path / "white.exr"),
+                       "-o", str(tmp_path / "bl.json"), "--corners", *corners]) == 0
+    bl = json.loads((tmp_path / "bl.json").read_text())
+    assert bl["method"] == "corners" and np.abs(np.asarray(bl["mean"]) / 0.01 - 1).max() < 0.10
+
+
+def test_module_help():
+    for mod in ("glsldiff.calibration.hdr", "glsldiff.calibration.color"):
+        run = subprocess.run([sys.executable, "-m", mod, "--help"], capture_output=True, text=True, timeout=60)
+        assert run.returncode == 0 and "usage:" in run.stdout
+
+
+# ----------------------------------------------------------------------------- bad input
+
+def bad_folder(tmp_path, small_bracket, case: str):
+    """A bracket folder broken in one way; returns (folder, expected message regex)."""
+    images, times = small_bracket
+    folder = sr.write_bracket(tmp_path / case, images, times, "json")
+    if case == "one exposure":
+        for p in folder.glob("img_0[1-9].png"):
+            p.unlink()
+        (folder / "exposures.json").write_text('{"img_00.png": 0.5}')
+        return folder, r"1 image\(s\) with 1 distinct exposure time.*at least two"
+    if case == "sizes":
+        cv2.imwrite(str(folder / "img_02.png"), images[2][:8, :64, ::-1])
+        return folder, r"img_02\.png: image size 64x8 differs"
+    if case == "sidecar":
+        (folder / "exposures.json").write_text(json.dumps({f"img_0{k}.png": t for k, t in enumerate(times) if k != 3}))
+        return folder, r"img_03\.png: no exposure time in .*exposures\.json"
+    if case == "sidecar value":
+        (folder / "exposures.json").write_text(json.dumps({f"img_0{k}.png": "fast" for k in range(len(times))}))
+        return folder, r"exposures\.json: img_00\.png: exposure time 'fast' is not a number"
+    if case == "exif":
+        (folder / "exposures.json").unlink()
+        return folder, r"img_00\.png: no EXIF ExposureTime"
+    if case == "image":
+        (folder / "img_01.png").write_bytes(b"not a png")
+        return folder, r"img_01\.png: cannot read the image"
+    if case == "16 bit":
+        cv2.imwrite(str(folder / "img_04.png"), (images[4].astype(np.uint16) * 257)[..., ::-1])
+        return folder, r"img_04\.png: uint16 image; .*8-bit"
+    raise AssertionError(case)
+
+
+CASES = ["one exposure", "sizes", "sidecar", "sidecar value", "exif", "image", "16 bit"]
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_bracket(tmp_path, small_bracket, capsys, case):
+    """Each broken bracket: InputError naming the file; the command prints one error line,
+    returns 2 and writes nothing."""
+    folder, match = bad_folder(tmp_path, small_bracket, case)
+    with pytest.raises(InputError, match=match):
+        hdr.load_bracket(folder)
+    out = tmp_path / "out"
+    capsys.readouterr()
+    assert hdr.main(["merge", str(folder), "-o", str(out / "m.exr"), "--mask", str(out / "mask.png")]) == 2
+    assert hdr.main(["response", str(folder), "-o", str(out / "r.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith(ERR) for line in err)
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_bad_exr_and_response(tmp_path, capsys):
+    (tmp_path / "broken.exr").write_bytes(b"garbage")
+    with pytest.raises(InputError, match=r"broken\.exr: cannot read the OpenEXR image"):
+        hdr.read_hdr(tmp_path / "broken.exr")
+    capsys.readouterr()
+    assert color.main(["white-balance", str(tmp_path / "broken.exr"), "-o", str(tmp_path / "wb.json")]) == 2
+    assert color.main(["black-level", str(tmp_path / "missing.exr"), str(tmp_path / "broken.exr"),
+                       "-o", str(tmp_path / "bl.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "broken.exr" in err[0] and "missing.exr" in err[1]
+    assert all(line.startswith(ERR) for line in err)
+    (tmp_path / "r.json").write_text("{not json")
+    with pytest.raises(InputError, match=r"r\.json: cannot read the response file"):
+        hdr.load_response(tmp_path / "r.json")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["broken.exr", "r.json"]
+
+
+def test_bad_corners_and_roi(tmp_path, capsys):
+    img = np.ones((50, 60, 3), np.float32)
+    with pytest.raises(InputError, match="4 .x, y. pixel points"):
+        color.grid_patches([[0, 0], [1, 1]])
+    with pytest.raises(InputError, match="outside the 60x50 image"):
+        color.white_balance(img, corners=[[100, 100], [200, 100], [200, 180], [100, 180]])
+    with pytest.raises(InputError, match="width and height must be positive"):
+        color.roi_cells((0, 0, 0, 10))
+    capsys.readouterr()
+    assert color.main(["white-balance", str(tmp_path / "x.exr"), "-o", str(tmp_path / "wb.json"),
+                       "--corners", "1,2", "3", "4,5", "6,7"]) == 2
+    assert capsys.readouterr().err.startswith(ERR + "--corners 1,2 3 4,5 6,7: expected 4 points")
