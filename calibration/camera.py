@@ -1,0 +1,367 @@
+"""Camera intrinsics from chessboard or ChArUco images (Zhang 1999, ``cv2.calibrateCamera``).
+
+Boards: ``--board 9x7`` counts *inner* corners (columns x rows) for both kinds; a ChArUco board
+with 9x7 inner corners has 10x8 squares. Board coordinates (mm) put the first inner corner at
+the origin, x along board columns, y along rows, z = 0 on the board.
+
+Corners: ``cv2.findChessboardCornersSB`` (falls back to ``findChessboardCorners`` +
+``cornerSubPix``), or ``cv2.aruco.CharucoDetector`` (partial views allowed).
+
+A view whose RMS reprojection error exceeds ``outlier_factor`` x the median view RMS *and*
+``outlier_px`` is flagged as an outlier; with ``drop_outliers`` those views are removed and the
+camera is recalibrated once.
+
+``camera.json`` (written atomically by :func:`save_json`)::
+
+    {"version": 1, "kind": "camera",
+     "image_size": [cols, rows],               # px
+     "K": 3x3, "dist": [k1, k2, p1, p2, k3],   # OpenCV model, px
+     "rms": px,                                # over all corners of the used views
+     "views": [{"file": path, "rms": px, "corners": n, "outlier": bool}, ...],
+     "files_used": [...], "rejected": [{"file": path, "reason": text}, ...],
+     "board": {"kind", "cols", "rows", "square_mm", "marker_mm", "dictionary"},
+     "flags": int}                              # cv2.calibrateCamera flags
+
+Command: ``python -m glsldiff.calibration.camera IMAGES_OR_FOLDERS --board 9x7 --square 20
+-o camera.json`` (see ``--help``). Errors print one line ``glsldiff-calibration: error: ...``
+and exit with status 2.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.calibration.graycode import list_images, read_gray
+from glsldiff.errors import GlsldiffError, InputError
+from glsldiff.io import atomic_path
+
+Array = NDArray[np.float64]
+PROG = "glsldiff-calibration"
+DEFAULT_FLAGS = cv2.CALIB_FIX_K3
+BOARD_KINDS = ("chessboard", "charuco")
+
+
+@dataclass(frozen=True)
+class BoardSpec:
+    """A planar target: ``cols x rows`` inner corners, ``square`` mm; ChArUco markers of
+    ``marker`` mm from the OpenCV dictionary ``dictionary``."""
+
+    cols: int
+    rows: int
+    square: float
+    kind: str = "chessboard"
+    marker: float | None = None
+    dictionary: str = "DICT_5X5_100"
+
+    def __post_init__(self) -> None:
+        if self.kind not in BOARD_KINDS:
+            raise InputError(f"board kind {self.kind!r}; choose one of {BOARD_KINDS}")
+        if self.cols < 2 or self.rows < 2:
+            raise InputError(f"board {self.cols}x{self.rows}: at least 2x2 inner corners are needed")
+        if not self.square > 0:
+            raise InputError(f"board square size {self.square} mm must be > 0")
+        if self.kind == "charuco":
+            if self.marker is None or not 0 < self.marker < self.square:
+                raise InputError(f"ChArUco marker size {self.marker} mm must be in (0, square={self.square})")
+            if not hasattr(cv2.aruco, self.dictionary):
+                raise InputError(f"unknown ArUco dictionary {self.dictionary!r} (e.g. DICT_5X5_100)")
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        return self.cols, self.rows
+
+    def object_points(self) -> NDArray[np.float32]:
+        """All inner corners ``(cols*rows, 3)`` in mm, row by row (OpenCV's order)."""
+        j, i = np.mgrid[0:self.rows, 0:self.cols]
+        pts = np.stack([i.ravel(), j.ravel(), np.zeros(i.size)], axis=1) * self.square
+        return pts.astype(np.float32)
+
+    def charuco_board(self) -> "cv2.aruco.CharucoBoard":
+        dic = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        return cv2.aruco.CharucoBoard((self.cols + 1, self.rows + 1), float(self.square),
+                                      float(self.marker), dic)
+
+    def detect(self, gray: NDArray[np.uint8]) -> tuple[NDArray[np.float32], NDArray[np.float32]] | None:
+        """Board corners in an 8-bit image: ``(object points (n, 3) mm, image points (n, 2) px)``,
+        or None when the board is not found."""
+        return _detect_charuco(self, gray) if self.kind == "charuco" else _detect_chessboard(self, gray)
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        return {"kind": d["kind"], "cols": d["cols"], "rows": d["rows"], "square_mm": d["square"],
+                "marker_mm": d["marker"], "dictionary": d["dictionary"]}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "BoardSpec":
+        return cls(int(d["cols"]), int(d["rows"]), float(d["square_mm"]), d.get("kind", "chessboard"),
+                   d.get("marker_mm"), d.get("dictionary", "DICT_5X5_100"))
+
+
+def _detect_chessboard(board: BoardSpec, gray: NDArray[np.uint8]):
+    size = board.pattern_size
+    ok, corners = cv2.findChessboardCornersSB(gray, size, flags=cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY)
+    if not ok:
+        ok, corners = cv2.findChessboardCorners(gray, size, flags=cv2.CALIB_CB_ADAPTIVE_THRESH
+                                                | cv2.CALIB_CB_NORMALIZE_IMAGE)
+        if not ok:
+            return None
+        crit = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+        corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), crit)
+    return board.object_points(), np.asarray(corners, np.float32).reshape(-1, 2)
+
+
+def _detect_charuco(board: BoardSpec, gray: NDArray[np.uint8], min_corners: int = 8):
+    cb = board.charuco_board()
+    corners, ids, _, _ = cv2.aruco.CharucoDetector(cb).detectBoard(gray)
+    if ids is None or len(ids) < min_corners:
+        return None
+    obj, img = cb.matchImagePoints(corners, ids)
+    obj = np.asarray(obj, np.float32).reshape(-1, 3) - np.float32([board.square, board.square, 0.0])
+    return obj, np.asarray(img, np.float32).reshape(-1, 2)
+
+
+def to_uint8(gray: NDArray) -> NDArray[np.uint8]:
+    """Grey levels on the 8-bit scale -> uint8 (rounded, clipped)."""
+    return np.clip(np.rint(gray), 0, 255).astype(np.uint8)
+
+
+# ---- calibration --------------------------------------------------------------------------
+@dataclass
+class Intrinsics:
+    """Result of Zhang's calibration of one device (camera or projector)."""
+
+    K: Array
+    dist: Array
+    size: tuple[int, int]  # (cols, rows) px
+    rms: float  # px, over all points
+    per_view_rms: Array  # px
+    rvecs: list[Array] = field(repr=False)
+    tvecs: list[Array] = field(repr=False)
+
+    def to_json(self) -> dict:
+        return {"image_size": list(self.size), "K": self.K.tolist(), "dist": self.dist.ravel().tolist(),
+                "rms": self.rms, "per_view_rms": self.per_view_rms.tolist()}
+
+
+def view_rms(obj: NDArray, img: NDArray, K: Array, dist: Array, rvec: Array, tvec: Array) -> float:
+    """RMS distance (px) between ``img`` and the projection of ``obj``."""
+    proj, _ = cv2.projectPoints(np.asarray(obj, np.float64).reshape(-1, 1, 3), rvec, tvec, K, dist)
+    return float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - np.asarray(img).reshape(-1, 2)) ** 2, axis=1))))
+
+
+def calibrate_points(object_points: Sequence[NDArray], image_points: Sequence[NDArray],
+                     size: tuple[int, int], flags: int = DEFAULT_FLAGS, what: str = "camera") -> Intrinsics:
+    """Zhang calibration of corners ``(n_i, 2)`` px against board points ``(n_i, 3)`` mm for
+    an image of ``size = (cols, rows)``; ``what`` names the device in errors."""
+    if len(object_points) < 3:
+        raise InputError(f"{what}: {len(object_points)} usable views; at least 3 are needed")
+    obj = [np.asarray(o, np.float32).reshape(-1, 1, 3) for o in object_points]
+    img = [np.asarray(p, np.float32).reshape(-1, 1, 2) for p in image_points]
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    try:
+        rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(obj, img, tuple(int(s) for s in size), None, None,
+                                                         flags=flags, criteria=crit)
+    except cv2.error as exc:
+        raise InputError(f"{what}: OpenCV calibration failed ({exc.err})") from exc
+    per_view = np.array([view_rms(o, p, K, dist, r, t) for o, p, r, t in zip(obj, img, rvecs, tvecs)])
+    return Intrinsics(K=np.asarray(K, np.float64), dist=np.asarray(dist, np.float64).ravel(),
+                      size=(int(size[0]), int(size[1])), rms=float(rms), per_view_rms=per_view,
+                      rvecs=list(rvecs), tvecs=list(tvecs))
+
+
+def outliers(per_view_rms: NDArray, factor: float = 3.0, min_px: float = 1.0) -> NDArray[np.bool_]:
+    """Views whose RMS exceeds ``factor`` x the median and ``min_px`` px."""
+    e = np.asarray(per_view_rms, np.float64)
+    return (e > factor * np.median(e)) & (e > min_px)
+
+
+@dataclass
+class CameraCalibration:
+    """Camera intrinsics plus the bookkeeping of which files were used."""
+
+    intrinsics: Intrinsics
+    board: BoardSpec
+    files: list[str]
+    corners: list[int]
+    outlier: NDArray[np.bool_]
+    rejected: list[dict]
+    flags: int
+
+    def to_json(self) -> dict:
+        i = self.intrinsics
+        return {"version": 1, "kind": "camera", "image_size": list(i.size), "K": i.K.tolist(),
+                "dist": i.dist.tolist(), "rms": i.rms,
+                "views": [{"file": f, "rms": float(e), "corners": n, "outlier": bool(o)}
+                          for f, e, n, o in zip(self.files, i.per_view_rms, self.corners, self.outlier)],
+                "files_used": self.files, "rejected": self.rejected,
+                "board": self.board.to_json(), "flags": int(self.flags)}
+
+
+def expand_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
+    """Files and folders (all images inside, sorted by name) -> image paths."""
+    paths: list[Path] = []
+    for item in inputs:
+        p = Path(item)
+        if p.is_dir():
+            found = list_images(p)
+            if not found:
+                raise InputError(f"{p}: folder has no images (png, jpg, tif, bmp)")
+            paths += found
+        elif p.is_file():
+            paths.append(p)
+        else:
+            raise InputError(f"{p}: no such file or folder")
+    if not paths:
+        raise InputError("no input images given")
+    return paths
+
+
+def detect_views(paths: Sequence[Path], board: BoardSpec, skip_bad: bool = False):
+    """Detect the board in every image: ``(used paths, object points, image points, size,
+    rejected)``. Images must all have one size; a board that is not found raises unless
+    ``skip_bad`` (then the file is listed in ``rejected``)."""
+    used, objs, imgs, rejected = [], [], [], []
+    size = None
+    for p in paths:
+        gray = read_gray(p)
+        shape = (gray.shape[1], gray.shape[0])
+        if size is None:
+            size = shape
+        elif shape != size:
+            raise InputError(f"{p}: size {shape[0]}x{shape[1]} differs from {paths[0]}'s {size[0]}x{size[1]}")
+        found = board.detect(to_uint8(gray))
+        if found is None:
+            reason = f"{board.kind} with {board.cols}x{board.rows} inner corners not found"
+            if not skip_bad:
+                raise InputError(f"{p}: {reason} (check --board, lighting, focus; or pass --skip-bad)")
+            rejected.append({"file": str(p), "reason": reason})
+            continue
+        used.append(p)
+        objs.append(found[0])
+        imgs.append(found[1])
+    return used, objs, imgs, size, rejected
+
+
+def calibrate_views(names: Sequence[str], object_points: Sequence[NDArray], image_points: Sequence[NDArray],
+                    size: tuple[int, int], board: BoardSpec, flags: int = DEFAULT_FLAGS,
+                    drop_outliers: bool = False, outlier_factor: float = 3.0, outlier_px: float = 1.0,
+                    rejected: list[dict] | None = None) -> CameraCalibration:
+    """Calibrate from detected corners of the views ``names``; flag outlier views (see the
+    module docstring) and, with ``drop_outliers``, recalibrate once without them."""
+    names, objs, imgs = list(names), list(object_points), list(image_points)
+    rejected = list(rejected or [])
+    intr = calibrate_points(objs, imgs, size, flags)
+    bad = outliers(intr.per_view_rms, outlier_factor, outlier_px)
+    if drop_outliers and bad.any():
+        rejected += [{"file": n, "reason": f"outlier view: RMS {e:.3f} px"}
+                     for n, e, b in zip(names, intr.per_view_rms, bad) if b]
+        keep = np.flatnonzero(~bad)
+        names, objs, imgs = [names[k] for k in keep], [objs[k] for k in keep], [imgs[k] for k in keep]
+        intr = calibrate_points(objs, imgs, size, flags)
+        bad = outliers(intr.per_view_rms, outlier_factor, outlier_px)
+    return CameraCalibration(intr, board, names, [len(o) for o in objs], bad, rejected, flags)
+
+
+def calibrate_camera(images: Sequence[str | os.PathLike], board: BoardSpec, flags: int = DEFAULT_FLAGS,
+                     drop_outliers: bool = False, outlier_factor: float = 3.0, outlier_px: float = 1.0,
+                     skip_bad: bool = False, output: str | os.PathLike | None = None) -> CameraCalibration:
+    """Calibrate a camera from board images (files or folders); write ``output`` JSON when
+    given (atomically, only after success)."""
+    paths, objs, imgs, size, rejected = detect_views(expand_inputs(images), board, skip_bad)
+    result = calibrate_views([str(p) for p in paths], objs, imgs, size, board, flags, drop_outliers,
+                             outlier_factor, outlier_px, rejected)
+    if output is not None:
+        save_json(output, result.to_json())
+    return result
+
+
+# ---- files and command-line helpers (shared with projector.py) ----------------------------
+def save_json(path: str | os.PathLike, data: dict) -> Path:
+    """Write ``data`` as indented JSON, atomically."""
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(data, indent=1))
+    return Path(path)
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"1024x768"`` -> ``(1024, 768)`` (argparse type)."""
+    try:
+        a, b = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected WxH, e.g. 9x7 or 1024x768") from None
+    if a <= 0 or b <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: both numbers must be > 0")
+    return a, b
+
+
+def add_board_arguments(p: argparse.ArgumentParser) -> None:
+    """``--board --square --charuco --marker --dictionary`` options."""
+    p.add_argument("--board", type=parse_size, required=True, metavar="COLSxROWS",
+                   help="inner corners, e.g. 9x7 (a ChArUco board with 9x7 inner corners has 10x8 squares)")
+    p.add_argument("--square", type=float, required=True, help="square size, mm")
+    p.add_argument("--charuco", action="store_true", help="ChArUco board instead of a plain chessboard")
+    p.add_argument("--marker", type=float, help="ChArUco marker size, mm")
+    p.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco ArUco dictionary (default %(default)s)")
+    p.add_argument("--fix-k3", action=argparse.BooleanOptionalAction, default=True,
+                   help="keep the k3 radial distortion term at 0 (default on)")
+
+
+def board_from_args(args: argparse.Namespace) -> BoardSpec:
+    return BoardSpec(args.board[0], args.board[1], args.square, "charuco" if args.charuco else "chessboard",
+                     args.marker, args.dictionary)
+
+
+def flags_from_args(args: argparse.Namespace) -> int:
+    return cv2.CALIB_FIX_K3 if args.fix_k3 else 0
+
+
+def run_command(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
+    """Run ``func(args)``; a user error (or a file that cannot be written) prints one line to
+    stderr and returns 2."""
+    try:
+        return func(args)
+    except (GlsldiffError, OSError) as exc:
+        print(f"{PROG}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m glsldiff.calibration.camera",
+                                description="Camera intrinsics from chessboard/ChArUco images (Zhang's method).")
+    p.add_argument("inputs", nargs="+", help="image files and/or folders of images")
+    add_board_arguments(p)
+    p.add_argument("-o", "--output", default="camera.json", help="output JSON (default %(default)s)")
+    p.add_argument("--drop-outliers", action="store_true",
+                   help="drop views with RMS > 3x median and > 1 px, then recalibrate")
+    p.add_argument("--skip-bad", action="store_true", help="skip images where the board is not found")
+    return p
+
+
+def _run(args: argparse.Namespace) -> int:
+    res = calibrate_camera(args.inputs, board_from_args(args), flags_from_args(args), args.drop_outliers,
+                           skip_bad=args.skip_bad, output=args.output)
+    i = res.intrinsics
+    for f, e, o in zip(res.files, i.per_view_rms, res.outlier):
+        print(f"  {f}: {e:.3f} px{'  OUTLIER' if o else ''}")
+    for r in res.rejected:
+        print(f"  rejected {r['file']}: {r['reason']}")
+    print(f"camera RMS {i.rms:.3f} px over {len(res.files)} views; fx {i.K[0, 0]:.2f} fy {i.K[1, 1]:.2f} "
+          f"cx {i.K[0, 2]:.2f} cy {i.K[1, 2]:.2f} px -> {args.output}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    return run_command(_run, build_parser().parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

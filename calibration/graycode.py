@@ -1,0 +1,154 @@
+"""Gray-code structured light: the projector pattern sequence and its vectorised decoding.
+
+Sequence (OpenCV's ``cv2.structured_light.GrayCodePattern`` order, then two extra images):
+for each of the ``ceil(log2(width))`` column bits, most significant first, the bit pattern and
+its inverse; then the same for the ``ceil(log2(height))`` row bits; then all white and all
+black. Projector column ``x`` shows bit ``k`` of its reflected Gray code ``x ^ (x >> 1)``.
+A 1024 x 768 projector has 2 x (10 + 10) + 2 = 42 images.
+
+Decoding, per camera pixel: a bit is 1 where the pattern image is brighter than its inverse,
+and reliable where they differ by at least ``bit_threshold`` (8-bit grey levels); the pixel
+is lit where ``white - black >= shadow_threshold``. A pixel decodes when it is lit, all its
+bits are reliable and the codes fall inside the projector frame. Projector coordinates are
+pixel indices: index ``i`` is the pixel centred at ``u = i`` (OpenCV's convention).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.errors import InputError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+
+
+def bit_counts(size: tuple[int, int]) -> tuple[int, int]:
+    """Number of column and row bits of a projector of ``size = (cols, rows)`` px."""
+    w, h = (int(s) for s in size)
+    if w < 2 or h < 2:
+        raise InputError(f"projector size {w}x{h}: both sides must be >= 2 px")
+    return math.ceil(math.log2(w)), math.ceil(math.log2(h))
+
+
+def sequence_length(size: tuple[int, int]) -> int:
+    """Images per sequence: 2 per Gray bit (pattern, inverse) + white + black."""
+    nc, nr = bit_counts(size)
+    return 2 * (nc + nr) + 2
+
+
+def patterns(size: tuple[int, int]) -> list[NDArray[np.uint8]]:
+    """The full sequence of 8-bit ``(rows, cols)`` projector images (see module docstring)."""
+    bit_counts(size)
+    w, h = (int(s) for s in size)
+    ok, seq = cv2.structured_light.GrayCodePattern.create(w, h).generate()
+    if not ok:
+        raise InputError(f"OpenCV could not generate Gray-code patterns for {w}x{h}")
+    white = np.full((h, w), 255, np.uint8)
+    return [np.asarray(p, dtype=np.uint8) for p in seq] + [white, np.zeros_like(white)]
+
+
+def write_patterns(folder: str | os.PathLike, size: tuple[int, int]) -> list[Path]:
+    """Write the sequence as ``folder/pattern_00.png`` ... (created if needed); returns the paths.
+    Each file is written atomically."""
+    from glsldiff.io import atomic_path
+
+    out = Path(folder)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, img in enumerate(patterns(size)):
+        path = out / f"pattern_{i:02d}.png"
+        with atomic_path(path) as tmp:
+            if not cv2.imwrite(str(tmp), img):
+                raise InputError(f"cannot write {path}")
+        paths.append(path)
+    return paths
+
+
+@dataclass
+class Decoded:
+    """Per camera pixel projector coordinates (px, ``-1`` where not decoded) and masks."""
+
+    col: NDArray[np.int32]
+    row: NDArray[np.int32]
+    valid: NDArray[np.bool_]
+    lit: NDArray[np.bool_]
+
+    @property
+    def fraction(self) -> float:
+        """Fraction of lit pixels that decoded."""
+        n = int(self.lit.sum())
+        return float(self.valid.sum()) / n if n else 0.0
+
+
+def _gray_to_binary(bits: NDArray[np.bool_]) -> NDArray[np.int32]:
+    """Gray-code bits ``(n, rows, cols)``, most significant first -> integer values."""
+    binary = np.logical_xor.accumulate(bits, axis=0)
+    weights = (1 << np.arange(bits.shape[0] - 1, -1, -1)).astype(np.int32)
+    return np.tensordot(weights, binary.astype(np.int32), axes=1).astype(np.int32)
+
+
+def decode(images: NDArray, size: tuple[int, int], shadow_threshold: float = 20.0,
+           bit_threshold: float = 3.0) -> Decoded:
+    """Decode a captured sequence ``(n, rows, cols)`` (grey levels, 8-bit scale) of a projector
+    of ``size = (cols, rows)`` px; ``n`` must be :func:`sequence_length` (``size``)."""
+    imgs = np.asarray(images)
+    n = sequence_length(size)
+    if imgs.ndim != 3 or imgs.shape[0] != n:
+        raise InputError(f"decode: expected {n} images (rows, cols) for a {size[0]}x{size[1]} projector, "
+                         f"got array of shape {imgs.shape}")
+    nc, nr = bit_counts(size)
+    imgs = imgs.astype(np.float32)
+    white, black = imgs[-2], imgs[-1]
+    lit = (white - black) >= shadow_threshold
+    diff = imgs[0:2 * (nc + nr):2] - imgs[1:2 * (nc + nr):2]  # pattern - inverse, per bit
+    reliable = np.all(np.abs(diff) >= bit_threshold, axis=0)
+    bits = diff > 0
+    col = _gray_to_binary(bits[:nc])
+    row = _gray_to_binary(bits[nc:])
+    valid = lit & reliable & (col < size[0]) & (row < size[1])
+    col[~valid] = -1
+    row[~valid] = -1
+    return Decoded(col=col, row=row, valid=valid, lit=lit)
+
+
+def list_images(folder: str | os.PathLike) -> list[Path]:
+    """Image files of ``folder`` (png, jpg, tif, bmp), sorted by name."""
+    d = Path(folder)
+    if not d.is_dir():
+        raise InputError(f"{d}: not a folder")
+    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+
+
+def read_gray(path: str | os.PathLike) -> NDArray[np.float32]:
+    """An image as grey levels on the 8-bit scale (16-bit images are divided by 257)."""
+    try:
+        buf = np.fromfile(str(path), np.uint8)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from exc
+    img = cv2.imdecode(buf, cv2.IMREAD_ANYDEPTH | cv2.IMREAD_GRAYSCALE) if buf.size else None
+    if img is None or img.size == 0:
+        raise InputError(f"{path}: unreadable or not an image")
+    scale = 1.0 / 257.0 if img.dtype == np.uint16 else 1.0
+    return img.astype(np.float32) * np.float32(scale)
+
+
+def read_stack(paths: list[Path], what: str) -> NDArray[np.float32]:
+    """Read equally sized images into ``(n, rows, cols)``; ``what`` names them in errors."""
+    if not paths:
+        raise InputError(f"{what}: no images")
+    first = read_gray(paths[0])
+    stack = np.empty((len(paths),) + first.shape, np.float32)
+    stack[0] = first
+    for i, p in enumerate(paths[1:], 1):
+        img = read_gray(p)
+        if img.shape != first.shape:
+            raise InputError(f"{p}: size {img.shape[1]}x{img.shape[0]} differs from "
+                             f"{paths[0].name}'s {first.shape[1]}x{first.shape[0]} in {what}")
+        stack[i] = img
+    return stack

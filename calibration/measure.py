@@ -1,0 +1,133 @@
+"""From captured brackets to the measurements file of the inverse fit.
+
+Per condition of the plan: merge the bracket to linear HDR (Debevec-Malik response), sample
+it at the observed face's nodes, and then
+
+* ``L_m = HDR(region_m) - HDR(black)`` -- the projector's black level lights the whole
+  sample, and diffusion is linear, so subtracting the all-black capture removes it exactly;
+* incoming light ``q_m = F_t(eta, 1) pi (HDR(white) - HDR(reference_black)) / albedo`` on the
+  nodes of region ``m``: the irradiance the projector adds when a region is switched on,
+  measured on the white reference in camera units (so ``q`` and ``L`` share units, which is
+  what the fit needs; a global exposure scale cancels);
+* optional white-balance gains (from a colour chart) multiply both; kappa and mu do not
+  depend on them, since q and L are measured through the same camera channel;
+* front-lit: nodes of the lit region and their neighbours are masked out; nodes that are
+  saturated (or dark) in every exposure are masked out; small negative values left by noise
+  after the black subtraction are clipped to 0 and counted.
+
+Node positions in the image come from the block face's four corner pixels (a homography
+in undistorted coordinates; lens distortion from the camera calibration when given). Each
+node's value is the mean over its cell (box filter of one node spacing) sampled bilinearly.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from glsldiff.calibration.plan import CapturePlan, face_homography, load_plan
+from glsldiff.errors import InputError
+from glsldiff.inverse.measurements import Measurements
+from glsldiff.optics import fresnel_transmittance
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class MeasureReport:
+    """What :func:`measure` did: clipped and masked counts, black-level ratio, seconds."""
+
+    clipped: int
+    masked_lit: int
+    masked_exposure: int
+    black_ratio: Array
+    node_pixels: float
+
+
+def node_pixels(plan: CapturePlan, corners_px: Array, K: Array | None = None,
+                dist: Array | None = None) -> Array:
+    """Raw-image pixel positions ``(ny-2, nx-2, 2)`` of the observed face's nodes."""
+    c = np.asarray(corners_px, dtype=np.float64).reshape(4, 2)
+    if K is not None:
+        c = cv2.undistortPoints(c.reshape(-1, 1, 2), K, dist, P=K).reshape(4, 2)
+    H = face_homography(c, plan.shape, plan.h)
+    fy, fx = plan.face_shape
+    r, col = np.mgrid[0:fy, 0:fx].astype(np.float64)
+    mm = np.stack([(col + 1) * plan.h, (r + 1) * plan.h], axis=-1).reshape(-1, 1, 2)
+    px = cv2.perspectiveTransform(mm, H).reshape(-1, 2)
+    if K is not None:  # re-apply the lens distortion
+        xy = cv2.undistortPoints(px.reshape(-1, 1, 2), K, None).reshape(-1, 2)
+        obj = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+        px, _ = cv2.projectPoints(obj.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
+        px = px.reshape(-1, 2)
+    return px.reshape(fy, fx, 2)
+
+
+def sample_nodes(hdr: Array, px: Array) -> Array:
+    """Cell means of an HDR image ``(rows, cols, 3)`` at node pixels ``(fy, fx, 2)``."""
+    spacing = float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=-1)))
+    k = max(1, int(round(spacing)))
+    img = cv2.blur(np.asarray(hdr, dtype=np.float32), (k, k))
+    rows, cols = img.shape[:2]
+    if px[..., 0].min() < 0 or px[..., 1].min() < 0 or px[..., 0].max() > cols - 1 or px[..., 1].max() > rows - 1:
+        raise InputError("the sample's face extends beyond the image: check the corner pixels")
+    out = cv2.remap(img, px[..., 0].astype(np.float32), px[..., 1].astype(np.float32), cv2.INTER_LINEAR)
+    return out.astype(np.float64)
+
+
+def measure(capture: str | os.PathLike, corners_px: Array, response: Array | None = None,
+            K: Array | None = None, dist: Array | None = None, gains: Array | None = None,
+            reference_albedo: float = 0.9, eta: float = 1.3) -> tuple[Measurements, MeasureReport]:
+    """Measurements from a capture folder written by :func:`glsldiff.calibration.rig.run_capture`
+    (see the module docstring). ``response``: ``(256, 3)`` camera response; recovered from the
+    captured brackets when not given."""
+    from glsldiff.calibration import hdr as hdrlib
+
+    folder = Path(capture)
+    plan = load_plan(folder)
+    if not (np.isfinite(reference_albedo) and 0 < reference_albedo <= 1):
+        raise InputError(f"reference_albedo={reference_albedo!r} must be in (0, 1]")
+    brackets = {c.name: hdrlib.load_bracket(folder / c.name) for c in plan.conditions}
+    if response is None:
+        response = hdrlib.calibrate_response(list(brackets.values()))
+    px = node_pixels(plan, corners_px, K, dist)
+    nodes, bad = {}, {}
+    for name, bracket in brackets.items():
+        img, mask = hdrlib.merge_bracket(bracket, response)
+        nodes[name] = sample_nodes(img, px)
+        bad[name] = sample_nodes(mask.astype(np.float32)[..., None].repeat(3, -1) if mask.ndim == 2
+                                 else mask.astype(np.float32), px) > 0.5
+    white = nodes["white"] - nodes["reference_black"]
+    if np.any(np.median(white.reshape(-1, 3), axis=0) <= 0):
+        raise InputError("the white reference is not brighter than the projector's black: check the "
+                         "'white' and 'reference_black' captures")
+    black_ratio = np.median((nodes["reference_black"] / np.maximum(nodes["white"], 1e-30)).reshape(-1, 3), axis=0)
+    E = np.pi * white / reference_albedo                       # irradiance per node, camera units
+    E = ndimage.median_filter(E, size=(3, 3, 1), mode="nearest")  # the projector field is smooth
+    ft = float(fresnel_transmittance(eta, 1.0))
+    g = np.ones(3) if gains is None else np.asarray(gains, dtype=np.float64).reshape(3)
+    incoming, radiance, mask = [], [], []
+    clipped = masked_lit = masked_exp = 0
+    for cond in plan.regions:
+        lit = plan.face_incoming(cond)
+        incoming.append(g * ft * E * lit[..., None])
+        L = g * (nodes[cond.name] - nodes["black"])
+        ok = ~(bad[cond.name] | bad["black"])
+        masked_exp += int((~ok).sum())
+        if plan.setup == "front":
+            near = ndimage.binary_dilation(lit > 0, iterations=1)[..., None]
+            masked_lit += int(np.broadcast_to(near & ok, ok.shape).sum())
+            ok &= ~near
+        neg = ok & (L < 0)
+        clipped += int(neg.sum())
+        radiance.append(np.maximum(L, 0.0))
+        mask.append(ok)
+    meas = Measurements(plan.shape, plan.h, plan.lit_face, plan.observed_face, np.stack(incoming),
+                        np.stack(radiance), np.stack(mask), eta=eta)
+    spacing = float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=-1)))
+    return meas, MeasureReport(clipped, masked_lit, masked_exp, black_ratio, spacing)

@@ -1,0 +1,283 @@
+"""Projector calibration with Gray-code structured light (Moreno & Taubin 2012).
+
+For each pose of a planar board, the projector shows the Gray-code sequence
+(:mod:`.graycode`: column and row bits each followed by its inverse, then white and black) and
+the camera captures one image per pattern. Per pose:
+
+1. decode, per camera pixel, the projector column and row (vectorised; shadow mask from
+   white - black, per-bit contrast threshold);
+2. find the board corners in the white image;
+3. for every corner, fit a local homography camera -> projector (``cv2.findHomography``,
+   RANSAC) to the decoded pixels of a ``window x window`` px neighbourhood and map the corner
+   through it: the corner's projector coordinates (px).
+
+Then the camera and the projector are calibrated on their own (Zhang, ``cv2.calibrateCamera``)
+and the stereo extrinsics found with ``cv2.stereoCalibrate(..., CALIB_FIX_INTRINSIC)``.
+
+Capture folder layout: ``FOLDER/capture_*/`` one sub-folder per pose, each with exactly
+:func:`~.graycode.sequence_length` images (``*.png``/``*.jpg``... sorted by name, in pattern
+order). ``python -m glsldiff.calibration.projector patterns`` writes the projector images.
+
+``rig.json`` (written atomically by :func:`calibrate_folder`)::
+
+    {"version": 1, "kind": "camera-projector",
+     "camera":    {"image_size": [cols, rows], "K": 3x3, "dist": [k1, k2, p1, p2, k3],
+                   "rms": px, "per_view_rms": [px, ...]},
+     "projector": {same keys, for the projector image},
+     "stereo":    {"R": 3x3, "T": [mm x3],      # X_projector = R X_camera + T
+                   "E": 3x3, "F": 3x3, "rms": px, "per_view_rms": [[camera px, projector px], ...],
+                   "baseline_mm": |T|},
+     "poses": [{"folder": path, "corners": n, "decoded_fraction": of lit pixels,
+                "camera_points": [[u, v], ...], "projector_points": [[u, v], ...]}, ...],
+     "rejected": [{"folder": path, "reason": text}, ...],
+     "board": {...},                             # as in camera.json
+     "settings": {"window_px", "shadow_threshold", "bit_threshold",   # 8-bit grey levels
+                  "min_fraction", "ransac_px", "flags"}}              # cv2.calibrateCamera flags
+
+Errors a user can cause raise :class:`~glsldiff.errors.InputError` naming the folder or file.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.calibration.camera import (DEFAULT_FLAGS, BoardSpec, Intrinsics, add_board_arguments,
+                                         board_from_args, calibrate_points, flags_from_args, parse_size,
+                                         run_command, save_json, to_uint8)
+from glsldiff.calibration.graycode import (Decoded, bit_counts, decode, list_images, read_stack,
+                                           sequence_length, write_patterns)
+from glsldiff.errors import InputError
+
+Array = NDArray[np.float64]
+
+
+@dataclass
+class DecodeSettings:
+    """Decoding and corner-mapping parameters: window side (camera px), white - black shadow
+    threshold and per-bit contrast threshold (8-bit grey levels), minimum fraction of decoded
+    pixels in a corner's window, RANSAC threshold (projector px)."""
+
+    window: int = 47
+    shadow_threshold: float = 20.0
+    bit_threshold: float = 3.0
+    min_fraction: float = 0.2
+    ransac_px: float = 2.0
+
+    def to_json(self) -> dict:
+        return {"window_px": self.window, "shadow_threshold": self.shadow_threshold,
+                "bit_threshold": self.bit_threshold, "min_fraction": self.min_fraction,
+                "ransac_px": self.ransac_px}
+
+
+@dataclass
+class PoseCorners:
+    """One pose: board points (mm) and their camera and projector coordinates (px)."""
+
+    folder: str
+    object_points: NDArray[np.float32]
+    camera_points: NDArray[np.float32]
+    projector_points: NDArray[np.float32]
+    image_size: tuple[int, int]
+    decoded_fraction: float
+
+    def to_json(self) -> dict:
+        return {"folder": self.folder, "corners": len(self.object_points),
+                "decoded_fraction": self.decoded_fraction,
+                "camera_points": np.round(self.camera_points, 4).tolist(),
+                "projector_points": np.round(self.projector_points, 4).tolist()}
+
+
+def capture_folders(folder: str | Path) -> list[Path]:
+    """The ``capture_*`` sub-folders of ``folder``, sorted by name."""
+    root = Path(folder)
+    if not root.is_dir():
+        raise InputError(f"{root}: no such folder")
+    subs = sorted(p for p in root.glob("capture_*") if p.is_dir())
+    if not subs:
+        raise InputError(f"{root}: no capture_* sub-folders (one per board pose)")
+    return subs
+
+
+def read_sequence(folder: str | Path, projector_size: tuple[int, int]) -> NDArray[np.float32]:
+    """The captured sequence ``(n, rows, cols)`` of one pose, checking the image count."""
+    paths = list_images(folder)
+    n = sequence_length(projector_size)
+    if len(paths) != n:
+        nc, nr = bit_counts(projector_size)
+        raise InputError(f"{folder}: {len(paths)} images, expected {n} for a {projector_size[0]}x{projector_size[1]} "
+                         f"projector (2 x ({nc} column + {nr} row Gray bits) + white + black)")
+    return read_stack(paths, str(folder))
+
+
+def corner_to_projector(decoded: Decoded, corner: NDArray, settings: DecodeSettings) -> NDArray | None:
+    """Projector coordinates (px) of the camera point ``corner`` (px) from a local homography
+    fitted to the decoded pixels of its window; None when too few pixels decoded."""
+    half = settings.window // 2
+    rows, cols = decoded.valid.shape
+    cx, cy = int(round(float(corner[0]))), int(round(float(corner[1])))
+    x0, x1, y0, y1 = max(cx - half, 0), min(cx + half + 1, cols), max(cy - half, 0), min(cy + half + 1, rows)
+    ys, xs = np.nonzero(decoded.valid[y0:y1, x0:x1])
+    if xs.size < max(settings.min_fraction * settings.window ** 2, 8):
+        return None
+    ys, xs = ys + y0, xs + x0
+    src = np.stack([xs, ys], axis=1).astype(np.float64)
+    dst = np.stack([decoded.col[ys, xs], decoded.row[ys, xs]], axis=1).astype(np.float64)
+    H, _ = cv2.findHomography(src, dst, cv2.RANSAC, settings.ransac_px)
+    if H is None:
+        return None
+    return cv2.perspectiveTransform(np.asarray(corner, np.float64).reshape(1, 1, 2), H).reshape(2)
+
+
+def process_capture(folder: str | Path, board: BoardSpec, projector_size: tuple[int, int],
+                    settings: DecodeSettings | None = None) -> PoseCorners:
+    """Decode one pose and map its board corners into the projector (steps 1-3 above)."""
+    settings = settings or DecodeSettings()
+    stack = read_sequence(folder, projector_size)
+    decoded = decode(stack, projector_size, settings.shadow_threshold, settings.bit_threshold)
+    found = board.detect(to_uint8(stack[-2]))
+    if found is None:
+        raise InputError(f"{folder}: {board.kind} with {board.cols}x{board.rows} inner corners not found in the "
+                         f"white image ({list_images(folder)[-2].name}); check --board and the lighting")
+    obj, cam = found
+    proj = [corner_to_projector(decoded, c, settings) for c in cam]
+    missing = [i for i, p in enumerate(proj) if p is None]
+    if missing:
+        raise InputError(f"{folder}: corners {missing[:10]}{'...' if len(missing) > 10 else ''} have fewer than "
+                         f"{settings.min_fraction:.0%} decoded pixels in their {settings.window} px window "
+                         f"(decoded {decoded.fraction:.1%} of lit pixels; not lit by the projector, or lower "
+                         f"--shadow-threshold/--bit-threshold)")
+    return PoseCorners(str(folder), obj, cam, np.asarray(proj, np.float32),
+                       (stack.shape[2], stack.shape[1]), decoded.fraction)
+
+
+@dataclass
+class RigCalibration:
+    """Camera and projector intrinsics and the camera -> projector extrinsics."""
+
+    camera: Intrinsics
+    projector: Intrinsics
+    R: Array  # X_projector = R X_camera + T
+    T: Array  # mm
+    E: Array
+    F: Array
+    stereo_rms: float  # px, over the camera and projector points
+    stereo_per_view: Array  # (poses, 2) px: camera, projector
+    poses: list[PoseCorners]
+    rejected: list[dict] = field(default_factory=list)
+
+    @property
+    def baseline(self) -> float:
+        """Distance between the camera and projector centres, mm."""
+        return float(np.linalg.norm(self.T))
+
+    def to_json(self, board: BoardSpec, settings: DecodeSettings, flags: int) -> dict:
+        return {"version": 1, "kind": "camera-projector", "camera": self.camera.to_json(),
+                "projector": self.projector.to_json(),
+                "stereo": {"R": self.R.tolist(), "T": self.T.ravel().tolist(), "E": self.E.tolist(),
+                           "F": self.F.tolist(), "rms": self.stereo_rms,
+                           "per_view_rms": self.stereo_per_view.tolist(), "baseline_mm": self.baseline},
+                "poses": [p.to_json() for p in self.poses], "rejected": self.rejected,
+                "board": board.to_json(), "settings": {**settings.to_json(), "flags": int(flags)}}
+
+
+def calibrate_rig(poses: Sequence[PoseCorners], projector_size: tuple[int, int],
+                  flags: int = DEFAULT_FLAGS) -> RigCalibration:
+    """Camera, projector and stereo calibration from per-pose corners."""
+    if not poses:
+        raise InputError("no usable poses")
+    sizes = {p.image_size for p in poses}
+    if len(sizes) > 1:
+        raise InputError("camera images have different sizes across poses: "
+                         + ", ".join(f"{p.folder}: {p.image_size[0]}x{p.image_size[1]}" for p in poses))
+    obj = [p.object_points for p in poses]
+    cam = calibrate_points(obj, [p.camera_points for p in poses], poses[0].image_size, flags, "camera")
+    proj = calibrate_points(obj, [p.projector_points for p in poses], projector_size, flags, "projector")
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+    out = cv2.stereoCalibrateExtended(
+        [o.reshape(-1, 1, 3) for o in obj], [p.camera_points.reshape(-1, 1, 2) for p in poses],
+        [p.projector_points.reshape(-1, 1, 2) for p in poses], cam.K, cam.dist, proj.K, proj.dist,
+        cam.size, None, None, flags=cv2.CALIB_FIX_INTRINSIC, criteria=crit)
+    rms, _, _, _, _, R, T, E, F, _, _, per_view = out
+    return RigCalibration(cam, proj, np.asarray(R), np.asarray(T).ravel(), np.asarray(E), np.asarray(F),
+                          float(rms), np.asarray(per_view).reshape(-1, 2), list(poses))
+
+
+def calibrate_folder(folder: str | Path, board: BoardSpec, projector_size: tuple[int, int],
+                     settings: DecodeSettings | None = None, flags: int = DEFAULT_FLAGS,
+                     skip_bad: bool = False, output: str | Path | None = None) -> RigCalibration:
+    """Calibrate from ``folder/capture_*``; a pose that fails raises unless ``skip_bad``
+    (then it is listed in ``rejected``). Writes ``output`` JSON only after success."""
+    settings = settings or DecodeSettings()
+    poses, rejected = [], []
+    for sub in capture_folders(folder):
+        try:
+            poses.append(process_capture(sub, board, projector_size, settings))
+        except InputError as exc:
+            if not skip_bad:
+                raise
+            rejected.append({"folder": str(sub), "reason": str(exc)})
+    rig = calibrate_rig(poses, projector_size, flags)
+    rig.rejected = rejected
+    if output is not None:
+        save_json(output, rig.to_json(board, settings, flags))
+    return rig
+
+
+# ---- command --------------------------------------------------------------------------------
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m glsldiff.calibration.projector",
+                                description="Gray-code projector-camera calibration (Moreno & Taubin 2012).")
+    sub = p.add_subparsers(dest="command", required=True)
+    pat = sub.add_parser("patterns", help="write the projector images pattern_00.png ... into a folder")
+    pat.add_argument("--projector", type=parse_size, required=True, metavar="WxH", help="projector size, px")
+    pat.add_argument("-o", "--output", default="patterns", help="output folder (default %(default)s)")
+    pat.set_defaults(func=_patterns)
+    cal = sub.add_parser("calibrate", help="calibrate camera + projector from FOLDER/capture_*/")
+    cal.add_argument("folder", help="folder with one capture_* sub-folder per board pose")
+    add_board_arguments(cal)
+    cal.add_argument("--projector", type=parse_size, required=True, metavar="WxH", help="projector size, px")
+    cal.add_argument("-o", "--output", default="rig.json", help="output JSON (default %(default)s)")
+    d = DecodeSettings()
+    cal.add_argument("--window", type=int, default=d.window, help="local homography window, camera px (default %(default)s)")
+    cal.add_argument("--shadow-threshold", type=float, default=d.shadow_threshold,
+                     help="min white - black, 8-bit levels (default %(default)s)")
+    cal.add_argument("--bit-threshold", type=float, default=d.bit_threshold,
+                     help="min |pattern - inverse| per bit, 8-bit levels (default %(default)s)")
+    cal.add_argument("--skip-bad", action="store_true", help="skip poses that fail instead of stopping")
+    cal.set_defaults(func=_calibrate)
+    return p
+
+
+def _patterns(args: argparse.Namespace) -> int:
+    paths = write_patterns(args.output, args.projector)
+    print(f"wrote {len(paths)} patterns ({paths[0].name} .. {paths[-1].name}) to {args.output}")
+    return 0
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    if args.window < 5:
+        raise InputError(f"--window {args.window}: must be >= 5 px")
+    settings = DecodeSettings(args.window, args.shadow_threshold, args.bit_threshold)
+    rig = calibrate_folder(args.folder, board_from_args(args), args.projector, settings, flags_from_args(args),
+                           args.skip_bad, args.output)
+    for r in rig.rejected:
+        print(f"  rejected {r['folder']}: {r['reason']}")
+    print(f"poses {len(rig.poses)}; camera RMS {rig.camera.rms:.3f} px; projector RMS {rig.projector.rms:.3f} px; "
+          f"stereo RMS {rig.stereo_rms:.3f} px; baseline {rig.baseline:.1f} mm -> {args.output}")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return run_command(args.func, args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

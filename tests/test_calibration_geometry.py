@@ -1,0 +1,284 @@
+"""Geometric calibration (Wang et al. 2008, section 4.1): camera intrinsics (Zhang), Gray-code
+decoding and camera-projector calibration (Moreno & Taubin 2012), all on synthetic captures
+rendered by ``glsldiff.calibration.views`` with known ground truth.
+
+Default tests use a 640x512 camera and a 512x384 projector with few poses; the full-size run
+(1280x1024 / 1024x768, 5 poses) is marked slow.
+"""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from glsldiff.calibration import camera, graycode, projector, views
+from glsldiff.calibration.camera import BoardSpec
+from glsldiff.errors import InputError
+
+CAM, PROJ = (640, 512), (512, 384)
+BOARD = BoardSpec(9, 7, 20.0)
+BOARD_ARGS = ["--board", "9x7", "--square", "20"]
+
+
+# ---- fixtures --------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def proj_rig() -> views.SyntheticRig:
+    return views.synthetic_rig(4, CAM, PROJ, BOARD)
+
+
+@pytest.fixture(scope="module")
+def proj_data(tmp_path_factory, proj_rig) -> Path:
+    return views.write_projector_dataset(tmp_path_factory.mktemp("proj") / "captures", proj_rig)
+
+
+@pytest.fixture(scope="module")
+def cam_data(tmp_path_factory) -> tuple[Path, views.SyntheticRig]:
+    rig = views.synthetic_rig(6, CAM, None, BOARD, seed=1)
+    return views.write_camera_dataset(tmp_path_factory.mktemp("cam") / "views", rig), rig
+
+
+def rel_err(a: float, b: float) -> float:
+    return abs(a / b - 1.0)
+
+
+def copy_poses(src: Path, dst: Path, n: int) -> Path:
+    """The first ``n`` capture folders of ``src`` copied into ``dst``."""
+    for sub in projector.capture_folders(src)[:n]:
+        shutil.copytree(sub, dst / sub.name)
+    return dst
+
+
+def check_cli_error(capsys, rc: int, *needles: str) -> str:
+    """The command returned 2 and printed one error line containing every ``needle``."""
+    err = capsys.readouterr().err.strip()
+    assert rc == 2
+    assert err.startswith("glsldiff-calibration: error: ") and "\n" not in err, err
+    for n in needles:
+        assert n in err, err
+    return err
+
+
+# ---- Gray code -------------------------------------------------------------------------------
+def test_patterns_follow_opencv_order_and_decode_to_identity(tmp_path):
+    size = (37, 21)  # not powers of two
+    seq = graycode.patterns(size)
+    ok, ref = cv2.structured_light.GrayCodePattern.create(*size).generate()
+    assert ok and len(seq) == len(ref) + 2 == graycode.sequence_length(size) == 2 * (6 + 5) + 2
+    assert all(np.array_equal(a, b) for a, b in zip(seq, ref))
+    assert (seq[-2] == 255).all() and (seq[-1] == 0).all()
+    dec = graycode.decode(np.stack(seq), size)
+    v, u = np.mgrid[0:size[1], 0:size[0]]
+    assert dec.valid.all() and (dec.col == u).all() and (dec.row == v).all()
+    gcp = cv2.structured_light.GrayCodePattern.create(*size)
+    for x, y in [(0, 0), (36, 20), (17, 5), (30, 11)]:
+        err, pix = gcp.getProjPixel(list(ref), x, y)
+        assert not err and tuple(pix) == (dec.col[y, x], dec.row[y, x])
+
+    assert projector.main(["patterns", "--projector", "37x21", "-o", str(tmp_path / "pat")]) == 0
+    files = sorted((tmp_path / "pat").iterdir())
+    assert [f.name for f in files] == [f"pattern_{i:02d}.png" for i in range(len(seq))]
+    assert np.array_equal(cv2.imread(str(files[3]), cv2.IMREAD_GRAYSCALE), seq[3])
+
+
+def test_decoding_of_synthetic_captures_matches_true_projector_pixels(proj_data, proj_rig):
+    for k, folder in enumerate(projector.capture_folders(proj_data)[:2]):
+        dec = graycode.decode(projector.read_sequence(folder, PROJ), PROJ)
+        truth = proj_rig.true_projector_pixels(k)
+        lit = np.isfinite(truth[..., 0])
+        good = dec.valid & (np.abs(dec.col - truth[..., 0]) <= 1) & (np.abs(dec.row - truth[..., 1]) <= 1)
+        frac = (good & lit).sum() / lit.sum()
+        assert lit.sum() > 20000
+        assert frac >= 0.95, f"pose {k}: {frac:.3%} of lit board pixels decoded within 1 px"
+        assert not (dec.valid & ~lit).sum() > 0.01 * lit.sum()  # nothing decoded off the board
+    # OpenCV's own per-pixel decoder agrees on the captured images (its bit threshold is 5)
+    seq = projector.read_sequence(folder, PROJ)
+    dec5 = graycode.decode(seq, PROJ, bit_threshold=5.0)
+    ys, xs = np.nonzero(dec5.valid)
+    pick = np.random.default_rng(0).choice(ys.size, 20, replace=False)
+    gcp = cv2.structured_light.GrayCodePattern.create(*PROJ)
+    captured = [np.ascontiguousarray(im.astype(np.uint8)) for im in seq[:-2]]
+    for y, x in zip(ys[pick], xs[pick]):
+        err, pix = gcp.getProjPixel(captured, int(x), int(y))
+        assert not err and tuple(pix) == (dec5.col[y, x], dec5.row[y, x])
+
+
+# ---- camera ----------------------------------------------------------------------------------
+def test_camera_calibration_on_synthetic_views(cam_data, tmp_path, capsys):
+    folder, rig = cam_data
+    out = tmp_path / "camera.json"
+    assert camera.main([str(folder), *BOARD_ARGS, "-o", str(out)]) == 0
+    assert "camera RMS" in capsys.readouterr().out
+    data = json.loads(out.read_text())
+    assert data["kind"] == "camera" and data["image_size"] == list(CAM)
+    assert data["rms"] < 0.5 and len(data["views"]) == 6 and data["rejected"] == []
+    assert all(v["rms"] < 0.5 and not v["outlier"] and v["corners"] == 63 for v in data["views"])
+    K, Kt = np.array(data["K"]), rig.camera.K
+    assert rel_err(K[0, 0], Kt[0, 0]) < 0.01 and rel_err(K[1, 1], Kt[1, 1]) < 0.01
+    assert np.abs(K[:2, 2] - Kt[:2, 2]).max() < 5.0
+    assert data["board"] == BOARD.to_json()
+
+
+def test_charuco_camera_calibration(tmp_path):
+    board = BoardSpec(9, 7, 20.0, "charuco", 14.0)
+    rig = views.synthetic_rig(5, CAM, None, board, seed=2)
+    res = camera.calibrate_camera([views.write_camera_dataset(tmp_path / "charuco", rig)], board)
+    K, Kt = res.intrinsics.K, rig.camera.K
+    assert res.intrinsics.rms < 0.5 and min(res.corners) >= 40
+    assert rel_err(K[0, 0], Kt[0, 0]) < 0.01 and rel_err(K[1, 1], Kt[1, 1]) < 0.01
+
+
+def test_outlier_view_is_flagged_and_dropped(cam_data):
+    folder, _ = cam_data
+    paths, objs, imgs, size, _ = camera.detect_views(graycode.list_images(folder), BOARD)
+    imgs = [p.copy() for p in imgs]
+    imgs[2] += np.random.default_rng(0).normal(0.0, 4.0, imgs[2].shape).astype(np.float32)
+    names = [str(p) for p in paths]
+    flagged = camera.calibrate_views(names, objs, imgs, size, BOARD)
+    assert flagged.outlier.tolist() == [False, False, True, False, False, False]
+    assert flagged.to_json()["views"][2]["outlier"] is True
+    dropped = camera.calibrate_views(names, objs, imgs, size, BOARD, drop_outliers=True)
+    assert names[2] not in dropped.files and dropped.rejected[0]["file"] == names[2]
+    assert dropped.intrinsics.rms < 0.5 < flagged.intrinsics.rms
+
+
+# ---- projector -------------------------------------------------------------------------------
+def test_projector_calibration_end_to_end(proj_data, tmp_path, capsys):
+    out = tmp_path / "rig.json"
+    rc = projector.main(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384",
+                         "--window", "31", "-o", str(out)])
+    printed = capsys.readouterr().out
+    assert rc == 0 and "camera RMS" in printed and "projector RMS" in printed and "stereo RMS" in printed
+    data, truth = json.loads(out.read_text()), json.loads((proj_data / "truth.json").read_text())
+    assert data["camera"]["rms"] < 0.5 and data["projector"]["rms"] < 0.5 and data["stereo"]["rms"] < 0.5
+    Kc, Kp = np.array(data["camera"]["K"]), np.array(data["projector"]["K"])
+    Kct, Kpt = np.array(truth["camera"]["K"]), np.array(truth["projector"]["K"])
+    assert rel_err(Kc[0, 0], Kct[0, 0]) < 0.01 and rel_err(Kc[1, 1], Kct[1, 1]) < 0.01
+    assert rel_err(Kp[0, 0], Kpt[0, 0]) < 0.02 and rel_err(Kp[1, 1], Kpt[1, 1]) < 0.02
+    assert rel_err(data["stereo"]["baseline_mm"], truth["baseline_mm"]) < 0.02
+    assert np.linalg.norm(np.array(data["stereo"]["T"]) - truth["T"]) < 0.03 * truth["baseline_mm"]
+    R = np.array(data["stereo"]["R"]) @ np.array(truth["R"]).T
+    assert np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))) < 0.5
+    assert len(data["poses"]) == 4 and all(p["decoded_fraction"] > 0.95 for p in data["poses"])
+    assert data["projector"]["image_size"] == list(PROJ) and data["settings"]["window_px"] == 31
+
+
+# ---- bad input -------------------------------------------------------------------------------
+def test_missing_image_is_reported_and_nothing_written(proj_data, tmp_path, capsys):
+    root = copy_poses(proj_data, tmp_path / "caps", 2)
+    (root / "capture_001" / "img_07.png").unlink()
+    out = tmp_path / "rig.json"
+    rc = projector.main(["calibrate", str(root), *BOARD_ARGS, "--projector", "512x384", "-o", str(out)])
+    check_cli_error(capsys, rc, "capture_001", "37 images, expected 38")
+    assert not out.exists() and list(tmp_path.glob(".rig.json*")) == []
+
+
+def test_wrong_projector_size_is_a_count_error(proj_data):
+    with pytest.raises(InputError, match=r"capture_000: 38 images, expected 42 for a 1024x768"):
+        projector.read_sequence(proj_data / "capture_000", (1024, 768))
+
+
+def test_chessboard_not_found(proj_data, tmp_path):
+    root = copy_poses(proj_data, tmp_path / "caps", 1)
+    white = root / "capture_000" / "img_36.png"
+    cv2.imwrite(str(white), np.full(CAM[::-1], 90, np.uint8))
+    with pytest.raises(InputError, match=r"capture_000: chessboard with 9x7 inner corners not found .*img_36\.png"):
+        projector.calibrate_folder(root, BOARD, PROJ)
+    cam_dir = tmp_path / "views"
+    cam_dir.mkdir()
+    shutil.copy(white, cam_dir / "blank.png")
+    with pytest.raises(InputError, match=r"blank\.png: chessboard with 9x7 inner corners not found"):
+        camera.calibrate_camera([cam_dir], BOARD)
+
+
+def test_images_of_different_sizes(proj_data, cam_data, tmp_path):
+    root = copy_poses(proj_data, tmp_path / "caps", 1)
+    img = root / "capture_000" / "img_05.png"
+    cv2.imwrite(str(img), cv2.imread(str(img))[:-8])
+    with pytest.raises(InputError, match=r"img_05\.png: size 640x504 differs .* 640x512"):
+        projector.calibrate_folder(root, BOARD, PROJ)
+    folder, _ = cam_data
+    views_dir = tmp_path / "views"
+    shutil.copytree(folder, views_dir)
+    cv2.imwrite(str(views_dir / "view_03.png"), cv2.imread(str(views_dir / "view_03.png"))[:, :-2])
+    with pytest.raises(InputError, match=r"view_03\.png: size 638x512 differs"):
+        camera.calibrate_camera([views_dir], BOARD)
+
+
+def test_unreadable_image(proj_data, cam_data, tmp_path, capsys):
+    root = copy_poses(proj_data, tmp_path / "caps", 1)
+    (root / "capture_000" / "img_10.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match=r"img_10\.png: unreadable or not an image"):
+        projector.calibrate_folder(root, BOARD, PROJ)
+    bad = tmp_path / "bad.jpg"
+    bad.write_bytes(b"\xff\xd8garbage")
+    out = tmp_path / "camera.json"
+    out.write_text("previous")
+    rc = camera.main([str(cam_data[0]), str(bad), *BOARD_ARGS, "-o", str(out)])
+    check_cli_error(capsys, rc, "bad.jpg", "unreadable")
+    assert out.read_text() == "previous"  # never replaced by a partial result
+
+
+def test_empty_folders(tmp_path, capsys):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    check_cli_error(capsys, projector.main(["calibrate", str(empty), *BOARD_ARGS, "--projector", "512x384",
+                                            "-o", str(tmp_path / "r.json")]), "empty", "no capture_* sub-folders")
+    (empty / "capture_000").mkdir()
+    with pytest.raises(InputError, match=r"capture_000: 0 images, expected 38"):
+        projector.calibrate_folder(empty, BOARD, PROJ)
+    check_cli_error(capsys, camera.main([str(tmp_path / "empty" / "capture_000"), *BOARD_ARGS]),
+                    "capture_000", "no images")
+    check_cli_error(capsys, camera.main([str(tmp_path / "nowhere"), *BOARD_ARGS]), "nowhere", "no such file")
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_skip_bad_pose_is_listed_as_rejected(proj_data, tmp_path):
+    root = copy_poses(proj_data, tmp_path / "caps", 4)
+    (root / "capture_002" / "img_00.png").unlink()
+    out = tmp_path / "rig.json"
+    rig = projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31), skip_bad=True,
+                                     output=out)
+    data = json.loads(out.read_text())
+    assert len(rig.poses) == 3 and data["rejected"][0]["folder"].endswith("capture_002")
+    assert "37 images" in data["rejected"][0]["reason"] and data["stereo"]["rms"] < 0.5
+
+
+def test_bad_arguments():
+    with pytest.raises(InputError, match="marker"):
+        BoardSpec(9, 7, 20.0, "charuco", 25.0)
+    with pytest.raises(InputError, match="square size"):
+        BoardSpec(9, 7, 0.0)
+    with pytest.raises(SystemExit):
+        projector.main(["calibrate", "x", "--board", "9by7", "--square", "20", "--projector", "512x384"])
+
+
+def test_commands_run_as_modules():
+    for mod in ("camera", "projector", "views"):
+        r = subprocess.run([sys.executable, "-m", f"glsldiff.calibration.{mod}", "--help"],
+                           capture_output=True, text=True, timeout=60)
+        assert r.returncode == 0 and "usage:" in r.stdout, r.stderr
+
+
+# ---- full size -------------------------------------------------------------------------------
+@pytest.mark.slow
+def test_full_size_projector_calibration(tmp_path, capsys):
+    rig = views.synthetic_rig(5, (1280, 1024), (1024, 768), BOARD)
+    data_dir = views.write_projector_dataset(tmp_path / "captures", rig)
+    out = tmp_path / "rig.json"
+    t0 = time.perf_counter()
+    rc = projector.main(["calibrate", str(data_dir), *BOARD_ARGS, "--projector", "1024x768", "-o", str(out)])
+    seconds = time.perf_counter() - t0
+    print(capsys.readouterr().out, f"calibration took {seconds:.1f} s")
+    assert rc == 0 and seconds < 180
+    data, truth = json.loads(out.read_text()), rig.truth()
+    assert max(data["camera"]["rms"], data["projector"]["rms"], data["stereo"]["rms"]) < 0.5
+    Kp, Kpt = np.array(data["projector"]["K"]), np.array(truth["projector"]["K"])
+    assert rel_err(Kp[0, 0], Kpt[0, 0]) < 0.02 and rel_err(Kp[1, 1], Kpt[1, 1]) < 0.02
+    assert rel_err(data["stereo"]["baseline_mm"], truth["baseline_mm"]) < 0.02
