@@ -29,23 +29,21 @@ and exit with status 2.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.graycode import list_images, read_gray
-from glsldiff.errors import GlsldiffError, InputError
-from glsldiff.io import atomic_path
+from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
+from glsldiff.errors import InputError
 
 Array = NDArray[np.float64]
-PROG = "glsldiff-calibration"
 DEFAULT_FLAGS = cv2.CALIB_FIX_K3
 BOARD_KINDS = ("chessboard", "charuco")
 
@@ -284,25 +282,6 @@ def calibrate_camera(images: Sequence[str | os.PathLike], board: BoardSpec, flag
     return result
 
 
-# ---- files and command-line helpers (shared with projector.py) ----------------------------
-def save_json(path: str | os.PathLike, data: dict) -> Path:
-    """Write ``data`` as indented JSON, atomically."""
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1))
-    return Path(path)
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """``"1024x768"`` -> ``(1024, 768)`` (argparse type)."""
-    try:
-        a, b = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected WxH, e.g. 9x7 or 1024x768") from None
-    if a <= 0 or b <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r}: both numbers must be > 0")
-    return a, b
-
-
 def add_board_arguments(p: argparse.ArgumentParser) -> None:
     """``--board --square --charuco --marker --dictionary`` options."""
     p.add_argument("--board", type=parse_size, required=True, metavar="COLSxROWS",
@@ -324,18 +303,8 @@ def flags_from_args(args: argparse.Namespace) -> int:
     return cv2.CALIB_FIX_K3 if args.fix_k3 else 0
 
 
-def run_command(func: Callable[[argparse.Namespace], int], args: argparse.Namespace) -> int:
-    """Run ``func(args)``; a user error (or a file that cannot be written) prints one line to
-    stderr and returns 2."""
-    try:
-        return func(args)
-    except (GlsldiffError, OSError) as exc:
-        print(f"{PROG}: error: {exc}", file=sys.stderr)
-        return 2
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m glsldiff.calibration.camera",
+    p = CommandParser(prog="python -m glsldiff.calibration.camera",
                                 description="Camera intrinsics from chessboard/ChArUco images (Zhang's method).")
     p.add_argument("inputs", nargs="+", help="image files and/or folders of images")
     add_board_arguments(p)
@@ -360,7 +329,9 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_command(_run, build_parser().parse_args(argv))
+    p = build_parser()
+    p.set_defaults(func=_run)
+    return run_command(p, argv)
 
 
 if __name__ == "__main__":

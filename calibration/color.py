@@ -32,7 +32,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.calibration.hdr import CommandParser, read_hdr, run_command
+from glsldiff.calibration.common import CommandParser, run_command
+from glsldiff.calibration.hdr import read_hdr
 from glsldiff.errors import InputError
 from glsldiff.io import atomic_path, tonemap
 

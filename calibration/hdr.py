@@ -45,6 +45,7 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.calibration.common import CommandParser, run_command
 from glsldiff.errors import GlsldiffError, InputError
 from glsldiff.io import atomic_path, read_exr, write_exr
 
@@ -380,26 +381,6 @@ def merge_bracket(bracket: Bracket, response: ArrayLike | None = None, lo: int =
 
 
 # ----------------------------------------------------------------------------- command line
-
-class CommandParser(argparse.ArgumentParser):
-    """ArgumentParser whose usage errors raise InputError (one error line, status 2)."""
-
-    def error(self, message: str):  # type: ignore[override]
-        raise InputError(f"{self.prog}: {message} (see --help)")
-
-
-def run_command(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:
-    """Parse ``argv`` and run ``args.func(args)``; user errors print one line
-    ``glsldiff-calibration: error: ...`` to stderr and return 2."""
-    try:
-        args = parser.parse_args(argv)
-        return int(args.func(args) or 0)
-    except SystemExit as exc:  # --help
-        return exc.code if isinstance(exc.code, int) else 2
-    except GlsldiffError as exc:
-        print(f"glsldiff-calibration: error: {exc}", file=sys.stderr)
-        return 2
-
 
 def _cmd_response(args: argparse.Namespace) -> int:
     brackets = [load_bracket(f) for f in args.folders]

@@ -27,8 +27,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,6 +34,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff.calibration.common import atomic_folder
 from glsldiff.errors import InputError
 
 SETUPS = {"back": ("z-", "z+"), "front": ("z-", "z-")}
@@ -197,23 +196,12 @@ def write_plan(plan: CapturePlan, folder: str | os.PathLike) -> Path:
     """Write the projector images and ``plan.json`` into ``folder`` (created; must not
     exist or be empty). Written to a temporary folder first and renamed, so a failure never
     leaves a partial plan."""
-    dest = Path(folder)
-    if dest.exists() and any(dest.iterdir()):
-        raise InputError(f"plan folder {str(dest)!r} exists and is not empty")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    try:
+    with atomic_folder(folder) as tmp:
         for cond in plan.conditions:
             if not cv2.imwrite(str(tmp / cond.image), plan.projector_image(cond)):
                 raise InputError(f"cannot write {tmp / cond.image}")
         (tmp / "plan.json").write_text(json.dumps(plan.to_json(), indent=1))
-        if dest.exists():
-            dest.rmdir()
-        os.replace(tmp, dest)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return dest
+    return Path(folder)
 
 
 def load_plan(folder_or_file: str | os.PathLike) -> CapturePlan:

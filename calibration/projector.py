@@ -49,8 +49,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.camera import (DEFAULT_FLAGS, BoardSpec, Intrinsics, add_board_arguments,
-                                         board_from_args, calibrate_points, flags_from_args, parse_size,
-                                         run_command, save_json, to_uint8)
+                                         board_from_args, calibrate_points, flags_from_args, to_uint8)
+from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
 from glsldiff.calibration.graycode import (Decoded, bit_counts, decode, list_images, read_stack,
                                            sequence_length, write_patterns)
 from glsldiff.errors import InputError
@@ -232,7 +232,7 @@ def calibrate_folder(folder: str | Path, board: BoardSpec, projector_size: tuple
 
 # ---- command --------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m glsldiff.calibration.projector",
+    p = CommandParser(prog="python -m glsldiff.calibration.projector",
                                 description="Gray-code projector-camera calibration (Moreno & Taubin 2012).")
     sub = p.add_subparsers(dest="command", required=True)
     pat = sub.add_parser("patterns", help="write the projector images pattern_00.png ... into a folder")
@@ -275,8 +275,7 @@ def _calibrate(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return run_command(args.func, args)
+    return run_command(build_parser(), argv)
 
 
 if __name__ == "__main__":

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
@@ -34,6 +32,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff.calibration.common import atomic_folder
 from glsldiff.calibration.plan import REFERENCE_CONDITIONS, CapturePlan
 from glsldiff.calibration.simcam import SimCamera, SimProjector, intersect_plane, look_at
 from glsldiff.errors import InputError
@@ -64,18 +63,13 @@ def run_capture(plan: CapturePlan, projector: ProjectorDriver, camera: CameraDri
                 out: str | os.PathLike, progress: bool = False) -> Path:
     """Capture every condition of ``plan`` into ``out`` (see the module docstring). The
     captures go to a temporary folder renamed to ``out`` only when all succeeded."""
-    dest = Path(out)
-    if dest.exists() and any(dest.iterdir()):
-        raise InputError(f"capture folder {str(dest)!r} exists and is not empty")
     if tuple(projector.size) != tuple(plan.projector_size):
         raise InputError(f"projector size {projector.size} differs from the plan's {plan.projector_size}")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
     conds = plan.conditions
     if progress:
         from tqdm import tqdm
         conds = tqdm(conds, desc="capture", unit="condition")
-    try:
+    with atomic_folder(out) as tmp:
         for cond in conds:
             camera.set_scene("reference" if cond.name in REFERENCE_CONDITIONS else "sample")
             projector.show(plan.projector_image(cond))
@@ -92,13 +86,7 @@ def run_capture(plan: CapturePlan, projector: ProjectorDriver, camera: CameraDri
                 times[name] = seconds
             (folder / "exposures.json").write_text(json.dumps(times, indent=1))
         (tmp / "plan.json").write_text(json.dumps(plan.to_json(), indent=1))
-        if dest.exists():
-            dest.rmdir()
-        os.replace(tmp, dest)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
-    return dest
+    return Path(out)
 
 
 @dataclass

@@ -31,9 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import shutil
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
@@ -42,7 +40,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.calibration.camera import BoardSpec, parse_size, run_command
+from glsldiff.calibration.camera import BoardSpec
+from glsldiff.calibration.common import CommandParser, atomic_folder, parse_size, run_command
 from glsldiff.calibration.graycode import patterns
 from glsldiff.calibration.simcam import Pinhole, SimCamera, SimProjector, intersect_plane, look_at
 from glsldiff.errors import InputError
@@ -296,20 +295,6 @@ def synthetic_rig(n_poses: int, camera_size: tuple[int, int] = (1280, 1024),
     return SyntheticRig(cam, proj, board, poses, seed=seed, **kwargs)
 
 
-def _new_folder(out: str | os.PathLike) -> tuple[Path, Path]:
-    dest = Path(out)
-    if dest.exists() and (not dest.is_dir() or any(dest.iterdir())):
-        raise InputError(f"output folder {str(dest)!r} exists and is not empty")
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    return dest, Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-
-
-def _publish(tmp: Path, dest: Path) -> None:
-    if dest.exists():
-        dest.rmdir()
-    os.replace(tmp, dest)
-
-
 def _write(path: Path, img: NDArray) -> None:
     if not cv2.imwrite(str(path), img):
         raise InputError(f"cannot write {path}")
@@ -322,8 +307,7 @@ def write_projector_dataset(out: str | os.PathLike, rig: SyntheticRig) -> Path:
         raise InputError("write_projector_dataset: the rig has no projector")
     seq = patterns(rig.projector.size)
     rng = np.random.default_rng(rig.seed)
-    dest, tmp = _new_folder(out)
-    try:
+    with atomic_folder(out) as tmp:
         for k, scene in enumerate(rig.scenes()):
             folder = tmp / f"capture_{k:03d}"
             folder.mkdir()
@@ -331,29 +315,22 @@ def write_projector_dataset(out: str | os.PathLike, rig: SyntheticRig) -> Path:
                 img = rig.camera.capture(scene.radiance(rig.projector, pat, rig.ambient), 1.0, rng)
                 _write(folder / f"img_{i:02d}.png", img)
         (tmp / "truth.json").write_text(json.dumps(rig.truth(), indent=1))
-        _publish(tmp, dest)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return dest
+    return Path(out)
 
 
 def write_camera_dataset(out: str | os.PathLike, rig: SyntheticRig, flood: float = 1.0) -> Path:
     """Plain board views under a uniform ``flood`` light: ``out/view_XX.png`` + ``truth.json``."""
     rng = np.random.default_rng(rig.seed)
-    dest, tmp = _new_folder(out)
-    try:
+    with atomic_folder(out) as tmp:
         for k, scene in enumerate(rig.scenes(with_projector=False)):
             _write(tmp / f"view_{k:02d}.png", rig.camera.capture(scene.flood(flood + rig.ambient), 1.0, rng))
         (tmp / "truth.json").write_text(json.dumps(rig.truth(), indent=1))
-        _publish(tmp, dest)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-    return dest
+    return Path(out)
 
 
 # ---- command --------------------------------------------------------------------------------
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m glsldiff.calibration.views",
+    p = CommandParser(prog="python -m glsldiff.calibration.views",
                                 description="Write synthetic calibration captures with ground truth.")
     sub = p.add_subparsers(dest="command", required=True)
     for name, helptext in (("projector", "Gray-code captures: OUT/capture_XXX/img_YY.png"),
@@ -379,7 +356,9 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    return run_command(_run, build_parser().parse_args(argv))
+    p = build_parser()
+    p.set_defaults(func=_run)
+    return run_command(p, argv)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from glsldiff.calibration import hdr
+from glsldiff.calibration.common import CommandParser, run_command
 from glsldiff.calibration.measure import measure
 from glsldiff.calibration.plan import CapturePlan, write_plan
 from glsldiff.calibration.simcam import SimCamera
@@ -122,7 +123,7 @@ def _calibrate(cam: SimCamera, out: Path) -> tuple[np.ndarray, np.ndarray, dict[
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = hdr.CommandParser(prog="python -m glsldiff.calibration.virtual", description=__doc__,
+    parser = CommandParser(prog="python -m glsldiff.calibration.virtual", description=__doc__,
                                formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("out", help="output folder (created; must be empty)")
     parser.add_argument("--size", type=int, nargs=3, default=(24, 24, 8), metavar=("NX", "NY", "NZ"))
@@ -142,7 +143,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
 
     parser.set_defaults(func=go)
-    return hdr.run_command(parser, argv)
+    return run_command(parser, argv)
 
 
 if __name__ == "__main__":

@@ -250,13 +250,14 @@ def test_skip_bad_pose_is_listed_as_rejected(proj_data, tmp_path):
     assert "37 images" in data["rejected"][0]["reason"] and data["stereo"]["rms"] < 0.5
 
 
-def test_bad_arguments():
+def test_bad_arguments(capsys):
     with pytest.raises(InputError, match="marker"):
         BoardSpec(9, 7, 20.0, "charuco", 25.0)
     with pytest.raises(InputError, match="square size"):
         BoardSpec(9, 7, 0.0)
-    with pytest.raises(SystemExit):
-        projector.main(["calibrate", "x", "--board", "9by7", "--square", "20", "--projector", "512x384"])
+    assert projector.main(["calibrate", "x", "--board", "9by7", "--square", "20", "--projector", "512x384"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "9by7" in err
 
 
 def test_commands_run_as_modules():
