@@ -23,7 +23,6 @@ Command line: ``python -m glsldiff.calibration.color {white-balance,black-level}
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import asdict, dataclass
 from typing import Sequence
@@ -32,10 +31,10 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.calibration.common import CommandParser, run_command
+from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
 from glsldiff.calibration.hdr import read_hdr
 from glsldiff.errors import InputError
-from glsldiff.io import atomic_path, tonemap
+from glsldiff.io import tonemap
 
 Array = NDArray[np.float64]
 
@@ -211,39 +210,22 @@ def black_level(black: ArrayLike, white: ArrayLike, polygons: ArrayLike, method:
 
 # ----------------------------------------------------------------------------- command line
 
-def _corners(text: Sequence[str] | None) -> Array | None:
-    if not text:
-        return None
-    try:
-        pts = np.array([[float(v) for v in p.split(",")] for p in text])
-    except ValueError:
-        raise InputError(f"--corners {' '.join(text)}: expected 4 points X,Y (pixels)") from None
-    if pts.shape != (4, 2):
-        raise InputError(f"--corners {' '.join(text)}: expected 4 points X,Y (pixels)")
-    return pts
-
-
-def _write_json(path: str, data: dict) -> None:
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(data, indent=1))
-
-
 def _jsonable(obj: object) -> dict:
     return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(obj).items()}
 
 
 def _cmd_white_balance(args: argparse.Namespace) -> int:
-    corners = _corners(args.corners)
+    corners = parse_points(args.corners, "--corners")
     wb = white_balance(read_hdr(args.image), corners, args.patches, name=args.image)
     data = {"description": "white-balance gains (R, G, B; G = 1): multiply linear HDR images by them",
             "image": str(args.image), "patches": args.patches, **_jsonable(wb)}
-    _write_json(args.output, data)
+    save_json(args.output, data)
     print(f"{args.output}: gains R G B = {np.round(wb.gains, 4).tolist()} (chart by {wb.method})")
     return 0
 
 
 def _cmd_black_level(args: argparse.Namespace) -> int:
-    corners = _corners(args.corners)
+    corners = parse_points(args.corners, "--corners")
     black, white = read_hdr(args.black), read_hdr(args.white)
     if args.roi:
         polys, how = roi_cells(args.roi), "roi"
@@ -254,7 +236,7 @@ def _cmd_black_level(args: argparse.Namespace) -> int:
     data = {"description": "projector black level: HDR(black) / HDR(white) per channel (R, G, B), "
                            "mean and standard deviation over the regions",
             "black_image": str(args.black), "white_image": str(args.white), **_jsonable(bl)}
-    _write_json(args.output, data)
+    save_json(args.output, data)
     print(f"{args.output}: black level R G B = {np.round(bl.mean, 5).tolist()} "
           f"+- {np.round(bl.std, 5).tolist()} over {bl.count} {how} regions")
     return 0

@@ -12,6 +12,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, Sequence
 
+import numpy as np
+
 from glsldiff.errors import GlsldiffError, InputError
 from glsldiff.io import atomic_path
 
@@ -73,3 +75,16 @@ def parse_size(text: str) -> tuple[int, int]:
     if a <= 0 or b <= 0:
         raise argparse.ArgumentTypeError(f"{text!r}: both numbers must be > 0")
     return a, b
+
+
+def parse_points(text: Sequence[str] | None, option: str, count: int = 4) -> np.ndarray | None:
+    """``["X,Y", ...]`` -> ``(count, 2)`` float pixels (None when not given)."""
+    if not text:
+        return None
+    try:
+        pts = np.array([[float(v) for v in p.split(",")] for p in text])
+    except ValueError:
+        pts = np.zeros(0)
+    if pts.shape != (count, 2):
+        raise InputError(f"{option} {' '.join(text)}: expected {count} points X,Y (pixels)")
+    return pts

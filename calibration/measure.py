@@ -21,9 +21,11 @@ node's value is the mean over its cell (box filter of one node spacing) sampled 
 """
 from __future__ import annotations
 
+import argparse
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -131,3 +133,63 @@ def measure(capture: str | os.PathLike, corners_px: Array, response: Array | Non
                         np.stack(radiance), np.stack(mask), eta=eta)
     spacing = float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=-1)))
     return meas, MeasureReport(clipped, masked_lit, masked_exp, black_ratio, spacing)
+
+
+def _json_field(path: str, keys: tuple[str, ...], what: str) -> list:
+    import json
+
+    try:
+        data = json.loads(Path(path).read_text())
+        for k in keys:
+            data = data[k]
+        return data
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{path}: cannot read the {what} ({type(exc).__name__}: {exc})") from None
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m glsldiff.calibration.measure CAPTURE --corners ... -o measurements.npz``"""
+    from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
+    from glsldiff.calibration.hdr import load_response
+    from glsldiff.inverse.commands import check_writable
+    from glsldiff.inverse.measurements import save_measurements
+
+    p = CommandParser(prog="python -m glsldiff.calibration.measure",
+                      description="Measurements for `glsldiff fit` from a capture folder (plan.json + one "
+                                  "exposure bracket per condition).")
+    p.add_argument("capture", help="capture folder written by the capture driver")
+    p.add_argument("--corners", nargs=4, metavar="X,Y", required=True,
+                   help="camera pixels of the observed face's block corners (0,0), (W,0), (W,H), (0,H) mm")
+    p.add_argument("-o", "--output", default="measurements.npz")
+    p.add_argument("--camera", help="camera.json from the camera calibration (lens distortion)")
+    p.add_argument("--response", help="response JSON (default: recovered from the captured brackets)")
+    p.add_argument("--white-balance", help="white-balance JSON (gains) from the colour chart")
+    p.add_argument("--albedo", type=float, default=0.9, help="albedo of the white reference target")
+    p.add_argument("--eta", type=float, default=1.3, help="relative refractive index of the sample")
+
+    def run(args: argparse.Namespace) -> int:
+        out = check_writable(args.output)
+        corners = parse_points(args.corners, "--corners")
+        K = dist = None
+        if args.camera:
+            K = np.array(_json_field(args.camera, ("K",), "camera matrix K"), dtype=np.float64)
+            dist = np.array(_json_field(args.camera, ("dist",), "distortion"), dtype=np.float64)
+        response = load_response(args.response) if args.response else None
+        gains = (np.array(_json_field(args.white_balance, ("gains",), "white-balance gains"))
+                 if args.white_balance else None)
+        meas, rep = measure(args.capture, corners, response, K, dist, gains, args.albedo, args.eta)
+        save_measurements(out, meas)
+        save_json(out.with_suffix(".json"), {"clipped": rep.clipped, "masked_lit": rep.masked_lit,
+                                              "masked_exposure": rep.masked_exposure,
+                                              "black_ratio": rep.black_ratio.tolist(),
+                                              "pixels_per_node": rep.node_pixels})
+        print(f"wrote {meas.M} conditions ({meas.lit_face} lit, {meas.observed_face} observed) to {out}; black level {np.round(rep.black_ratio, 4).tolist()}; {rep.clipped} values clipped "
+              f"at 0, {rep.masked_lit} lit and {rep.masked_exposure} badly exposed node values masked")
+        return 0
+
+    p.set_defaults(func=run)
+    return run_command(p, argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -124,3 +124,23 @@ def test_virtual_pipeline_end_to_end(tmp_path) -> None:
     assert rep["response_max_rel_error"] < 0.06
     assert rep["E"] < 0.01 and rep["E"] < rep["E_median_homogeneous"]
     assert (tmp_path / "v" / "report.json").is_file() and (tmp_path / "v" / "material.npz").is_file()
+
+
+def test_plan_and_measure_commands(back_capture, tmp_path, capsys) -> None:
+    from glsldiff.calibration import measure as measure_cmd
+    from glsldiff.calibration import plan as plan_cmd
+
+    args = ["--shape", "6", "14", "14", "--h", "0.5", "--n", "2", "--face-corners", "100,100", "400,100",
+            "400,400", "100,400"]
+    assert plan_cmd.main([str(tmp_path / "p"), *args]) == 0
+    assert load_plan(tmp_path / "p").n == 2
+    assert plan_cmd.main([str(tmp_path / "p"), *args]) == 2  # never overwrites a plan
+    assert "not empty" in capsys.readouterr().err
+    rig, plan, out = back_capture
+    corners = [f"{x},{y}" for x, y in rig.face_corners_px()]
+    assert measure_cmd.main([str(out), "--corners", *corners, "-o", str(tmp_path / "m.npz")]) == 0
+    from glsldiff.inverse.measurements import load_measurements
+    assert load_measurements(tmp_path / "m.npz").M == 4
+    assert measure_cmd.main([str(out), "--corners", *corners[:3], "-o", str(tmp_path / "n.npz")]) == 2
+    assert measure_cmd.main([str(out), "--corners", *corners, "-o", str(tmp_path / "no" / "n.npz")]) == 2
+    assert not (tmp_path / "n.npz").exists()
