@@ -41,7 +41,7 @@ from glsldiff.errors import InputError
 
 SETUPS = {"back": ("z-", "z+"), "front": ("z-", "z-")}
 REFERENCE_CONDITIONS = ("white", "reference_black")  # captured with the white reference in place
-PAPER_EXPOSURES = (1 / 30, 1 / 8, 1 / 2, 2.0, 8.0)  # seconds, 1/30 .. 8 s as in the paper
+PAPER_EXPOSURES = (1 / 30, 1 / 15, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0, 8.0)  # s: the paper's 1/30 .. 8 s, one stop apart
 
 
 @dataclass
