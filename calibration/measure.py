@@ -70,10 +70,13 @@ def node_pixels(plan: CapturePlan, corners_px: Array, K: Array | None = None,
     return px.reshape(fy, fx, 2)
 
 
-def sample_nodes(hdr: Array, px: Array) -> Array:
-    """Cell means of an HDR image ``(rows, cols, 3)`` at node pixels ``(fy, fx, 2)``."""
+def sample_nodes(hdr: Array, px: Array, footprint: float = 0.25) -> Array:
+    """Values of an HDR image ``(rows, cols, 3)`` at node pixels ``(fy, fx, 2)``: the mean over
+    a square of ``footprint`` node spacings (odd pixel width, at least 1), sampled bilinearly.
+    A wide footprint biases fast-falling radiance upwards (a whole-cell mean read +5-12 %
+    next to a lit region on the virtual rig), a narrow one keeps more noise."""
     spacing = float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=-1)))
-    k = max(1, int(round(spacing)))
+    k = 2 * int(round(footprint * spacing / 2.0)) + 1
     img = cv2.blur(np.asarray(hdr, dtype=np.float32), (k, k))
     rows, cols = img.shape[:2]
     if px[..., 0].min() < 0 or px[..., 1].min() < 0 or px[..., 0].max() > cols - 1 or px[..., 1].max() > rows - 1:

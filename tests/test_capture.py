@@ -113,6 +113,23 @@ def test_front_lit_measurements_mask_lit_nodes(tmp_path) -> None:
     assert not np.any(meas.mask & (meas.incoming > 0))
 
 
+def test_node_sampling_keeps_fast_falloff_unbiased() -> None:
+    """Reflectance next to a lit region falls by e^-1 over about half a node spacing; the
+    node sampler must read the value at the node, not a cell mean (which reads high)."""
+    from glsldiff.calibration.measure import sample_nodes
+
+    spacing, decay = 6.0, 3.0  # px
+    u = np.arange(200, dtype=np.float64)
+    img = np.repeat(np.exp(-u / decay)[None, :, None], 64, axis=0).repeat(3, axis=2)
+    cols = 20.0 + spacing * np.arange(5)
+    px = np.stack(np.meshgrid(cols, [30.0, 30.0 + spacing]), axis=-1)
+    truth = np.exp(-cols / decay)
+    rel = sample_nodes(img, px)[0, :, 1] / truth - 1.0
+    assert np.all(np.abs(rel) < 0.05), rel  # 3x3 px mean: +3.7 % here
+    wide = sample_nodes(img, px, footprint=1.0)[0, :, 1] / truth - 1.0
+    assert np.all(wide > 0.2)  # the whole-cell mean the first version used
+
+
 def test_virtual_pipeline_end_to_end(tmp_path) -> None:
     """Calibration, capture, response, HDR, measurements, ``glsldiff fit``: the fitted
     volume's appearance matches the truth better than the best homogeneous one."""
