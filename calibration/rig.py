@@ -184,13 +184,9 @@ class VirtualRig:
             return self._cache[key]
         g = self.grid
         lit, obs = self.plan.lit_face, self.plan.observed_face
-        out = np.zeros(self.plan.face_shape + (3,))
-        for c, fac in enumerate(self._factors):
-            q = g.face_volume({lit: self._ft * E[..., c]}, 1).reshape(-1)[g.graph.boundary]
-            L = fac.radiance(fac.solve(q[:, None]), q[:, None])[:, 0]
-            vol = np.zeros(g.size)
-            vol[g.graph.boundary] = L
-            out[..., c] = g.face(vol.reshape(g.shape), obs)
+        Q = g.face_to_boundary(lit, self._ft * E)  # (n_boundary, 3): one column per channel
+        out = np.stack([g.boundary_to_face(obs, fac.radiance(fac.solve(Q[:, c:c + 1]), Q[:, c:c + 1])[:, 0])
+                        for c, fac in enumerate(self._factors)], axis=-1)
         if lit == obs:
             # front-lit: the camera sees F_t phi / (2 pi) (the net-flux radiance plus the F_t q / (2 pi)
             # it subtracts, which is negative where light enters) plus the surface reflection: linear

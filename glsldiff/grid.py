@@ -236,6 +236,34 @@ class RegularGrid:
         """The boundary-node values of a volume array, as a dict of face arrays."""
         return {name: self.face(volume, name) for name in FACES}
 
+    @cached_property
+    def _face_slots(self) -> dict[str, NDArray[np.int64]]:
+        """Per face, the position in ``graph.boundary`` order of each face-array node."""
+        slot = np.full(self.size, -1, dtype=np.int64)
+        slot[self.graph.boundary] = np.arange(self.graph.boundary.size)
+        flat = slot.reshape(self.shape)
+        return {name: flat[_face_index(name)] for name in FACES}
+
+    def _slots(self, name: str) -> NDArray[np.int64]:
+        _face_index(name)  # InputError for an unknown face name
+        return self._face_slots[name]
+
+    def face_to_boundary(self, name: str, values: ArrayLike) -> NDArray[np.float64]:
+        """Face array ``face_shape + (k...)`` -> ``(n_boundary, k...)`` values in the order of
+        ``graph.boundary``, 0 at the boundary nodes of the other faces."""
+        slots = self._slots(name)
+        v = np.asarray(values, dtype=np.float64)
+        if v.shape[:2] != slots.shape:
+            raise InputError(f"face {name!r} values have shape {v.shape}, expected {slots.shape} first")
+        out = np.zeros((self.graph.boundary.size,) + v.shape[2:])
+        out[slots.ravel()] = v.reshape((-1,) + v.shape[2:])
+        return out
+
+    def boundary_to_face(self, name: str, values: ArrayLike) -> NDArray:
+        """Inverse of :meth:`face_to_boundary`: ``(n_boundary, k...)`` -> ``face_shape + (k...)``."""
+        slots = self._slots(name)
+        return np.asarray(values)[slots]
+
     # ---- texture packing -----------------------------------------------------
     @cached_property
     def mosaic(self) -> Mosaic:

@@ -231,3 +231,16 @@ def test_grid_primitives_offsets_reach_the_right_nodes(shape):
     for x0, y0, x1, y1, off0, _ in _rects(boundary_v):
         nodes = node_at[y0:y1, x0:x1].ravel()
         np.testing.assert_array_equal(texel_of[nodes] + off0, texel_of[link[nodes]])
+
+
+def test_face_to_boundary_roundtrip_matches_face_volume() -> None:
+    grid = RegularGrid(6, 5, 4)
+    rng = np.random.default_rng(0)
+    for name in ("x-", "z+", "y-"):
+        a = rng.uniform(size=grid.face_shape(name) + (2,))
+        b = grid.face_to_boundary(name, a)
+        np.testing.assert_array_equal(grid.boundary_to_face(name, b), a)
+        vol = grid.face_volume({name: a[..., 0]}, 1).reshape(-1)[grid.graph.boundary]
+        np.testing.assert_array_equal(b[:, 0], vol)
+    with pytest.raises(InputError, match="unknown face"):
+        grid.face_to_boundary("w+", np.zeros((3, 4)))

@@ -148,15 +148,11 @@ class Measurements:
     def channel(self, c: int) -> tuple[NDArray, NDArray, NDArray]:
         """Sources ``Q``, measurements ``Y`` and weights ``W``, each ``(n_boundary, M)`` in the
         order of ``grid.graph.boundary``, for channel ``c``."""
-        g = self.grid
-        b = g.graph.boundary
-        Q = np.stack([g.face_volume({self.lit_face: self.incoming[m, ..., c]}, 1).reshape(-1)[b]
-                      for m in range(self.M)], axis=1)
-        Y = np.stack([g.face_volume({self.observed_face: self.radiance[m, ..., c]}, 1).reshape(-1)[b]
-                      for m in range(self.M)], axis=1)
-        W = np.stack([g.face_volume({self.observed_face: self.mask[m, ..., c].astype(float)}, 1).reshape(-1)[b]
-                      for m in range(self.M)], axis=1)
-        return Q, Y, W
+        def stack(face: str, a: NDArray) -> NDArray:  # (M, a, b) -> (n_boundary, M)
+            return self.grid.face_to_boundary(face, np.moveaxis(a[..., c], 0, -1))
+
+        return (stack(self.lit_face, self.incoming), stack(self.observed_face, self.radiance),
+                stack(self.observed_face, self.mask.astype(np.float64)))
 
     def grey(self) -> bool:
         """True when the three channels hold identical data (one fit serves all three)."""

@@ -114,15 +114,11 @@ def synthetic_measurements(kappa: Array, mu: Array, h: float, n: int, setup: str
     lit, observed = SETUPS[setup]
     patterns = region_patterns(grid, lit, n)
     model = ForwardModel(grid, stencil=stencil, eta=eta)
-    g = grid.graph
-    Q = np.stack([grid.face_volume({lit: q}, 1).reshape(-1)[g.boundary] for q in patterns], axis=1)
+    Q = grid.face_to_boundary(lit, np.stack(patterns, axis=-1))
     radiance = np.zeros((len(patterns),) + grid.face_shape(observed) + (3,))
     for c in range(3):
         L = render(model, kappa[..., c], mu[..., c], Q)
-        for m in range(len(patterns)):
-            vol = np.zeros(grid.size)
-            vol[g.boundary] = L[:, m]
-            radiance[m, ..., c] = grid.face(vol.reshape(grid.shape), observed)
+        radiance[..., c] = np.moveaxis(grid.boundary_to_face(observed, L), -1, 0)
     incoming = np.repeat(np.stack(patterns)[..., None], 3, axis=-1)
     mask = None
     if setup == "front":
@@ -150,19 +146,14 @@ def bssrdf_error(grid: RegularGrid, true: tuple[Array, Array], fitted: tuple[Arr
     z+); pass both faces to both to include the reflectance the capture never saw.
     """
     model = ForwardModel(grid, stencil=stencil, eta=eta)
-    g = grid.graph
-    on = np.zeros(grid.shape, dtype=bool)
-    src = np.zeros(grid.shape, dtype=bool)
-    for face in receivers:
-        on |= grid.face_volume({face: 1.0}, 1)[..., 0] > 0
+    bflat = sum(grid.face_to_boundary(face, np.ones(grid.face_shape(face))) for face in receivers) > 0
+    src = np.zeros(grid.graph.boundary.size)
     for face in sources:
-        fy, fx = grid.face_shape(face)
-        sub = np.zeros((fy, fx))
+        sub = np.zeros(grid.face_shape(face))
         sub[stride // 2::stride, stride // 2::stride] = 1.0
-        src |= grid.face_volume({face: sub}, 1)[..., 0] > 0
-    bflat = on.reshape(-1)[g.boundary]
-    sources = np.flatnonzero(src.reshape(-1)[g.boundary])
-    Q = np.zeros((g.boundary.size, sources.size))
+        src += grid.face_to_boundary(face, sub)
+    sources = np.flatnonzero(src > 0)
+    Q = np.zeros((grid.graph.boundary.size, sources.size))
     Q[sources, np.arange(sources.size)] = 1.0
     keep = bflat[:, None] & (Q == 0)
     num = den = 0.0
