@@ -70,13 +70,17 @@ def node_pixels(plan: CapturePlan, corners_px: Array, K: Array | None = None,
     return px.reshape(fy, fx, 2)
 
 
+def node_spacing(px: Array) -> float:
+    """Median distance (px) between neighbouring nodes along a face row."""
+    return float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=-1)))
+
+
 def sample_nodes(hdr: Array, px: Array, footprint: float = 0.25) -> Array:
     """Values of an HDR image ``(rows, cols, 3)`` at node pixels ``(fy, fx, 2)``: the mean over
     a square of ``footprint`` node spacings (odd pixel width, at least 1), sampled bilinearly.
     A wide footprint biases fast-falling radiance upwards (a whole-cell mean read +5-12 %
     next to a lit region on the virtual rig), a narrow one keeps more noise."""
-    spacing = float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=-1)))
-    k = 2 * int(round(footprint * spacing / 2.0)) + 1
+    k = 2 * int(round(footprint * node_spacing(px) / 2.0)) + 1
     img = cv2.blur(np.asarray(hdr, dtype=np.float32), (k, k))
     rows, cols = img.shape[:2]
     if px[..., 0].min() < 0 or px[..., 1].min() < 0 or px[..., 0].max() > cols - 1 or px[..., 1].max() > rows - 1:
@@ -105,8 +109,7 @@ def measure(capture: str | os.PathLike, corners_px: Array, response: Array | Non
     for name, bracket in brackets.items():
         img, mask = hdrlib.merge_bracket(bracket, response)
         nodes[name] = sample_nodes(img, px)
-        bad[name] = sample_nodes(mask.astype(np.float32)[..., None].repeat(3, -1) if mask.ndim == 2
-                                 else mask.astype(np.float32), px) > 0.5
+        bad[name] = sample_nodes(mask.astype(np.float32), px) > 0.5  # (rows, cols, 3) from the merge
     white = nodes["white"] - nodes["reference_black"]
     if np.any(np.median(white.reshape(-1, 3), axis=0) <= 0):
         raise InputError("the white reference is not brighter than the projector's black: check the "
@@ -134,8 +137,7 @@ def measure(capture: str | os.PathLike, corners_px: Array, response: Array | Non
         mask.append(ok)
     meas = Measurements(plan.shape, plan.h, plan.lit_face, plan.observed_face, np.stack(incoming),
                         np.stack(radiance), np.stack(mask), eta=eta)
-    spacing = float(np.median(np.linalg.norm(np.diff(px, axis=1), axis=-1)))
-    return meas, MeasureReport(clipped, masked_lit, masked_exp, black_ratio, spacing)
+    return meas, MeasureReport(clipped, masked_lit, masked_exp, black_ratio, node_spacing(px))
 
 
 def _json_field(path: str, keys: tuple[str, ...], what: str) -> list:

@@ -224,12 +224,14 @@ class VirtualRig:
     def true_incoming(self) -> Array:
         """What the measurement step should recover as ``q`` for each region ``(M, ny-2, nx-2, 3)``
         (projector white minus black, Fresnel-transmitted), in radiance units before the camera."""
+        shown = self._pattern
+        self.show(self.plan.projector_image(self.plan.condition("black")))
+        black = self.irradiance()
         out = []
         for cond in self.plan.regions:
             self.show(self.plan.projector_image(cond))
-            E = self.irradiance()
-            self.show(self.plan.projector_image(self.plan.condition("black")))
-            out.append(self._ft * (E - self.irradiance()))
+            out.append(self._ft * (self.irradiance() - black))
+        self._pattern = shown
         return np.stack(out)
 
 

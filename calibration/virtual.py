@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 
 from glsldiff.calibration import hdr
-from glsldiff.calibration.common import CommandParser, run_command
+from glsldiff.calibration.common import CommandParser, run_command, save_json
 from glsldiff.calibration.measure import measure
 from glsldiff.calibration.plan import CapturePlan, write_plan
 from glsldiff.calibration.simcam import SimCamera
@@ -29,7 +29,7 @@ from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homo
 from glsldiff.errors import InputError
 from glsldiff.inverse.measurements import save_measurements
 from glsldiff.inverse.synthetic import VOLUMES, bssrdf_error, synthetic_volume
-from glsldiff.io import atomic_path
+from glsldiff.io import write_npz
 
 
 def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.5, setup: str = "back",
@@ -37,8 +37,6 @@ def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.
         calibrate: bool = False) -> dict[str, object]:
     """Run the virtual acquisition into folder ``out`` and return the report (also written
     to ``out/report.json``)."""
-    import json
-
     from glsldiff.cli import main as glsldiff_main
 
     out = Path(out)
@@ -48,8 +46,7 @@ def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.
     nx, ny, nz = size
     report: dict[str, object] = {"size": list(size), "h": h, "setup": setup, "n": n, "volume": volume}
     kappa, mu = synthetic_volume((nz, ny, nx), volume, seed=seed)
-    with atomic_path(out / "truth.npz", ".npz") as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, kappa=kappa, mu=mu, h=h)
+    write_npz(out / "truth.npz", kappa=kappa, mu=mu, h=h)
     plan0 = CapturePlan((nz, ny, nx), h, setup, n)
     cam, proj = default_devices(plan0)
     plan = dataclasses.replace(plan0, face_to_projector=projector_homography(plan0, proj), conditions=[])
@@ -85,8 +82,7 @@ def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.
     k_h = np.broadcast_to(np.median(fitted[0].reshape(-1, 3), axis=0), kappa.shape)
     m_h = np.broadcast_to(np.median(fitted[1].reshape(-1, 3), axis=0), mu.shape)
     report["E_median_homogeneous"] = bssrdf_error(meas.grid, (kappa, mu), (k_h, m_h), **pairs)
-    with atomic_path(out / "report.json", ".json") as tmp:
-        Path(tmp).write_text(json.dumps(report, indent=1))
+    save_json(out / "report.json", report)
     return report
 
 
@@ -103,7 +99,7 @@ def _calibrate(cam: SimCamera, out: Path) -> tuple[np.ndarray, np.ndarray, dict[
 
     t0 = time.perf_counter()
     board = BoardSpec(9, 7, 3.0)
-    dist0 = float(np.linalg.norm(cam.center - [0.0, 0.0, 0.0]))
+    dist0 = float(np.linalg.norm(cam.center))  # camera to the sample's corner, mm
     # same optics, placed at the origin (intrinsics do not depend on the pose), board exposure
     calib_cam = dataclasses.replace(cam, gain=1.05, R=np.eye(3), t=np.zeros(3))
     poses = board_poses(6, board, calib_cam, None, distance=(0.9 * dist0, 1.1 * dist0), margin=2.0, seed=3)

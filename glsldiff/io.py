@@ -109,6 +109,13 @@ def contact_sheet(images: Sequence[ArrayLike], columns: int, exposure: float,
     return sheet
 
 
+def write_npz(path: str | os.PathLike, **arrays: object) -> Path:
+    """Write arrays to a compressed ``.npz`` file atomically (no half-written file on failure)."""
+    with atomic_path(path, ".npz") as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return Path(path)
+
+
 def write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, object]]) -> Path:
     """Write dict rows (same keys) as CSV."""
     if not rows:

@@ -75,6 +75,7 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
 def cmd_synth(args: argparse.Namespace) -> int:
     from glsldiff.inverse.measurements import save_measurements
     from glsldiff.inverse.synthetic import synthetic_measurements, synthetic_volume
+    from glsldiff.io import write_npz
 
     out = check_writable(args.out)
     truth = check_writable(out.with_name(out.stem + "_truth.npz"))
@@ -83,9 +84,7 @@ def cmd_synth(args: argparse.Namespace) -> int:
     meas = synthetic_measurements(kappa, mu, args.h, args.n, args.setup, noise=args.noise,
                                   saturation=args.saturation, seed=args.seed + 1)
     save_measurements(out, meas)
-    from glsldiff.io import atomic_path
-    with atomic_path(truth, ".npz") as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, kappa=kappa, mu=mu, h=args.h)
+    write_npz(truth, kappa=kappa, mu=mu, h=args.h)
     print(f"wrote {meas.M} {args.setup}-lit measurements of a {nx}x{ny}x{nz} {args.volume} block "
           f"(h = {args.h} mm) to {out} and the true material to {truth}")
     return 0

@@ -28,7 +28,7 @@ from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, minimize
-from glsldiff.io import atomic_path
+from glsldiff.io import write_npz
 
 Array = NDArray[np.float64]
 
@@ -217,7 +217,4 @@ def save_material(path: str | os.PathLike, result: FitResult) -> Path:
                   data_error=np.array([f.data for f in result.channels]),
                   converged=np.array([f.converged for f in result.channels]),
                   homogeneous=np.array([f.homogeneous for f in result.channels]))
-    with atomic_path(path, ".npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
-    return Path(path)
+    return write_npz(path, **arrays)

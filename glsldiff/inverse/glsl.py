@@ -11,6 +11,7 @@ previous solution of the same condition (the material changes little between ste
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,8 +35,6 @@ class GlslForwardModel(ForwardModel):
     _warm: dict = field(default_factory=dict, repr=False)
 
     def factorize(self, kappa: Array, mu: Array) -> "GlslFactorized":
-        import time
-
         from glsldiff.diffusion import GlslDiffusion
 
         kappa, mu = np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64)
@@ -62,8 +61,6 @@ class GlslFactorized(Factorized):
     """Solves of one material on the GPU (see the module docstring)."""
 
     def _solve(self, B: Array, trans: str) -> Array:
-        import time
-
         m: GlslForwardModel = self.model  # type: ignore[assignment]
         t0 = time.perf_counter()
         bnd, prt = m.boundary, m.partner

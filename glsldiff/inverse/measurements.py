@@ -37,7 +37,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.errors import InputError
 from glsldiff.grid import FACES, RegularGrid
-from glsldiff.io import atomic_path
+from glsldiff.io import write_npz
 
 REQUIRED = ("shape", "h", "lit_face", "observed_face", "incoming", "radiance")
 
@@ -169,10 +169,7 @@ def save_measurements(path: str | os.PathLike, m: Measurements) -> Path:
         arrays["saturation"] = m.saturation
     if m.C is not None:
         arrays["C"] = m.C
-    with atomic_path(path, ".npz") as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
-    return Path(path)
+    return write_npz(path, **arrays)
 
 
 def load_measurements(path: str | os.PathLike) -> Measurements:

@@ -249,12 +249,6 @@ class Factorized:
         kb, dkb = self.kappa[m.boundary][:, None], dkappa[m.boundary][:, None]
         return c * (dX[m.boundary] / kb - X[m.boundary] * dkb / kb**2)
 
-    def solution_volume(self, x: Array) -> Array:
-        """One column of unknowns -> fluence volume ``(nz, ny, nx)`` (0 at inactive nodes)."""
-        m = self.model
-        phi = x / self.kappa if m.stencil == "paper" else x
-        return m.volume(phi, 0.0)
-
 
 def regularizer_matrix(model: ForwardModel) -> sp.csr_matrix:
     """Forward-difference operator ``D`` over lattice edges between active nodes, scaled so

@@ -97,8 +97,3 @@ class Objective:
             self.gradients += 1
         self.trace.append((time.perf_counter() - self._t0, ev.value, ev.data))
         return ev
-
-    def prediction(self, kappa: Array, mu: Array) -> Array:
-        """Predicted radiance ``(n_boundary, M)`` at material ``(kappa, mu)``."""
-        fac = self.model.factorize(kappa, mu)
-        return fac.radiance(fac.solve(self.Q), self.Q)

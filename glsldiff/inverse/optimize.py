@@ -76,6 +76,7 @@ class ScaledProblem:
 
     def __post_init__(self) -> None:
         self.snapshots: list[tuple[Record, Array]] = []
+        self.gradients = 0
         n = self.objective.model.n
         self.n = n
         if self.parameterization not in PARAMETERIZATIONS:
@@ -126,8 +127,8 @@ class ScaledProblem:
                 grad[: self.n], grad[self.n:] = ev.grad_kappa * self.kappa_scale, ev.grad_mu * self.mu_scale
             gnorm = float(np.linalg.norm(grad))
         rec = Record(len(tr.records) + 1, time.perf_counter() - self._t0, ev.value, ev.data, gnorm)
-        n_grad = sum(1 for r in tr.records if not math.isnan(r.grad_norm)) + int(want)
-        if want and self.snapshot_every and (n_grad - 1) % self.snapshot_every == 0:
+        self.gradients += int(want)
+        if want and self.snapshot_every and (self.gradients - 1) % self.snapshot_every == 0:
             self.snapshots.append((rec, np.array(z, dtype=np.float64)))
         if not tr.records or ev.value < tr.best.value:
             self.best_z = np.array(z, dtype=np.float64)
@@ -182,7 +183,7 @@ def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -
         code = "roundoff"
     except nlopt.ForcedStop:
         code = nlopt.FORCED_STOP
-    problem.trace.iterations = sum(1 for r in problem.trace.records if not math.isnan(r.grad_norm))
+    problem.trace.iterations = problem.gradients
     if code == nlopt.FORCED_STOP:
         return  # budget: status already set
     problem.trace.status = {"roundoff": "converged (roundoff limited)",nlopt.STOPVAL_REACHED: "converged (f < eps)",
