@@ -138,10 +138,12 @@ def cmd_bench_sphere(args: argparse.Namespace) -> int:
     from glsldiff.convergence import sphere_study
 
     rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
-                        out=Path(args.out))
+                        out=Path(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed)
     print_table(f"polygrid sphere R = {args.radius} mm vs closed form (relative L2 of phi)", rows)
-    print("err_*_blend: default weights (blend fallback); _axis / _none: the other fallbacks on the same "
-          "nodes; glsl_vs_direct: GPU Jacobi vs SuperLU of the same system.")
+    print("series n: fixed polycube, more nodes per cube; series cubes: n fixed, smaller cubes. "
+          "err_*_blend: default weights (blend fallback); _axis / _none: the other fallbacks on the same "
+          "nodes; glsl_vs_direct: GPU Jacobi vs the direct (SuperLU, or pyamg above 20k nodes) solve "
+          "of the same system.")
     print(f"wrote sphere.csv and sphere.png to {args.out}/")
     return 0
 
@@ -211,7 +213,10 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("sphere", help="polygrid sphere vs the closed form, grid refinement")
     b.add_argument("--n", type=int, nargs="+", default=[4, 6, 8, 12], help="nodes per cube edge")
     b.add_argument("--radius", type=float, default=10.0, help="sphere radius, mm")
-    b.add_argument("--cube-size", type=float, default=5.0, help="polycube cube edge, mm")
+    b.add_argument("--cube-size", type=float, default=5.0, help="polycube cube edge of series n, mm")
+    b.add_argument("--cube-sizes", type=float, nargs="*", default=[5.0, 2.5, 1.667, 1.25],
+                   help="cube edges of series cubes (n fixed), mm")
+    b.add_argument("--n-fixed", type=int, default=4, help="nodes per cube edge of series cubes")
     b.add_argument("--no-glsl", action="store_true", help="skip the GLSL solve (direct solves only)")
     b.add_argument("--out", default="bench-out")
     _add_gl(b)

@@ -1,14 +1,16 @@
 """``glsldiff bench sphere``: the polygrid against the closed-form sphere (grid refinement).
 
 A homogeneous sphere of radius R under a uniform boundary source q has the radial
-solution ``phi(r) = a sinh(s r) / r`` (:func:`glsldiff.analytic.sphere_fluence`). For a
-fixed polycube (cube edge ``cube_size``) and increasing nodes per cube ``n`` this builds the
-polygrid of an icosphere, solves the discrete system directly (SuperLU, so only the
-discretisation error is measured), and reports the relative L2 error of phi at the
-boundary nodes and at the interior nodes, each against ``phi(|x - centre|)`` at the node's
-own position. The same grid is also solved with the other weight fallbacks, which shows
-what the fallback costs in accuracy, and (optionally) with the GLSL solver, which shows
-the GPU error and time next to the direct solve.
+solution ``phi(r) = a sinh(s r) / r`` (:func:`glsldiff.analytic.sphere_fluence`). The
+polygrid of an icosphere is refined in two ways: series ``n`` keeps the polycube (cube edge
+``cube_size``) and raises the nodes per cube ``n``; series ``cubes`` keeps ``n`` and
+shrinks the cubes. Each grid is solved directly (SuperLU; pyamg to a 1e-11 residual above
+20k nodes), so only the discretisation error is measured: the relative L2 error of phi at
+the boundary nodes and at the interior nodes, each against ``phi(|x - centre|)`` at the
+node's own position, and the local (truncation) error of the exact solution per row kind
+(:func:`truncation`). Series ``n`` also solves with the other weight fallbacks (what the
+fallback costs in accuracy) and, optionally, with the GLSL solver (GPU error and time next
+to the direct solve).
 """
 from __future__ import annotations
 
@@ -24,7 +26,8 @@ from glsldiff.analytic import sphere_fluence
 from glsldiff.optics import boundary_constant
 from glsldiff.polygrid import Polygrid, build_polygrid, with_weights
 from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.reference import solve_direct
+from glsldiff.graph import BOUNDARY, INTERIOR
+from glsldiff.reference import assemble, solve_amg, solve_direct
 
 
 def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
@@ -34,34 +37,68 @@ def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, fl
             relative_l2(flat[lat.interior], exact[lat.interior]))
 
 
+def truncation(p: DiffusionProblem, exact: np.ndarray) -> dict[str, float]:
+    """Local error of the discrete system: mean ``|b - A x| / (diag(A) x)`` of the exact
+    solution ``x`` (channel 0), over the boundary rows whose partner is theirs alone, the
+    boundary rows of partners shared at polycube edges, and the interior rows."""
+    pg = p.grid
+    s = assemble(p)
+    A, b = s.block(0)
+    x = exact.reshape(-1, 3)[s.active, 0]
+    rel = np.abs(b - A @ x) / (s.diag[:s.n] * np.abs(x))
+    lat = pg.lattice
+    shared = np.zeros(lat.size_nodes, dtype=bool)
+    shared[lat.boundary] = np.bincount(lat.link, minlength=lat.size_nodes)[lat.link] > 1
+    kind, sh = lat.kind[s.active], shared[s.active]
+    groups = {"boundary_single": (kind == BOUNDARY) & ~sh, "boundary_shared": sh, "interior": kind == INTERIOR}
+    return {f"trunc_{k}": float(rel[m].mean()) if m.any() else float("nan") for k, m in groups.items()}
+
+
+def _solve(p: DiffusionProblem, nodes: int) -> np.ndarray:
+    """SuperLU below 20k nodes, else pyamg to a 1e-11 residual (the discretisation error
+    is measured, so both are converged far below it)."""
+    return (solve_direct(p) if nodes < 20_000 else solve_amg(p, tol=1e-11))[0]
+
+
 def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_size: float = 5.0,
                  kappa: float = 1.0 / 3.15, mu: float = 0.05, q: float = 1.0, subdivisions: int = 5,
                  glsl: bool = True, tol: float = 5e-7, out: Path | None = None,
-                 variance_iterations: int = 100) -> list[dict[str, object]]:
-    """Discretisation error of the polygrid sphere against the closed form, per ``n``."""
+                 variance_iterations: int = 100, cube_sizes: Sequence[float] = (),
+                 n_fixed: int = 4) -> list[dict[str, object]]:
+    """Discretisation error of the polygrid sphere against the closed form.
+
+    Two refinements: series ``"n"`` keeps the polycube (cube edge ``cube_size``) and raises
+    the nodes per cube ``n``; series ``"cubes"`` keeps ``n = n_fixed`` and shrinks the cube
+    edge through ``cube_sizes`` (a new polycube each time). Both halve h; only the second
+    also shrinks the region the polycube-to-sphere map distorts. Homogeneous channel 0
+    carries q (the others are 0 and skipped by the solvers).
+    """
     from glsldiff.mesh import sphere_mesh
 
     mesh = sphere_mesh(radius, subdivisions=subdivisions)
     C = float(boundary_constant(1.3))
     rows: list[dict[str, object]] = []
     polycube = None
-    for n in ns:
+    runs = [("n", n, cube_size) for n in ns] + [("cubes", n_fixed, c) for c in cube_sizes]
+    for series, n, size in runs:
         t0 = time.perf_counter()
-        pg = build_polygrid(mesh, n=n, cube_size=cube_size, polycube=polycube,
+        pg = build_polygrid(mesh, n=n, cube_size=size, polycube=polycube if series == "n" else None,
                             mapping={"variance_iterations": variance_iterations})
-        polycube = pg.polycube
+        if series == "n":
+            polycube = pg.polycube
         build = time.perf_counter() - t0
         r = np.linalg.norm(pg.positions - mesh.vertices.mean(axis=0), axis=1)
-        exact = np.repeat(sphere_fluence(r, radius, kappa, mu, C, q)[:, None], 3, axis=1)
-        row: dict[str, object] = {"n": n, "h_mm": pg.lattice.h, "cubes": len(pg.lattice.cubes),
-                                  "nodes": pg.n_active, "build_s": build,
+        exact = np.zeros((pg.size, 3))
+        exact[:, 0] = sphere_fluence(r, radius, kappa, mu, C, q)
+        row: dict[str, object] = {"series": series, "n": n, "cube_mm": size, "h_mm": pg.lattice.h,
+                                  "cubes": len(pg.lattice.cubes), "nodes": pg.n_active, "build_s": build,
                                   "fallback_nodes": pg.weight_stats.fallback if pg.weight_stats else 0}
-        for fallback in ("blend", "axis", "none"):
+        for fallback in ("blend", "axis", "none") if series == "n" else ("blend",):
             g = pg if fallback == "blend" else with_weights(pg, fallback=fallback)
             t1 = time.perf_counter()
             try:
-                p = DiffusionProblem(g, kappa, mu, q, C=C)
-                phi, _ = solve_direct(p)
+                p = DiffusionProblem(g, kappa, mu, (q, 0.0, 0.0), C=C)
+                phi = _solve(p, pg.n_active)
             except GlsldiffError:  # raw weights may not even give a valid system
                 row[f"err_boundary_{fallback}"] = row[f"err_interior_{fallback}"] = float("nan")
                 continue
@@ -69,7 +106,8 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
             row[f"err_boundary_{fallback}"] = eb
             row[f"err_interior_{fallback}"] = ei
             if fallback == "blend":
-                row["direct_s"] = time.perf_counter() - t1
+                row["solve_s"] = time.perf_counter() - t1
+                row.update(truncation(p, exact))
                 if glsl:
                     from glsldiff.polydiffusion import solve_polygrid
 
@@ -92,11 +130,17 @@ def plot(rows: list[dict[str, object]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    h = [float(r["h_mm"]) for r in rows]
-    fig, ax = plt.subplots(figsize=(5.5, 4))
-    for key, style in (("err_boundary_blend", "o-"), ("err_interior_blend", "s-"),
-                       ("err_boundary_none", "x--"), ("err_interior_none", "+--")):
-        ax.loglog(h, [float(r[key]) for r in rows], style, label=key.replace("err_", ""))
+    fig, ax = plt.subplots(figsize=(6, 4.2))
+    styles = {("n", "boundary"): "o-", ("n", "interior"): "s-", ("cubes", "boundary"): "o--",
+              ("cubes", "interior"): "s--"}
+    for series, label in (("n", "fixed polycube, n up"), ("cubes", "n fixed, cubes smaller")):
+        sel = [r for r in rows if r["series"] == series]
+        if not sel:
+            continue
+        h = [float(r["h_mm"]) for r in sel]
+        for part in ("boundary", "interior"):
+            ax.loglog(h, [float(r[f"err_{part}_blend"]) for r in sel], styles[series, part],
+                      label=f"{part}: {label}")
     ax.set_xlabel("lattice spacing h [mm]")
     ax.set_ylabel("relative L2 error of phi vs closed form")
     ax.grid(True, which="both", alpha=0.3)

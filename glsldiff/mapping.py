@@ -5,7 +5,9 @@
 2. **Relax** the boundary nodes towards an even distribution on the surface: a few rounds
    of Laplacian smoothing over the polycube-surface adjacency, each followed by
    re-projection onto the mesh (after Turk 1992). Smoothing also unfolds the places where
-   closest-point projection put neighbours in the wrong order.
+   closest-point projection put neighbours in the wrong order. Nodes it leaves on top of
+   one another (a cluster funnelled onto a sharp feature) are moved to the surface hit of
+   the line along their polycube face axis (:func:`separate_collapsed`).
 3. **Partners**: each boundary node's interior partner goes to ``p_b - d n_b``, ``n_b`` the
    mesh normal, ``d = 1/10`` of the mean distance between surface-adjacent boundary nodes
    (a partner shared by two or three boundary nodes at a polycube edge takes the mean).
@@ -49,6 +51,7 @@ class MappingStats:
     spacing_cv_relaxed: float = float("nan")    # ... after relaxation
     flipped_projected: int = 0                  # boundary nodes whose mesh normal opposes the polycube face
     flipped_relaxed: int = 0
+    separated: int = 0                          # collapsed boundary nodes moved to their axis ray hit
     d: float = float("nan")                     # boundary-to-partner distance
     shared_partners: int = 0
     variance_harmonic: float = float("nan")     # mean link-length variance / h^2, harmonic placement
@@ -86,6 +89,50 @@ def _inverted(pos: NDArray, nbrs: NDArray[np.int64]) -> NDArray[np.bool_]:
     return np.einsum("ij,ij->i", np.cross(ex, ey), ez) <= 0
 
 
+def _collapsed(xb: NDArray, tol: float) -> NDArray[np.int64]:
+    """Indices of the boundary nodes closer than ``tol`` (mm) to another one."""
+    from scipy.spatial import cKDTree
+
+    pairs = cKDTree(xb).query_pairs(tol, output_type="ndarray")
+    return np.unique(pairs)
+
+
+def separate_collapsed(lattice: Lattice, mesh: "Mesh", xb: NDArray, nrm: NDArray, tol: float,
+                       rounds: int = 3) -> int:
+    """Move boundary nodes that closest-point projection collapsed onto one point.
+
+    Closest points funnel every query point in the normal cone of a convex feature (or
+    of a concave one, from inside) onto that feature, and re-projection during
+    relaxation can keep a cluster together; its partners then coincide and the links
+    have zero length. A node within ``tol`` (mm) of another is moved to the nearest
+    surface hit of the line through its lattice position along its polycube face axis:
+    distinct parallel lines cannot share a hit (a node whose line misses the mesh stays).
+    ``xb``, ``nrm`` are updated in place; returns the number of nodes moved. Raises
+    InputError if two nodes still coincide (closer than ``1e-4 tol``).
+    """
+    from glsldiff.errors import InputError
+    from glsldiff.mesh import axis_hits, closest_points
+
+    moved = np.zeros(len(xb), dtype=bool)
+    for _ in range(rounds):
+        bad = _collapsed(xb, tol)
+        bad = bad[~moved[bad]]
+        if bad.size == 0:
+            break
+        nodes = lattice.boundary[bad]
+        hit = axis_hits(mesh, lattice.lattice_positions[nodes], np.abs(lattice.outward[bad]).argmax(axis=1))
+        ok = np.isfinite(hit[:, 0])
+        if ok.any():
+            xb[bad[ok]], _, _, nrm[bad[ok]] = closest_points(mesh, hit[ok])
+        moved[bad] = True
+    left = _collapsed(xb, 1e-4 * tol)
+    if left.size:
+        raise InputError(f"mapping: {left.size} boundary nodes still coincide with another after "
+                         "re-projection along their polycube axes (the mesh has features thinner than the "
+                         "node spacing here); use smaller cubes or a smoother mesh")
+    return int(moved.sum())
+
+
 def link_variance(pos: NDArray, centers: NDArray[np.int64], nbrs: NDArray[np.int64]) -> NDArray[np.float64]:
     """Variance of the six link lengths of each node ``centers[i]`` (mm^2)."""
     L = np.linalg.norm(pos[nbrs] - pos[centers, None, :], axis=2)
@@ -111,7 +158,8 @@ def _variance_objective(x: NDArray, pos: NDArray, free: NDArray, centers: NDArra
 
 def map_to_mesh(lattice: Lattice, mesh: "Mesh", relax_iterations: int = 10, relax_step: float = 0.5,
                 variance_iterations: int = 100, d_fraction: float = 0.1,
-                containment_samples: int = 20000, seed: int = 0) -> tuple[NDArray, NDArray, MappingStats]:
+                containment_samples: int = 20000, seed: int = 0,
+                collapse_tol: float = 0.01) -> tuple[NDArray, NDArray, MappingStats]:
     """Node positions in the object for every lattice node.
 
     Parameters
@@ -128,6 +176,9 @@ def map_to_mesh(lattice: Lattice, mesh: "Mesh", relax_iterations: int = 10, rela
         harmonic placement).
     d_fraction
         Partner distance as a fraction of the mean boundary spacing (paper: 1/10).
+    collapse_tol
+        Boundary nodes closer than this fraction of the mean spacing count as collapsed
+        and are separated (:func:`separate_collapsed`).
     containment_samples
         Interior nodes (random sample) tested for lying inside the mesh.
 
@@ -165,6 +216,7 @@ def map_to_mesh(lattice: Lattice, mesh: "Mesh", relax_iterations: int = 10, rela
     st.boundary_spacing = float(lengths.mean())
     st.spacing_cv_relaxed = float(lengths.std() / lengths.mean())
     st.flipped_relaxed = int((np.einsum("ij,ij->i", nrm, axis) < 0).sum())
+    st.separated = separate_collapsed(lattice, mesh, xb, nrm, collapse_tol * st.boundary_spacing)
     st.seconds["relax"] = time.perf_counter() - t1
     pos[b] = xb
 

@@ -672,6 +672,53 @@ class _ZRayIndex:
         return pr[inside][ok], z[ok], t[inside, 0][ok].astype(np.int64)
 
 
+class _AxisView:
+    """Vertices with their coordinates permuted so that ``axis`` becomes z (for ray casting)."""
+
+    def __init__(self, mesh: Mesh, axis: int) -> None:
+        perm = [(axis + 1) % 3, (axis + 2) % 3, axis]
+        self.vertices = np.ascontiguousarray(mesh.vertices[:, perm])
+        self.faces = mesh.faces
+
+
+def axis_hits(mesh: Mesh, points: ArrayLike, axis: ArrayLike) -> NDArray[np.float64]:
+    """Nearest surface point of each point (N, 3) mm along the line through it parallel to
+    coordinate ``axis`` (N,) in {0, 1, 2}, searching both directions; NaN rows where the
+    line misses the mesh. Distinct points on parallel lines never share a hit, unlike
+    closest points, which collapse onto convex features."""
+    p = _as_points(points)
+    ax = np.asarray(axis, dtype=np.int64).ravel()
+    if ax.shape != (len(p),) or np.any((ax < 0) | (ax > 2)):
+        raise InputError("axis_hits: axis must hold one of 0, 1, 2 per point")
+    out = np.full_like(p, np.nan)
+    for a in range(3):
+        sel = np.flatnonzero(ax == a)
+        if sel.size == 0:
+            continue
+        perm = [(a + 1) % 3, (a + 2) % 3]
+        rays, ray_of = np.unique(p[sel][:, perm], axis=0, return_inverse=True)
+        cr, cz, _ = _ZRayIndex(_AxisView(mesh, a)).crossings(rays)  # type: ignore[arg-type]
+        ray_of = ray_of.ravel()
+        # per point: the crossing nearest to its own coordinate along the axis
+        order = np.lexsort((cz, cr))
+        cr, cz = cr[order], cz[order]
+        start = np.searchsorted(cr, np.arange(len(rays) + 1))
+        coord = p[sel, a]
+        hit = np.full(sel.size, np.nan)
+        counts = start[ray_of + 1] - start[ray_of]
+        for k in range(int(counts.max(initial=0))):
+            has = counts > k
+            z = cz[start[ray_of[has]] + k]
+            dist = np.abs(z - coord[has])
+            idx = np.flatnonzero(has)
+            better = dist < np.abs(np.nan_to_num(hit[idx] - coord[idx], nan=np.inf))
+            hit[idx[better]] = z[better]
+        rows = sel[np.isfinite(hit)]
+        out[rows] = p[rows]
+        out[rows, a] = hit[np.isfinite(hit)]
+    return out
+
+
 def _winding(mesh: Mesh, rays: NDArray[np.float64], ray_of: NDArray[np.int64],
              z: NDArray[np.float64]) -> NDArray[np.int64]:
     """Winding number of points ``(rays[ray_of], z)``: signed crossings strictly above."""

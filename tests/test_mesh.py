@@ -329,3 +329,49 @@ def test_bad_points(bunny):
         M.contains(bunny, np.zeros((4, 2)))
     with pytest.raises(InputError, match=r"non-finite"):
         M.closest_points(bunny, [[np.nan, 0, 0]])
+
+
+def test_axis_hits_sphere_closed_form():
+    """Nearest hit along the axis line through each point, both directions, NaN on a miss."""
+    m = M.sphere_mesh(10.0, subdivisions=5)
+    rng = np.random.default_rng(3)
+    p = rng.uniform(-7, 7, (200, 3))
+    axis = rng.integers(0, 3, 200)
+    hit = M.axis_hits(m, p, axis)
+    rows = np.arange(200)
+    exact = np.sqrt(100.0 - (p ** 2).sum(1) + p[rows, axis] ** 2) * np.sign(p[rows, axis])
+    # the icosphere is inscribed: hits lie within its chord error of the sphere
+    assert np.abs(hit[rows, axis] - exact).max() < 0.05
+    for k in (1, 2):  # the other coordinates are the point's own
+        np.testing.assert_array_equal(hit[rows, (axis + k) % 3], p[rows, (axis + k) % 3])
+    assert np.isnan(M.axis_hits(m, [[30.0, 30.0, 0.0]], [1])).all()
+    with pytest.raises(InputError, match="axis"):
+        M.axis_hits(m, p[:2], [0, 3])
+
+
+def test_axis_hits_bunny_matches_brute_force(bunny):
+    """Against all triangle-line intersections (Moeller-Trumbore on every face)."""
+    rng = np.random.default_rng(5)
+    lo, hi = bunny.bounds
+    p = rng.uniform(lo, hi, (40, 3))
+    axis = rng.integers(0, 3, 40)
+    hit = M.axis_hits(bunny, p, axis)
+    t = bunny.triangles
+    for i in range(40):
+        d = np.zeros(3)
+        d[axis[i]] = 1.0
+        e1, e2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+        pv = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, pv)
+        ok = np.abs(det) > 1e-14
+        s = p[i] - t[:, 0]
+        u = np.einsum("ij,ij->i", s, pv) / np.where(ok, det, 1)
+        qv = np.cross(s, e1)
+        v = (qv @ d) / np.where(ok, det, 1)
+        tt = np.einsum("ij,ij->i", e2, qv) / np.where(ok, det, 1)
+        inside = ok & (u >= 0) & (v >= 0) & (u + v <= 1)
+        if not inside.any():
+            assert np.isnan(hit[i]).all()
+            continue
+        best = tt[inside][np.argmin(np.abs(tt[inside]))]
+        np.testing.assert_allclose(hit[i, axis[i]], p[i, axis[i]] + best, atol=1e-9 * (hi - lo).max())

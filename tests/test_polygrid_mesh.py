@@ -85,10 +85,12 @@ def test_mapping_quality(request, name, inverted):
 
 
 def test_sphere_error_against_closed_form():
-    """Homogeneous sphere, uniform q, against a sinh(s r)/r. The error does NOT shrink with n
-    on this polygrid (measured 7.7 %, 6.5 %, 9.3 %, 13 % at n = 4, 6, 8, 12 on the boundary,
-    ``glsldiff bench sphere``): appendix B drops the mixed derivatives, and the polycube-to-
-    sphere distortion does not vanish under refinement. This test bounds it at n = 4 and 8."""
+    """Homogeneous sphere, uniform q, against a sinh(s r)/r. The error does NOT shrink under
+    refinement on this polygrid (``glsldiff bench sphere``, boundary nodes): fixed polycube,
+    n = 4, 6, 8, 12: 7.7 %, 6.5 %, 9.3 %, 13 %; n = 4, cubes of 5, 2.5, 1.67, 1.25 mm: 7.7 %,
+    5.8 %, 6.9 %, 7.1 %. The boundary rows of partners shared at polycube edges carry a
+    truncation error about 6x that of single partners, and appendix B drops the mixed
+    derivatives on the distorted cells there. This test bounds the error at n = 4 and 6."""
     mesh = sphere_mesh(10.0, subdivisions=4)
     kappa, mu, C = 1 / 3.15, 0.05, 2.6020569
     errs = []
@@ -147,3 +149,50 @@ def test_polygrid_command_bad_mesh(tmp_path, capsys):
     rc = main(["polygrid", str(bad), "--out", str(tmp_path), "--no-png"])
     err = capsys.readouterr().err
     assert rc == 2 and err.startswith("glsldiff: error:") and err.count("\n") == 1
+
+
+def test_separate_collapsed_boundary_nodes():
+    """Two boundary nodes put on one point (what closest-point projection does next to a
+    sharp feature; the 16^3-per-cube bunny had 11 such pairs) are moved to their axis ray
+    hits, onto the surface and apart; nodes that cannot be separated give an InputError."""
+    from glsldiff.errors import InputError
+    from glsldiff.lattice import Lattice
+    from glsldiff.mapping import map_to_mesh, separate_collapsed
+    from glsldiff.mesh import closest_points, mesh_from_arrays
+    from glsldiff.polycube import polycube_from_mesh
+    from scipy.spatial import cKDTree
+
+    mesh = sphere_mesh(10.0, subdivisions=4)
+    pc = polycube_from_mesh(mesh, cube_size=5.0)
+    lat = Lattice.build(pc.cubes, 4, pc.size, pc.origin)
+    pos, nrm, st = map_to_mesh(lat, mesh, variance_iterations=0)
+    assert st.separated == 0
+    xb, nb = pos[lat.boundary].copy(), nrm.copy()
+    i, j = lat.surface_pairs[0]
+    k = {b: n for n, b in enumerate(lat.boundary)}
+    xb[k[j]] = xb[k[i]]
+    tol = 0.01 * st.boundary_spacing
+    assert separate_collapsed(lat, mesh, xb, nb, tol) == 2
+    assert len(cKDTree(xb).query_pairs(tol)) == 0
+    _, dist, _, normal = closest_points(mesh, xb[[k[i], k[j]]])
+    assert dist.max() < 1e-9 and np.allclose(nb[[k[i], k[j]]], normal)
+    far = mesh_from_arrays(mesh.vertices + 1000.0, mesh.faces)
+    xb[k[j]] = xb[k[i]]
+    with pytest.raises(InputError, match="coincide"):
+        separate_collapsed(lat, far, xb, nb, tol)
+
+
+def test_sphere_study_both_series(tmp_path):
+    """``glsldiff bench sphere`` rows: both refinement series, errors, truncation errors per
+    row kind (shared-partner boundary rows are the worst), GLSL = direct, CSV and PNG."""
+    from glsldiff.convergence import sphere_study
+
+    rows = sphere_study(ns=(3,), cube_sizes=(5.0,), n_fixed=3, subdivisions=3, glsl=True,
+                        out=tmp_path, variance_iterations=0)
+    assert [r["series"] for r in rows] == ["n", "cubes"]
+    n, cubes = rows
+    assert n["err_boundary_blend"] == pytest.approx(cubes["err_boundary_blend"], rel=1e-6)
+    assert 0 < n["err_boundary_blend"] < 0.2 and 0 < n["err_interior_blend"] < 0.2
+    assert n["trunc_boundary_shared"] > n["trunc_boundary_single"] > 0
+    assert n["glsl_vs_direct"] <= 1e-4
+    assert (tmp_path / "sphere.csv").stat().st_size > 0 and (tmp_path / "sphere.png").stat().st_size > 0
