@@ -39,12 +39,12 @@ def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, fl
 
 def truncation(p: DiffusionProblem, exact: np.ndarray) -> dict[str, float]:
     """Local error of the discrete system: mean ``|b - A x| / (diag(A) x)`` of the exact
-    solution ``x`` (channel 0), over the boundary rows whose partner is theirs alone, the
+    solution ``x`` (channel 0, in the problem's unknown), over the boundary rows whose partner is theirs alone, the
     boundary rows of partners shared at polycube edges, and the interior rows."""
     pg = p.grid
     s = assemble(p)
     A, b = s.block(0)
-    x = exact.reshape(-1, 3)[s.active, 0]
+    x = np.asarray(p.from_phi(exact.reshape(p.node_shape + (3,)))).reshape(-1, 3)[s.active, 0]
     rel = np.abs(b - A @ x) / (s.diag[:s.n] * np.abs(x))
     lat = pg.lattice
     shared = np.zeros(lat.size_nodes, dtype=bool)
