@@ -39,8 +39,9 @@ def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, fl
 
 def truncation(p: DiffusionProblem, exact: np.ndarray) -> dict[str, float]:
     """Local error of the discrete system: mean ``|b - A x| / (diag(A) x)`` of the exact
-    solution ``x`` (channel 0, in the problem's unknown), over the boundary rows whose partner is theirs alone, the
-    boundary rows of partners shared at polycube edges, and the interior rows."""
+    solution ``x`` (channel 0, in the problem's unknown), over the boundary rows whose
+    partner is theirs alone, the boundary rows of partners shared at polycube edges, and
+    the interior rows."""
     pg = p.grid
     s = assemble(p)
     A, b = s.block(0)
@@ -48,7 +49,7 @@ def truncation(p: DiffusionProblem, exact: np.ndarray) -> dict[str, float]:
     rel = np.abs(b - A @ x) / (s.diag[:s.n] * np.abs(x))
     lat = pg.lattice
     shared = np.zeros(lat.size_nodes, dtype=bool)
-    shared[lat.boundary] = np.bincount(lat.link, minlength=lat.size_nodes)[lat.link] > 1
+    shared[lat.boundary] = lat.partner_count[lat.link] > 1
     kind, sh = lat.kind[s.active], shared[s.active]
     groups = {"boundary_single": (kind == BOUNDARY) & ~sh, "boundary_shared": sh, "interior": kind == INTERIOR}
     return {f"trunc_{k}": float(rel[m].mean()) if m.any() else float("nan") for k, m in groups.items()}
@@ -71,7 +72,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
     the nodes per cube ``n``; series ``"cubes"`` keeps ``n = n_fixed`` and shrinks the cube
     edge through ``cube_sizes`` (a new polycube each time). Both halve h; only the second
     also shrinks the region the polycube-to-sphere map distorts. Homogeneous channel 0
-    carries q (the others are 0 and skipped by the solvers).
+    carries q; the other channels are 0 (pyamg skips them, SuperLU still factors them).
     """
     from glsldiff.mesh import sphere_mesh
 

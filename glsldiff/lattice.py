@@ -221,10 +221,15 @@ class Lattice:
         """``(n_boundary, 3)`` outward unit axis of each boundary node in the polycube."""
         return STEPS[self.outward_slot[self.boundary]].astype(np.float64)
 
+    @cached_property
+    def partner_count(self) -> NDArray[np.int64]:
+        """``(N,)`` number of boundary nodes whose partner each node is (2 or 3 at convex edges)."""
+        return np.bincount(self.link, minlength=self.size_nodes)
+
     @property
     def shared_partners(self) -> int:
         """Interior nodes that are the partner of more than one boundary node (convex edges)."""
-        return int((np.bincount(self.link, minlength=self.size_nodes) > 1).sum())
+        return int((self.partner_count > 1).sum())
 
     @cached_property
     def surface_pairs(self) -> NDArray[np.int64]:

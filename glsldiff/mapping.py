@@ -34,6 +34,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
+from glsldiff.errors import InputError
 from glsldiff.lattice import Lattice
 
 if TYPE_CHECKING:
@@ -110,7 +111,6 @@ def separate_collapsed(lattice: Lattice, mesh: "Mesh", xb: NDArray, nrm: NDArray
     ``xb``, ``nrm`` are updated in place; returns the number of nodes moved. Raises
     InputError if two nodes still coincide (closer than ``1e-4 tol``).
     """
-    from glsldiff.errors import InputError
     from glsldiff.mesh import axis_hits, closest_points
 
     moved = np.zeros(len(xb), dtype=bool)
@@ -224,7 +224,7 @@ def map_to_mesh(lattice: Lattice, mesh: "Mesh", relax_iterations: int = 10, rela
     d = d_fraction * st.boundary_spacing
     st.d = d
     target = xb - d * nrm
-    cnt = np.bincount(link, minlength=lattice.size_nodes)
+    cnt = lattice.partner_count
     acc = np.zeros_like(pos)
     np.add.at(acc, link, target)
     partners = np.flatnonzero(cnt > 0)

@@ -176,8 +176,16 @@ class Mesh:
 
     # ---- acceleration structures (private, built on first query) -----------------------
     @cached_property
-    def _zrays(self) -> "_ZRayIndex":
-        return _ZRayIndex(self)
+    def _rays(self) -> list["_ZRayIndex | None"]:
+        """Ray-casting indices along x, y, z, each built on first use (:meth:`_ray_index`)."""
+        return [None, None, None]
+
+    def _ray_index(self, axis: int) -> "_ZRayIndex":
+        """Index for lines parallel to coordinate ``axis`` (z: the mesh itself; x, y: its
+        coordinates permuted so that the axis becomes z)."""
+        if self._rays[axis] is None:
+            self._rays[axis] = _ZRayIndex(self if axis == 2 else _AxisView(self, axis))  # type: ignore[arg-type]
+        return self._rays[axis]  # type: ignore[return-value]
 
     @cached_property
     def _bvh(self) -> "_BVH":
@@ -697,7 +705,7 @@ def axis_hits(mesh: Mesh, points: ArrayLike, axis: ArrayLike) -> NDArray[np.floa
             continue
         perm = [(a + 1) % 3, (a + 2) % 3]
         rays, ray_of = np.unique(p[sel][:, perm], axis=0, return_inverse=True)
-        cr, cz, _ = _ZRayIndex(_AxisView(mesh, a)).crossings(rays)  # type: ignore[arg-type]
+        cr, cz, _ = mesh._ray_index(a).crossings(rays)
         ray_of = ray_of.ravel()
         # per point: the crossing nearest to its own coordinate along the axis
         order = np.lexsort((cz, cr))
@@ -705,14 +713,14 @@ def axis_hits(mesh: Mesh, points: ArrayLike, axis: ArrayLike) -> NDArray[np.floa
         start = np.searchsorted(cr, np.arange(len(rays) + 1))
         coord = p[sel, a]
         hit = np.full(sel.size, np.nan)
+        best = np.full(sel.size, np.inf)
         counts = start[ray_of + 1] - start[ray_of]
         for k in range(int(counts.max(initial=0))):
-            has = counts > k
-            z = cz[start[ray_of[has]] + k]
-            dist = np.abs(z - coord[has])
-            idx = np.flatnonzero(has)
-            better = dist < np.abs(np.nan_to_num(hit[idx] - coord[idx], nan=np.inf))
-            hit[idx[better]] = z[better]
+            idx = np.flatnonzero(counts > k)
+            z = cz[start[ray_of[idx]] + k]
+            dist = np.abs(z - coord[idx])
+            better = dist < best[idx]
+            hit[idx[better]], best[idx[better]] = z[better], dist[better]
         rows = sel[np.isfinite(hit)]
         out[rows] = p[rows]
         out[rows, a] = hit[np.isfinite(hit)]
@@ -722,7 +730,7 @@ def axis_hits(mesh: Mesh, points: ArrayLike, axis: ArrayLike) -> NDArray[np.floa
 def _winding(mesh: Mesh, rays: NDArray[np.float64], ray_of: NDArray[np.int64],
              z: NDArray[np.float64]) -> NDArray[np.int64]:
     """Winding number of points ``(rays[ray_of], z)``: signed crossings strictly above."""
-    cr, cz, cs = mesh._zrays.crossings(rays)
+    cr, cz, cs = mesh._ray_index(2).crossings(rays)
     n_r = len(rays)
     total = np.bincount(cr, weights=cs, minlength=n_r).astype(np.int64)
     before = np.cumsum(total) - total
