@@ -20,7 +20,7 @@ import logging
 import time
 from dataclasses import replace
 from functools import cached_property
-from typing import Mapping
+from typing import Callable, Mapping
 
 import moderngl
 import numpy as np
@@ -93,11 +93,15 @@ class GlslDiffusion:
     method = "glsl-jacobi"  # report name (before the precision suffix)
 
     def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
-                 precision: str = "fp32") -> None:
+                 precision: str = "fp32", *, state: gl.PingPong | None = None, damping: float = 1.0,
+                 interior_rhs: bool = False) -> None:
         if precision not in gl.DTYPES:
             raise InputError(f"precision={precision!r}; choose one of {tuple(gl.DTYPES)}")
+        if not 0.0 < damping <= 1.0:
+            raise InputError(f"damping={damping!r} must be in (0, 1] (1 = plain Jacobi)")
         self.problem = problem
         self.precision = precision
+        self.damping = float(damping)
         self.ctx = ctx if ctx is not None else gl.get_context()
         gl.make_current(self.ctx)
         g = problem.grid
@@ -107,13 +111,22 @@ class GlslDiffusion:
             "u_mu": gl.float_texture(self.ctx, self.size, g.pack(problem.mu)),
             "u_q": gl.float_texture(self.ctx, self.size, g.pack(problem.q)),
         }
-        self.state = gl.PingPong.create(self.ctx, self.size, precision)
+        if state is None:
+            self.state = gl.PingPong.create(self.ctx, self.size, precision)
+        else:  # borrowed (radiance buffers shared across the levels of a hierarchy)
+            if state.dtype != gl.DTYPES[precision] or state.size[0] < self.size[0] or state.size[1] < self.size[1]:
+                raise InputError(f"a shared state of {state.size} ({state.dtype}) cannot hold a "
+                                 f"{self.size} {precision} level")
+            self.state = state
+        self._owns_state = state is None
         self._progs: list[moderngl.Program] = []
         self._buffers: list[moderngl.Buffer] = []
         self._draws: list[tuple[moderngl.VertexArray, int]] = []
         self._build_passes({"STENCIL_PAPER": int(problem.stencil == "paper"),
-                            "FACE_HARMONIC": int(problem.face_mean == "harmonic")})
+                            "FACE_HARMONIC": int(problem.face_mean == "harmonic"),
+                            "DAMPED": int(self.damping < 1.0), "HAS_RHS": int(interior_rhs)})
         self._mask = g.active
+        self.sweeps_run = 0  # sweeps since creation (work counters of multilevel solves)
 
     # ---- setup ----------------------------------------------------------------
     def _build_passes(self, defines: dict[str, int]) -> None:
@@ -142,7 +155,7 @@ class GlslDiffusion:
     def _uniform_values(self) -> dict[str, object]:
         g, p = self.problem.grid, self.problem
         return {"u_size": tuple(float(s) for s in self.size), "u_h2": g.h * g.h,
-                "u_C": float(p.C), "u_d": g.h}
+                "u_C": float(p.C), "u_d": g.h, "u_omega": self.damping}
 
     def _set_uniforms(self, prog: moderngl.Program) -> None:
         units = {name: i + 1 for i, name in enumerate(self._textures)}
@@ -187,32 +200,41 @@ class GlslDiffusion:
             x = self.problem.from_phi(phi) * self._mask[..., None]
         self.state.write(g.pack(x))
 
+    def activate(self) -> None:
+        """Bind this solver's textures to their units and render into its state's ``dst``
+        over this level's texels (the state may be larger when shared)."""
+        for unit, tex in enumerate(self._textures.values(), start=1):
+            tex.use(unit)
+        self.state.dst.use()
+        self.ctx.viewport = (0, 0, *self.size)
+
     # ---- iteration --------------------------------------------------------------
     def sweep(self, n: int = 1) -> None:
         """Run ``n`` Jacobi sweeps (interior pass + boundary pass each)."""
         gl.make_current(self.ctx)
         bound = self.ctx.fbo if self.ctx.fbo is not None else self.ctx.detect_framebuffer(0)
-        for unit, tex in enumerate(self._textures.values(), start=1):
-            tex.use(unit)
         for _ in range(n):
-            self.state.dst.use()
+            self.activate()
             self.state.src.use(0)
             for vao, mode in self._draws:
                 vao.render(mode)
             self.state.swap()
+        self.sweeps_run += n
+        self.ctx.finish()  # sweeps are timed by the caller's clock: wait for the GPU
         bound.use()  # leave the caller's framebuffer bound, never ours
 
     def unknown(self) -> NDArray[np.float64]:
         """Current iterate (``kappa phi`` or ``phi``) as a ``(nz, ny, nx, 3)`` float64 volume."""
         gl.make_current(self.ctx)
-        return self.problem.grid.unpack(self.state.read()).astype(np.float64)
+        return self.problem.grid.unpack(self.state.read(size=self.size)).astype(np.float64)
 
     def fluence(self) -> NDArray[np.float64]:
         """Current fluence phi as a ``(nz, ny, nx, 3)`` volume (0 at inactive nodes)."""
         return self.problem.to_phi(self.unknown())
 
     def solve(self, tol: float = 1e-6, max_sweeps: int = 20000, check_every: int = 50,
-              x0: ArrayLike | None = None, keep: bool = False) -> tuple[NDArray, SolveReport]:
+              x0: ArrayLike | None = None, keep: bool = False,
+              callback: Callable[[NDArray], None] | None = None) -> tuple[NDArray, SolveReport]:
         """Relax until the Jacobi-scaled residual is <= ``tol`` or ``max_sweeps`` ran.
 
         Parameters
@@ -227,6 +249,8 @@ class GlslDiffusion:
             Initial fluence volume; default zero. Ignored when ``keep`` is true.
         keep
             Continue from the current buffer contents (frame coherence / restarts).
+        callback
+            Called with the unknown vector (channel-major, float64) after each check.
 
         Returns
         -------
@@ -253,7 +277,7 @@ class GlslDiffusion:
             return system.from_volume(vol)
 
         x, status, history, step = relax(system, advance, system.from_volume(self.unknown()), tol,
-                                         max_sweeps, check_every)
+                                         max_sweeps, check_every, callback)
         sweeps, res = history[-1]
         if status == "diverged":
             raise SolverError(diverged_message(self.problem, "GLSL Jacobi", sweeps))
@@ -275,7 +299,8 @@ class GlslDiffusion:
         gl.make_current(self.ctx)
         for obj in (*(vao for vao, _ in self._draws), *self._buffers, *self._progs, *self._textures.values()):
             obj.release()
-        self.state.release()
+        if self._owns_state:
+            self.state.release()
         self._draws, self._buffers, self._progs, self._textures = [], [], [], {}
 
     def __enter__(self) -> "GlslDiffusion":

@@ -256,20 +256,37 @@ class PingPong:
     def dst(self) -> moderngl.Framebuffer:
         return self.framebuffers[1 - self.index]
 
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.textures[0].size
+
+    @property
+    def dtype(self) -> str:
+        return self.textures[0].dtype
+
+    @property
+    def src_fbo(self) -> moderngl.Framebuffer:
+        return self.framebuffers[self.index]
+
     def swap(self) -> None:
         self.index = 1 - self.index
 
-    def read(self, which: str = "src") -> NDArray[np.float32]:
-        """``(height, width, components)`` float32 copy of ``src`` or ``dst``."""
+    def read(self, which: str = "src", size: tuple[int, int] | None = None) -> NDArray[np.float32]:
+        """``(height, width, components)`` float32 copy of ``src`` or ``dst`` (the lower-left
+        ``size`` texels only when given: a level of a shared buffer)."""
         tex = self.src if which == "src" else self.textures[1 - self.index]
         w, h = tex.size
         dtype = tex.dtype
-        arr = np.frombuffer(tex.read(alignment=1), dtype=np.dtype(dtype))
-        return arr.reshape(h, w, tex.components).astype(np.float32)
+        arr = np.frombuffer(tex.read(alignment=1), dtype=np.dtype(dtype)).reshape(h, w, tex.components)
+        if size is not None:
+            arr = arr[:size[1], :size[0]]
+        return arr.astype(np.float32)
 
     def write(self, data: NDArray, which: str = "src") -> None:
+        """Write ``(height, width, components)`` data at texel (0, 0) (a sub-region when smaller)."""
         tex = self.src if which == "src" else self.textures[1 - self.index]
-        tex.write(np.ascontiguousarray(data, dtype=np.dtype(tex.dtype)).tobytes(), alignment=1)
+        arr = np.ascontiguousarray(data, dtype=np.dtype(tex.dtype))
+        tex.write(arr.tobytes(), viewport=(0, 0, arr.shape[1], arr.shape[0]), alignment=1)
 
     def release(self) -> None:
         for obj in (*self.framebuffers, *self.textures):

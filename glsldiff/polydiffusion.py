@@ -31,13 +31,16 @@ _FORMAT = "2f 2i 2i 2i 2i 2i 2i"
 _ATTRS = ("in_pos", "in_off0", "in_off1", "in_off2", "in_off3", "in_off4", "in_off5")
 
 
-def polygrid_primitives(pg: Polygrid) -> dict[str, Primitives]:
-    """Quad/line/point decomposition of the interior pass and of the boundary pass."""
+def polygrid_primitives(pg: Polygrid, update: NDArray[np.bool_] | None = None) -> dict[str, Primitives]:
+    """Quad/line/point decomposition of the interior pass and of the boundary pass, over
+    the nodes where ``update`` (``(N,)`` flat node mask; default all) is true."""
     lat, mosaic = pg.lattice, pg.mosaic
-    ti = mosaic.texel(lat.interior)
-    tb = mosaic.texel(lat.boundary)
-    off_i = mosaic.texel(lat.neighbours) - ti[:, None, :]
-    off_b = (mosaic.texel(lat.link) - tb)[:, None, :]
+    si = slice(None) if update is None else update[lat.interior]
+    sb = slice(None) if update is None else update[lat.boundary]
+    ti = mosaic.texel(lat.interior[si])
+    tb = mosaic.texel(lat.boundary[sb])
+    off_i = mosaic.texel(lat.neighbours[si]) - ti[:, None, :]
+    off_b = (mosaic.texel(lat.link[sb]) - tb)[:, None, :]
     return {"interior": decompose(ti, off_i), "boundary": decompose(tb, off_b)}
 
 
@@ -65,10 +68,25 @@ class PolygridDiffusion(GlslDiffusion):
     method = "glsl-polygrid"
 
     def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
-                 precision: str = "fp32") -> None:
+                 precision: str = "fp32", *, update: NDArray[np.bool_] | None = None,
+                 **options: object) -> None:
+        """``update``: ``(N,)`` flat node mask of the nodes the sweeps update (default all;
+        the adaptive scheme fixes the others); ``options`` go to :class:`GlslDiffusion`
+        (``state``, ``damping``, ``interior_rhs``)."""
         if not isinstance(problem.grid, Polygrid):
             raise InputError(f"PolygridDiffusion needs a problem on a Polygrid, got {type(problem.grid).__name__}")
-        super().__init__(problem, ctx, precision)
+        if update is not None:
+            update = np.asarray(update, dtype=bool)
+            if update.shape != (problem.grid.size,):
+                raise InputError(f"update mask has shape {update.shape}, expected ({problem.grid.size},)")
+        self.update = update
+        self._extra_arrays: list[moderngl.VertexArray] = []
+        super().__init__(problem, ctx, precision, **options)  # type: ignore[arg-type]
+
+    @property
+    def updated_nodes(self) -> int:
+        """Nodes each sweep updates."""
+        return sum(p.texels for p in self.primitives.values())
 
     def _build_passes(self, defines: dict[str, int]) -> None:
         pg: Polygrid = self.problem.grid
@@ -77,17 +95,32 @@ class PolygridDiffusion(GlslDiffusion):
         self._textures["u_w1"] = gl.float_texture(self.ctx, self.size, w1)
         self._textures["u_w2"] = gl.float_texture(self.ctx, self.size, w2)
         self.positions = gl.float_texture(self.ctx, self.size, pg.pack(pg.positions.reshape(pg.shape + (3,))))
-        self.primitives = polygrid_primitives(pg)
+        self.primitives = polygrid_primitives(pg, self.update)
+        self._defines = defines
+        self._vbos: dict[str, list[tuple[moderngl.Buffer, int]]] = {}
+        for name, prims in self.primitives.items():
+            self._vbos[name] = []
+            for mode, verts in primitive_vertices(prims).items():
+                if len(verts):
+                    vbo = self.ctx.buffer(np.ascontiguousarray(verts).tobytes())
+                    self._buffers.append(vbo)
+                    self._vbos[name].append((vbo, _MODES[mode]))
         interior = self._program("polygrid.vert", "polygrid_interior.frag", defines)
         boundary = self._program("polygrid.vert", "boundary.frag", {**defines, "PER_NODE_D": 1})
-        for prog, name in ((interior, "interior"), (boundary, "boundary")):
-            attrs = [a for a in _ATTRS if a in prog]
-            fmt = " ".join(f if a in prog else "8x" for a, f in zip(_ATTRS, _FORMAT.split()))
-            for mode, verts in primitive_vertices(self.primitives[name]).items():
-                self._add_draw((prog, fmt, *attrs), verts, _MODES[mode])
+        self._draws += self.pass_arrays(interior, "interior") + self.pass_arrays(boundary, "boundary")
+
+    def pass_arrays(self, prog: moderngl.Program, name: str) -> list[tuple[moderngl.VertexArray, int]]:
+        """Vertex arrays drawing ``prog`` over the primitives of pass ``name`` (``"interior"``
+        or ``"boundary"``); another program (e.g. a residual) can reuse the same buffers.
+        They are released with this solver."""
+        attrs = [a for a in _ATTRS if a in prog]
+        fmt = " ".join(f if a in prog else "8x" for a, f in zip(_ATTRS, _FORMAT.split()))
+        out = [(self.ctx.vertex_array(prog, [(vbo, fmt, *attrs)]), mode) for vbo, mode in self._vbos[name]]
+        self._extra_arrays.extend(vao for vao, _ in out)
+        return out
 
     def _uniform_values(self) -> dict[str, object]:
-        return {"u_size": tuple(float(s) for s in self.size), "u_C": float(self.problem.C)}
+        return {"u_size": tuple(float(s) for s in self.size), "u_C": float(self.problem.C), "u_omega": self.damping}
 
     def primitive_counts(self) -> dict[str, dict[str, int]]:
         """Quads, lines and points per pass."""
@@ -95,6 +128,11 @@ class PolygridDiffusion(GlslDiffusion):
 
     def release(self) -> None:
         gl.make_current(self.ctx)
+        draws = {id(vao) for vao, _ in self._draws}
+        for vao in self._extra_arrays:
+            if id(vao) not in draws:
+                vao.release()
+        self._extra_arrays = []
         if getattr(self, "positions", None) is not None:
             self.positions.release()
             self.positions = None

@@ -40,12 +40,17 @@ class LinearSystem:
         ``(3n,)`` diagonal of ``A`` (the Jacobi divisor).
     active
         ``(n,)`` flat indices (into the ``(nz, ny, nx)`` volume) of the unknowns.
+    norm_ref
+        ``(3n,)`` vector whose per-channel norm divides the residual (default ``D^-1 b``);
+        a system with rows pinned to fixed values keeps the unpinned system's here, so
+        that its residual means the same as the full system's.
     """
 
     A: sp.csr_matrix
     b: NDArray[np.float64]
     diag: NDArray[np.float64]
     active: NDArray[np.int64]
+    norm_ref: NDArray[np.float64] | None = None
 
     @property
     def n(self) -> int:
@@ -74,7 +79,18 @@ class LinearSystem:
         """Jacobi-scaled relative residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``
         (``step`` = :meth:`jacobi_step` of ``x`` when already computed)."""
         r = self.jacobi_step(x) if step is None else step
-        return channel_ratio(r.reshape(3, self.n), (self.b / self.diag).reshape(3, self.n))
+        ref = self.b / self.diag if self.norm_ref is None else self.norm_ref
+        return channel_ratio(r.reshape(3, self.n), ref.reshape(3, self.n))
+
+    def pinned(self, rows: NDArray[np.bool_], x: NDArray) -> "LinearSystem":
+        """The same system with the unknowns where ``rows`` (``(n,)``, all channels) is true
+        held at their values in ``x`` (rows ``diag_i x_i = diag_i x_fixed_i``): what a
+        relaxation that never updates those nodes converges to."""
+        fixed = np.tile(np.asarray(rows, dtype=bool), 3)
+        keep = sp.diags((~fixed).astype(np.float64))
+        A = (keep @ self.A + sp.diags(np.where(fixed, self.diag, 0.0))).tocsr()
+        b = np.where(fixed, self.diag * x, self.b)
+        return LinearSystem(A, b, self.diag, self.active, self.b / self.diag)
 
 
 def jacobi_radius_bound(system: LinearSystem) -> float:

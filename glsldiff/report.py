@@ -37,6 +37,12 @@ class SolveReport:
         residual stopped falling: the iterate is at the precision floor of its buffers).
     radiance
         Exitant radiance per face (see ``DiffusionProblem.exitant_radiance``).
+    levels
+        Multiresolution solves (:mod:`glsldiff.multilevel`): per level that ran, a dict with
+        ``level`` (0 = finest), ``n``, ``nodes``, ``updated`` (nodes per sweep), ``sweeps``,
+        ``residual`` and ``seconds``; empty for single-level solvers.
+    work
+        Node updates performed (sweeps times updated nodes, summed over levels), if counted.
     """
 
     method: str
@@ -51,6 +57,8 @@ class SolveReport:
     device: str = "cpu"
     status: str = "converged"
     radiance: dict[str, NDArray[np.float64]] = field(default_factory=dict, repr=False)
+    levels: list[dict[str, object]] = field(default_factory=list)
+    work: int | None = None
 
     @property
     def node_updates_per_second(self) -> float:
@@ -61,8 +69,14 @@ class SolveReport:
         err = "" if self.error is None else f", error {self.error:.2e}"
         est = "" if math.isnan(self.error_estimate) else f", est. error {self.error_estimate:.1e}"
         state = "converged" if self.converged else "NOT converged"
-        return (f"{self.method}: {self.sweeps} sweeps, residual {self.residual:.2e}{est}{err}, "
-                f"{self.seconds:.3f} s, {state}")
+        line = (f"{self.method}: {self.sweeps} {'cycles' if 'multigrid' in self.method else 'sweeps'}, "
+                f"residual {self.residual:.2e}{est}{err}, {self.seconds:.3f} s, {state}")
+        for lv in self.levels:
+            res = float(lv["residual"])  # type: ignore[arg-type]
+            line += (f"\n  level {lv['level']} (n={lv['n']}, {lv['updated']}/{lv['nodes']} nodes updated): "
+                     f"{lv['sweeps']} sweeps, residual {'-' if math.isnan(res) else f'{res:.2e}'}, "
+                     f"{float(lv['seconds']):.3f} s")  # type: ignore[arg-type]
+        return line
 
 
 def channel_ratio(num: NDArray, den: NDArray) -> float:

@@ -6,8 +6,8 @@
 // STENCIL_PAPER = 1 (u = kappa*phi):
 //   u_b <- [q kappa_b kappa_j d + 2 C kappa_b^2 u_j] / [kappa_j d + 2 C kappa_b kappa_j]
 // STENCIL_PAPER = 0: phi_b <- [q d + 2 C kappa_b phi_j] / [d + 2 C kappa_b]
+// (q: the source, or the restricted residual on a multigrid coarse level; DAMPED mixes.)
 #include "common.glsl"
-uniform sampler2D u_q;       // boundary source q per boundary node
 uniform float u_C;           // boundary constant (1 + Fdr) / (1 - Fdr)
 uniform float u_d;           // boundary-to-interior distance d = h, mm (regular grid)
 uniform sampler2D u_w1;      // polygrid: .r = d_b, mm, at boundary texels
@@ -28,9 +28,8 @@ void main() {
 #endif
 #if STENCIL_PAPER
     vec3 kj = fetch(u_kappa, pj);
-    f_color = vec4((q * kb * kj * d + 2.0 * u_C * kb * kb * xj)
-                   / (kj * d + 2.0 * u_C * kb * kj), 0.0);
+    f_color = relaxed(p, (q * kb * kj * d + 2.0 * u_C * kb * kb * xj) / (kj * d + 2.0 * u_C * kb * kj));
 #else
-    f_color = vec4((q * d + 2.0 * u_C * kb * xj) / (d + 2.0 * u_C * kb), 0.0);
+    f_color = relaxed(p, (q * d + 2.0 * u_C * kb * xj) / (d + 2.0 * u_C * kb));
 #endif
 }

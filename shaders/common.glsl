@@ -2,6 +2,15 @@
 uniform sampler2D u_state;   // iterated unknown: kappa*phi (STENCIL_PAPER) or phi
 uniform sampler2D u_kappa;   // diffusion coefficient kappa, mm
 uniform sampler2D u_mu;      // absorption mu, mm^-1
+uniform sampler2D u_q;       // right-hand side: boundary source q (phi units) at boundary nodes;
+                             // with HAS_RHS also f (unknown / mm^2) at interior nodes (multigrid)
+uniform float u_omega;       // Jacobi damping (DAMPED): x <- x + omega (x_jacobi - x)
+#ifndef DAMPED
+#define DAMPED 0
+#endif
+#ifndef HAS_RHS
+#define HAS_RHS 0
+#endif
 
 vec3 fetch(sampler2D tex, ivec2 p) { return texelFetch(tex, p, 0).rgb; }
 
@@ -11,5 +20,14 @@ vec3 face_k(vec3 a, vec3 b) {
     return 2.0 * a * b / (a + b);
 #else
     return 0.5 * (a + b);
+#endif
+}
+
+// The new value of the node at p from its plain Jacobi value (damped when DAMPED).
+vec4 relaxed(ivec2 p, vec3 jacobi) {
+#if DAMPED
+    return vec4(mix(texelFetch(u_state, p, 0).rgb, jacobi, u_omega), 0.0);
+#else
+    return vec4(jacobi, 0.0);
 #endif
 }

@@ -2,8 +2,9 @@
 // One Jacobi sweep at polygrid interior nodes (Wang et al. 2008, eq. 9 first line and
 // section 5.2), with scaled appendix-B weights w_j (T_w1.rgb = x-, x+, y-; T_w2.rgb = y+, z-, z+)
 // and the row scale s (T_w1.a, mm^2; true weights are w_j / s):
-// STENCIL_PAPER = 1: u = kappa*phi,  u_i <- sum_j w_j u_j / (sum_j w_j + s mu_i / kappa_i)
-// STENCIL_PAPER = 0: phi_i <- sum_j w_j k_ij phi_j / (sum_j w_j k_ij + s mu_i)
+// STENCIL_PAPER = 1: u = kappa*phi,  u_i <- (sum_j w_j u_j + s f_i) / (sum_j w_j + s mu_i / kappa_i)
+// STENCIL_PAPER = 0: phi_i <- (sum_j w_j k_ij phi_j + s f_i) / (sum_j w_j k_ij + s mu_i)
+// f = 0 unless HAS_RHS (a multigrid coarse level: f from T_q); DAMPED mixes with the old value.
 // Texture fetches (paper stencil): six neighbours, T_w1, T_w2, kappa, mu = ten.
 #include "common.glsl"
 uniform sampler2D u_w1;
@@ -31,7 +32,10 @@ void main() {
         num += w[j] * fetch(u_state, nb[j]);
         den += w[j];
     }
-    f_color = vec4(num / (den + w1.a * mu / kappa), 0.0);
+#if HAS_RHS
+    num += w1.a * fetch(u_q, p);
+#endif
+    f_color = relaxed(p, num / (den + w1.a * mu / kappa));
 #else
     vec3 num = vec3(0.0);
     vec3 den = w1.a * mu;
@@ -40,6 +44,9 @@ void main() {
         num += k * fetch(u_state, nb[j]);
         den += k;
     }
-    f_color = vec4(num / den, 0.0);
+#if HAS_RHS
+    num += w1.a * fetch(u_q, p);
+#endif
+    f_color = relaxed(p, num / den);
 #endif
 }

@@ -1,0 +1,28 @@
+#version 330 core
+// Prolongation to a finer polygrid level (glsldiff.hierarchy.Transfer.prolong): each fine node
+// copies the coarse node in T_source (its parent, or the nearest active coarse node where the
+// parent was removed; x < 0 at removed fine nodes). The unknown kappa*phi (STENCIL_PAPER) is
+// rescaled by kappa_fine / kappa_coarse so that phi is what is copied.
+// ADD = 0: initial guess (coarse-to-fine solve); ADD = 1: correction added to the fine state.
+#include "common.glsl"
+uniform sampler2D u_coarse;    // coarse unknown
+uniform sampler2D u_source;    // .xy coarse texel of the source node
+uniform sampler2D u_kappa_c;   // coarse kappa
+layout(location = 0) out vec4 f_color;
+
+void main() {
+    ivec2 p = ivec2(gl_FragCoord.xy);
+    vec2 s = texelFetch(u_source, p, 0).xy;
+    vec3 v = vec3(0.0);
+    if (s.x >= 0.0) {
+        ivec2 c = ivec2(s);
+        v = fetch(u_coarse, c);
+#if STENCIL_PAPER
+        v *= fetch(u_kappa, p) / fetch(u_kappa_c, c);
+#endif
+    }
+#if ADD
+    v += fetch(u_state, p);
+#endif
+    f_color = vec4(v, 0.0);
+}
