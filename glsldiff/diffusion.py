@@ -26,7 +26,7 @@ import moderngl
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff import gl
+from glsldiff import gl, quantize
 from glsldiff.errors import InputError, SolverError
 from glsldiff.grid import RegularGrid
 from glsldiff.problem import DiffusionProblem
@@ -35,6 +35,7 @@ from glsldiff.report import SolveReport, contraction_error_estimate
 
 logger = logging.getLogger(__name__)
 
+PRECISIONS = ("fp32", "fp16", "paper")
 _VERTEX = np.dtype([("pos", "f4", 2), ("off0", "i4", 2), ("off1", "i4", 2)])
 
 
@@ -87,7 +88,9 @@ class GlslDiffusion:
     ctx
         A moderngl context; default :func:`glsldiff.gl.get_context`.
     precision
-        ``"fp32"`` or ``"fp16"`` for the ping-pong buffers (materials are always fp32).
+        ``"fp32"`` (fp32 buffers and material), ``"fp16"`` (fp16 ping-pong buffers) or
+        ``"paper"`` (the paper's rendering precision: fp16 buffers and 8-bit kappa/mu,
+        :mod:`glsldiff.quantize`).
     """
 
     method = "glsl-jacobi"  # report name (before the precision suffix)
@@ -95,26 +98,29 @@ class GlslDiffusion:
     def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
                  precision: str = "fp32", *, state: gl.PingPong | None = None, damping: float = 1.0,
                  interior_rhs: bool = False) -> None:
-        if precision not in gl.DTYPES:
-            raise InputError(f"precision={precision!r}; choose one of {tuple(gl.DTYPES)}")
+        if precision not in PRECISIONS:
+            raise InputError(f"precision={precision!r}; choose one of {PRECISIONS}")
         if not 0.0 < damping <= 1.0:
             raise InputError(f"damping={damping!r} must be in (0, 1] (1 = plain Jacobi)")
         self.problem = problem
         self.precision = precision
+        self.buffers = "fp32" if precision == "fp32" else "fp16"
+        self.material_bits = 8 if precision == "paper" else 32
         self.damping = float(damping)
         self.ctx = ctx if ctx is not None else gl.get_context()
         gl.make_current(self.ctx)
         g = problem.grid
         self.size = g.texture_size
+        self.material_uniforms: dict[str, tuple[float, float, float]] = {}
         self._textures: dict[str, moderngl.Texture] = {
-            "u_kappa": gl.float_texture(self.ctx, self.size, g.pack(problem.kappa)),
-            "u_mu": gl.float_texture(self.ctx, self.size, g.pack(problem.mu)),
+            "u_kappa": self._material_texture(), "u_mu": self._material_texture(),
             "u_q": gl.float_texture(self.ctx, self.size, g.pack(problem.q)),
         }
+        self._write_material()
         if state is None:
-            self.state = gl.PingPong.create(self.ctx, self.size, precision)
+            self.state = gl.PingPong.create(self.ctx, self.size, self.buffers)
         else:  # borrowed (radiance buffers shared across the levels of a hierarchy)
-            if state.dtype != gl.DTYPES[precision] or state.size[0] < self.size[0] or state.size[1] < self.size[1]:
+            if state.dtype != gl.DTYPES[self.buffers] or state.size[0] < self.size[0] or state.size[1] < self.size[1]:
                 raise InputError(f"a shared state of {state.size} ({state.dtype}) cannot hold a "
                                  f"{self.size} {precision} level")
             self.state = state
@@ -124,11 +130,36 @@ class GlslDiffusion:
         self._draws: list[tuple[moderngl.VertexArray, int]] = []
         self._build_passes({"STENCIL_PAPER": int(problem.stencil == "paper"),
                             "FACE_HARMONIC": int(problem.face_mean == "harmonic"),
-                            "DAMPED": int(self.damping < 1.0), "HAS_RHS": int(interior_rhs)})
+                            "DAMPED": int(self.damping < 1.0), "HAS_RHS": int(interior_rhs),
+                            "MATERIAL_8BIT": int(self.material_bits == 8)})
         self._mask = g.active
         self.sweeps_run = 0  # sweeps since creation (work counters of multilevel solves)
+        self.sweep_seconds = 0.0  # wall time inside sweep(), GPU finished (no read-backs)
 
     # ---- setup ----------------------------------------------------------------
+    def _material_texture(self) -> moderngl.Texture:
+        if self.material_bits == 8:
+            tex = self.ctx.texture(self.size, 4, dtype="f1")
+            tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+            return tex
+        return gl.float_texture(self.ctx, self.size)
+
+    def _write_material(self) -> None:
+        """Upload kappa and mu (8-bit codes and their decode uniforms in ``"paper"`` precision)."""
+        p, g = self.problem, self.problem.grid
+        if self.material_bits == 8:
+            act = np.asarray(g.active).reshape(-1)
+            ck, cm, self.material_uniforms = quantize.encode(p.kappa.reshape(-1, 3), p.mu.reshape(-1, 3), act)
+            shape = tuple(g.shape) + (3,)
+            data = {"u_kappa": g.pack(ck.reshape(shape)), "u_mu": g.pack(cm.reshape(shape))}
+            for name, arr in data.items():
+                self._textures[name].write(np.ascontiguousarray(arr, dtype=np.uint8).tobytes(), alignment=1)
+            for prog in getattr(self, "_progs", []):
+                self._set_uniforms(prog)
+            return
+        for name, vol in (("u_kappa", p.kappa), ("u_mu", p.mu)):
+            self._textures[name].write(np.ascontiguousarray(g.pack(vol)).tobytes(), alignment=1)
+
     def _build_passes(self, defines: dict[str, int]) -> None:
         """Programs and vertex arrays of the interior pass and the boundary pass."""
         for frag, verts in zip(("interior.frag", "boundary.frag"), grid_primitives(self.problem.grid)):
@@ -155,7 +186,7 @@ class GlslDiffusion:
     def _uniform_values(self) -> dict[str, object]:
         g, p = self.problem.grid, self.problem
         return {"u_size": tuple(float(s) for s in self.size), "u_h2": g.h * g.h,
-                "u_C": float(p.C), "u_d": g.h, "u_omega": self.damping}
+                "u_C": float(p.C), "u_d": g.h, "u_omega": self.damping, **self.material_uniforms}
 
     def _set_uniforms(self, prog: moderngl.Program) -> None:
         units = {name: i + 1 for i, name in enumerate(self._textures)}
@@ -182,9 +213,7 @@ class GlslDiffusion:
         edit or an optimiser step re-uses the textures, programs and vertex buffers."""
         gl.make_current(self.ctx)
         self.problem = replace(self.problem, kappa=kappa, mu=mu)
-        g = self.problem.grid
-        for name, vol in (("u_kappa", self.problem.kappa), ("u_mu", self.problem.mu)):
-            self._textures[name].write(np.ascontiguousarray(g.pack(vol)).tobytes(), alignment=1)
+        self._write_material()
         self.__dict__.pop("system", None)
 
     def set_initial(self, phi: ArrayLike | None) -> None:
@@ -200,6 +229,12 @@ class GlslDiffusion:
             x = self.problem.from_phi(phi) * self._mask[..., None]
         self.state.write(g.pack(x))
 
+    @property
+    def floor_max(self) -> float:
+        """Largest residual taken for the rounding floor of the buffers (fp16 stalls near
+        1e-2 on slowly converging grids: an increment below half an fp16 ulp is lost)."""
+        return 1e-2 if self.buffers == "fp32" else 5e-2
+
     def activate(self) -> None:
         """Bind this solver's textures to their units and render into its state's ``dst``
         over this level's texels (the state may be larger when shared)."""
@@ -212,6 +247,7 @@ class GlslDiffusion:
     def sweep(self, n: int = 1) -> None:
         """Run ``n`` Jacobi sweeps (interior pass + boundary pass each)."""
         gl.make_current(self.ctx)
+        t0 = time.perf_counter()
         bound = self.ctx.fbo if self.ctx.fbo is not None else self.ctx.detect_framebuffer(0)
         for _ in range(n):
             self.activate()
@@ -220,8 +256,9 @@ class GlslDiffusion:
                 vao.render(mode)
             self.state.swap()
         self.sweeps_run += n
-        self.ctx.finish()  # sweeps are timed by the caller's clock: wait for the GPU
-        bound.use()  # leave the caller's framebuffer bound, never ours
+        self.ctx.finish()  # sweeps are timed: wait for the GPU
+        bound.use()
+        self.sweep_seconds += time.perf_counter() - t0  # leave the caller's framebuffer bound, never ours
 
     def unknown(self) -> NDArray[np.float64]:
         """Current iterate (``kappa phi`` or ``phi``) as a ``(nz, ny, nx, 3)`` float64 volume."""
@@ -270,14 +307,14 @@ class GlslDiffusion:
         def advance(n: int) -> NDArray:
             self.sweep(n)
             vol = self.unknown()
-            if self.precision == "fp16" and not np.all(np.abs(vol) < gl.FP16_MAX):
+            if self.buffers == "fp16" and not np.all(np.abs(vol) < gl.FP16_MAX):
                 raise SolverError(
                     f"GLSL Jacobi overflowed the fp16 buffers (|value| reached {gl.FP16_MAX:g}); "
                     "scale q down or use precision='fp32'")
             return system.from_volume(vol)
 
         x, status, history, step = relax(system, advance, system.from_volume(self.unknown()), tol,
-                                         max_sweeps, check_every, callback)
+                                         max_sweeps, check_every, callback, floor_max=self.floor_max)
         sweeps, res = history[-1]
         if status == "diverged":
             raise SolverError(diverged_message(self.problem, "GLSL Jacobi", sweeps))

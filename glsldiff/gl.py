@@ -264,10 +264,6 @@ class PingPong:
     def dtype(self) -> str:
         return self.textures[0].dtype
 
-    @property
-    def src_fbo(self) -> moderngl.Framebuffer:
-        return self.framebuffers[self.index]
-
     def swap(self) -> None:
         self.index = 1 - self.index
 

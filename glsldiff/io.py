@@ -117,11 +117,13 @@ def write_npz(path: str | os.PathLike, **arrays: object) -> Path:
 
 
 def write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, object]]) -> Path:
-    """Write dict rows (same keys) as CSV."""
+    """Write dict rows as CSV; the columns are the union of the keys in first-seen order
+    (a row without a key leaves its cell empty)."""
     if not rows:
         raise InputError(f"{path}: no rows to write")
+    fields = list(dict.fromkeys(k for row in rows for k in row))
     with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows(rows)
     return Path(path)

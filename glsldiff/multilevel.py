@@ -39,7 +39,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff import gl
 from glsldiff.errors import InputError, SolverError
-from glsldiff.graph import BOUNDARY
+from glsldiff.graph import BOUNDARY, INACTIVE
 from glsldiff.hierarchy import Hierarchy
 from glsldiff.polydiffusion import PolygridDiffusion
 from glsldiff.problem import DiffusionProblem
@@ -67,7 +67,8 @@ def update_masks(hierarchy: Hierarchy, depths: Sequence[float | None]) -> list[N
         if not (np.isfinite(d) and d >= 0):
             raise InputError(f"depths[{lev}]={d!r} mm must be a finite depth >= 0 or None")
         g = hierarchy.grids[lev]
-        out.append((hierarchy.depth(lev) <= d) | (g.lattice.kind == BOUNDARY))
+        kind = g.lattice.kind
+        out.append(((hierarchy.depth(lev) <= d) & (kind != INACTIVE)) | (kind == BOUNDARY))
     return out
 
 
@@ -90,7 +91,8 @@ class MultilevelDiffusion:
     damping
         ``"multigrid"`` only: the damped-Jacobi smoothing factor.
     precision
-        Radiance buffers, ``"fp32"`` or ``"fp16"`` (see :class:`GlslDiffusion`).
+        ``"fp32"``, ``"fp16"`` (radiance buffers) or ``"paper"`` (fp16 buffers, 8-bit
+        kappa/mu), see :class:`~glsldiff.diffusion.GlslDiffusion`.
     """
 
     def __init__(self, hierarchy: Hierarchy, problem: DiffusionProblem, scheme: str = "hierarchical",
@@ -140,8 +142,10 @@ class MultilevelDiffusion:
 
     def _build_transfers(self) -> None:
         ctx, L = self.ctx, len(self.levels)
-        defines = {"STENCIL_PAPER": int(self.problem.stencil == "paper")}
+        defines = {"STENCIL_PAPER": int(self.problem.stencil == "paper"),
+                   "MATERIAL_8BIT": int(self.finest.material_bits == 8)}
         self._prolong: list[tuple[moderngl.Program, moderngl.VertexArray, moderngl.Texture]] = []
+        self._copy: list[tuple[moderngl.Program, moderngl.VertexArray]] = []
         self._residual: list[tuple[list, moderngl.Texture, moderngl.Framebuffer]] = []
         self._restrict: list[tuple[moderngl.Program, moderngl.VertexArray, moderngl.Framebuffer]] = []
         for lev in range(L - 1):
@@ -156,6 +160,9 @@ class MultilevelDiffusion:
                                          {**defines, "ADD": int(self.scheme == "multigrid")}))
             self._set(prog, {"u_size": tuple(float(s) for s in fine.size)})
             self._prolong.append((prog, self._quad(prog, fine.size), src_tex))
+            cprog = self._keep(gl.program(ctx, "quad.vert", "copy.frag"))
+            self._set(cprog, {"u_size": tuple(float(s) for s in fine.size)})
+            self._copy.append((cprog, self._quad(cprog, fine.size)))
             if self.scheme != "multigrid":
                 continue
             res_tex = self._keep(gl.float_texture(ctx, fine.size))
@@ -186,15 +193,25 @@ class MultilevelDiffusion:
                 prog[name] = unit
 
     # ---- the transfer passes ---------------------------------------------------------
+    transfer_seconds = 0.0  # wall time of the transfer passes (GPU finished)
+
+    @property
+    def compute_seconds(self) -> float:
+        """GPU time so far in sweeps and transfer passes (read-backs and CPU checks excluded)."""
+        return self.transfer_seconds + sum(lv.sweep_seconds for lv in self.levels)
+
     def _draw(self, fbo: moderngl.Framebuffer, size: tuple[int, int],
               arrays: Sequence[tuple[moderngl.VertexArray, int]]) -> None:
         """Render ``arrays`` into ``fbo`` over ``size`` texels, then re-bind the caller's framebuffer."""
+        t0 = time.perf_counter()
         bound = self.ctx.fbo if self.ctx.fbo is not None else self.ctx.detect_framebuffer(0)
         fbo.use()
         self.ctx.viewport = (0, 0, *size)
         for vao, mode in arrays:
             vao.render(mode)
         bound.use()
+        self.ctx.finish()
+        self.transfer_seconds += time.perf_counter() - t0
 
     def prolong(self, lev: int) -> None:
         """Level ``lev`` (coarse) -> ``lev - 1``: initial guess (hierarchical, adaptive; both
@@ -203,12 +220,19 @@ class MultilevelDiffusion:
         gl.make_current(self.ctx)
         fine, coarse = self.levels[lev - 1], self.levels[lev]
         prog, vao, src = self._prolong[lev - 1]
+        cu = coarse.material_uniforms
+        self._set(prog, {**fine.material_uniforms, **({"u_kappa_c_lo": cu["u_kappa_lo"],
+                                                      "u_kappa_c_hi": cu["u_kappa_hi"]} if cu else {})})
         self._bind(prog, {"u_coarse": coarse.state.src, "u_source": src, "u_kappa": fine._textures["u_kappa"],
                           "u_kappa_c": coarse._textures["u_kappa"], "u_state": fine.state.src})
         self._draw(fine.state.dst, fine.size, [(vao, moderngl.TRIANGLES)])
         fine.state.swap()
         if self.scheme != "multigrid":
-            self.ctx.copy_framebuffer(fine.state.dst, fine.state.src_fbo)
+            # an initial guess goes into both buffers, so that nodes no sweep updates keep it
+            # (a copy pass: a framebuffer blit between the float targets is GL_INVALID_ENUM on Mesa)
+            cprog, cvao = self._copy[lev - 1]
+            self._bind(cprog, {"u_src": fine.state.src})
+            self._draw(fine.state.dst, fine.size, [(cvao, moderngl.TRIANGLES)])
 
     def residual(self, lev: int) -> moderngl.Texture:
         """Residual of level ``lev``'s rows (equation units) into its residual texture."""
@@ -393,7 +417,7 @@ class MultilevelDiffusion:
             else:
                 fine.set_initial(None)
         system = fine.system
-        monitor = ConvergenceMonitor(tol, max_sweeps, patience=4)
+        monitor = ConvergenceMonitor(tol, max_sweeps, patience=4, floor_max=fine.floor_max)
         x = system.from_volume(fine.unknown())
         r = system.jacobi_step(x)
         status = monitor.update(0, system.residual(x, r))
@@ -407,7 +431,7 @@ class MultilevelDiffusion:
             for lev in range(len(self.levels)):
                 per_level_sweeps[lev] += coarsest if lev == len(self.levels) - 1 else pre + post
             vol = fine.unknown()
-            if fine.precision == "fp16" and not np.all(np.abs(vol) < gl.FP16_MAX):
+            if fine.buffers == "fp16" and not np.all(np.abs(vol) < gl.FP16_MAX):
                 raise SolverError("multigrid overflowed the fp16 buffers; use precision='fp32'")
             x = system.from_volume(vol)
             with np.errstate(over="ignore", invalid="ignore"):

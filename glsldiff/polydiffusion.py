@@ -120,7 +120,8 @@ class PolygridDiffusion(GlslDiffusion):
         return out
 
     def _uniform_values(self) -> dict[str, object]:
-        return {"u_size": tuple(float(s) for s in self.size), "u_C": float(self.problem.C), "u_omega": self.damping}
+        return {"u_size": tuple(float(s) for s in self.size), "u_C": float(self.problem.C), "u_omega": self.damping,
+                **self.material_uniforms}
 
     def primitive_counts(self) -> dict[str, dict[str, int]]:
         """Quads, lines and points per pass."""

@@ -253,13 +253,15 @@ def solve_amg(problem: DiffusionProblem, tol: float = 1e-12, maxiter: int = 200)
 
 def relax(system: LinearSystem, advance: Callable[[int], NDArray], x: NDArray, tol: float,
           max_sweeps: int, check_every: int,
-          callback: Callable[[NDArray], None] | None = None) -> tuple[NDArray, str, list[tuple[int, float]], float]:
+          callback: Callable[[NDArray], None] | None = None,
+          floor_max: float = 1e-2) -> tuple[NDArray, str, list[tuple[int, float]], float]:
     """Drive an iterative solver of ``system`` with periodic float64 residual checks.
 
     ``advance(n)`` runs ``n`` more sweeps and returns the new iterate (channel-major
     unknown vector). The residual of each returned iterate is evaluated here, in
     float64, as ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||`` (so an iterate frozen by
-    rounding still shows its true residual), and fed to a :class:`ConvergenceMonitor`.
+    rounding still shows its true residual), and fed to a :class:`ConvergenceMonitor`
+    (``floor_max``: the largest residual taken for a rounding floor).
 
     Returns
     -------
@@ -271,7 +273,7 @@ def relax(system: LinearSystem, advance: Callable[[int], NDArray], x: NDArray, t
         raise InputError(f"check_every must be >= 1 and max_sweeps >= 0 (got check_every={check_every}, "
                          f"max_sweeps={max_sweeps})")
     zero_source = not np.any(system.b)
-    monitor = ConvergenceMonitor(tol, max_sweeps)
+    monitor = ConvergenceMonitor(tol, max_sweeps, floor_max=floor_max)
 
     def check(sweeps: int, x: NDArray) -> tuple[str | None, float]:
         with np.errstate(over="ignore", invalid="ignore"):

@@ -18,7 +18,7 @@ layout(location = 0) out vec4 f_color;
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     ivec2 pj = p + v_off0;
-    vec3 kb = fetch(u_kappa, p);
+    vec3 kb = kappa_at(p);
     vec3 q = fetch(u_q, p);
     vec3 xj = fetch(u_state, pj);
 #if PER_NODE_D
@@ -27,7 +27,7 @@ void main() {
     float d = u_d;
 #endif
 #if STENCIL_PAPER
-    vec3 kj = fetch(u_kappa, pj);
+    vec3 kj = kappa_at(pj);
     f_color = relaxed(p, (q * kb * kj * d + 2.0 * u_C * kb * kb * xj) / (kj * d + 2.0 * u_C * kb * kj));
 #else
     f_color = relaxed(p, (q * d + 2.0 * u_C * kb * xj) / (d + 2.0 * u_C * kb));

@@ -11,8 +11,33 @@ uniform float u_omega;       // Jacobi damping (DAMPED): x <- x + omega (x_jacob
 #ifndef HAS_RHS
 #define HAS_RHS 0
 #endif
+#ifndef MATERIAL_8BIT
+#define MATERIAL_8BIT 0
+#endif
+// MATERIAL_8BIT: T_kappa / T_mu are RGB8 codes t in [0, 1] (glsldiff.quantize):
+// kappa = exp(mix(lo, hi, t)), mu = mix(lo, hi, t), ranges per channel.
+uniform vec3 u_kappa_lo;
+uniform vec3 u_kappa_hi;
+uniform vec3 u_mu_lo;
+uniform vec3 u_mu_hi;
 
 vec3 fetch(sampler2D tex, ivec2 p) { return texelFetch(tex, p, 0).rgb; }
+
+vec3 kappa_at(ivec2 p) {
+#if MATERIAL_8BIT
+    return exp(mix(u_kappa_lo, u_kappa_hi, fetch(u_kappa, p)));
+#else
+    return fetch(u_kappa, p);
+#endif
+}
+
+vec3 mu_at(ivec2 p) {
+#if MATERIAL_8BIT
+    return mix(u_mu_lo, u_mu_hi, fetch(u_mu, p));
+#else
+    return fetch(u_mu, p);
+#endif
+}
 
 // Face coefficient k_ij of the conservative stencil (FACE_HARMONIC: harmonic mean).
 vec3 face_k(vec3 a, vec3 b) {

@@ -14,8 +14,8 @@ void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     ivec2 nb[6] = ivec2[6](p + ivec2(1, 0), p - ivec2(1, 0), p + ivec2(0, 1), p - ivec2(0, 1),
                            p + v_off0, p + v_off1);
-    vec3 kappa = fetch(u_kappa, p);
-    vec3 mu = fetch(u_mu, p);
+    vec3 kappa = kappa_at(p);
+    vec3 mu = mu_at(p);
 #if STENCIL_PAPER
     vec3 s = vec3(0.0);
     for (int j = 0; j < 6; ++j) s += fetch(u_state, nb[j]);
@@ -27,7 +27,7 @@ void main() {
     vec3 num = vec3(0.0);
     vec3 den = u_h2 * mu;
     for (int j = 0; j < 6; ++j) {
-        vec3 k = face_k(kappa, fetch(u_kappa, nb[j]));
+        vec3 k = face_k(kappa, kappa_at(nb[j]));
         num += k * fetch(u_state, nb[j]);
         den += k;
     }

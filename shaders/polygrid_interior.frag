@@ -23,8 +23,8 @@ void main() {
     vec4 w1 = texelFetch(u_w1, p, 0);
     vec4 w2 = texelFetch(u_w2, p, 0);
     float w[6] = float[6](w1.r, w1.g, w1.b, w2.r, w2.g, w2.b);
-    vec3 kappa = fetch(u_kappa, p);
-    vec3 mu = fetch(u_mu, p);
+    vec3 kappa = kappa_at(p);
+    vec3 mu = mu_at(p);
 #if STENCIL_PAPER
     vec3 num = vec3(0.0);
     float den = 0.0;
@@ -40,7 +40,7 @@ void main() {
     vec3 num = vec3(0.0);
     vec3 den = w1.a * mu;
     for (int j = 0; j < 6; ++j) {
-        vec3 k = w[j] * face_k(kappa, fetch(u_kappa, nb[j]));
+        vec3 k = w[j] * face_k(kappa, kappa_at(nb[j]));
         num += k * fetch(u_state, nb[j]);
         den += k;
     }

@@ -23,7 +23,7 @@ layout(location = 0) out vec4 f_color;
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     vec3 x = fetch(u_state, p);
-    vec3 kappa = fetch(u_kappa, p);
+    vec3 kappa = kappa_at(p);
     vec3 rhs = fetch(u_q, p);
     vec4 w1 = texelFetch(u_w1, p, 0);
 #if ROW_BOUNDARY
@@ -31,7 +31,7 @@ void main() {
     vec3 xj = fetch(u_state, pj);
     float d = w1.r;
 #if STENCIL_PAPER
-    vec3 kj = fetch(u_kappa, pj);
+    vec3 kj = kappa_at(pj);
     vec3 r = rhs - (x / kappa + 2.0 * u_C * kappa * (x / kappa - xj / kj) / d);
 #else
     vec3 r = rhs - (x + 2.0 * u_C * kappa * (x - xj) / d);
@@ -40,13 +40,13 @@ void main() {
     ivec2 nb[6] = ivec2[6](p + v_off0, p + v_off1, p + v_off2, p + v_off3, p + v_off4, p + v_off5);
     vec4 w2 = texelFetch(u_w2, p, 0);
     float w[6] = float[6](w1.r, w1.g, w1.b, w2.r, w2.g, w2.b);
-    vec3 mu = fetch(u_mu, p);
+    vec3 mu = mu_at(p);
     vec3 flux = vec3(0.0);
     for (int j = 0; j < 6; ++j) {
 #if STENCIL_PAPER
         flux += w[j] * (x - fetch(u_state, nb[j]));
 #else
-        flux += w[j] * face_k(kappa, fetch(u_kappa, nb[j])) * (x - fetch(u_state, nb[j]));
+        flux += w[j] * face_k(kappa, kappa_at(nb[j])) * (x - fetch(u_state, nb[j]));
 #endif
     }
 #if STENCIL_PAPER

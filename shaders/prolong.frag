@@ -8,6 +8,8 @@
 uniform sampler2D u_coarse;    // coarse unknown
 uniform sampler2D u_source;    // .xy coarse texel of the source node
 uniform sampler2D u_kappa_c;   // coarse kappa
+uniform vec3 u_kappa_c_lo;     // MATERIAL_8BIT: the coarse level's decode range
+uniform vec3 u_kappa_c_hi;
 layout(location = 0) out vec4 f_color;
 
 void main() {
@@ -18,7 +20,12 @@ void main() {
         ivec2 c = ivec2(s);
         v = fetch(u_coarse, c);
 #if STENCIL_PAPER
-        v *= fetch(u_kappa, p) / fetch(u_kappa_c, c);
+#if MATERIAL_8BIT
+        vec3 kc = exp(mix(u_kappa_c_lo, u_kappa_c_hi, fetch(u_kappa_c, c)));
+#else
+        vec3 kc = fetch(u_kappa_c, c);
+#endif
+        v *= kappa_at(p) / kc;
 #endif
     }
 #if ADD
