@@ -29,7 +29,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff import io
-from glsldiff.errors import InputError
+from glsldiff.errors import InputError, SolverError
 from glsldiff.hierarchy import Hierarchy
 from glsldiff.material import marble_volume
 from glsldiff.multilevel import MultilevelDiffusion
@@ -181,8 +181,14 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
         extra.append({"model": name, "what": "adaptive depth search", **t})
     curves = {}
     for scheme in schemes:
-        c = run_scheme(hierarchy, problem, ref_b, scheme, depths=depths if scheme == "adaptive" else None,
-                       max_sweeps=max_sweeps)
+        try:
+            c = run_scheme(hierarchy, problem, ref_b, scheme, depths=depths if scheme == "adaptive" else None,
+                           max_sweeps=max_sweeps)
+        except SolverError as exc:  # a scheme that diverges is a result, not the end of the bench
+            summary.append({"model": name, "scheme": scheme, "work_to_target": math.nan,
+                            "seconds_to_target": math.nan, "final_error": math.nan, "nodes": pg.n_active,
+                            "levels": "", "note": f"FAILED: {str(exc)[:90]}"})
+            continue
         curves[scheme] = c
         w, s = c.first_below(target)
         lv = c.report.levels
@@ -220,8 +226,13 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
     # precision: error at convergence (or at the rounding floor) against L0
     for prec in precisions:
         for scheme in ("hierarchical", "multigrid"):
-            c = run_scheme(hierarchy, problem, ref_b, scheme, precision=prec, tol=1e-6,
-                           max_sweeps=max_sweeps if scheme != "multigrid" else 200)
+            try:
+                c = run_scheme(hierarchy, problem, ref_b, scheme, precision=prec, tol=1e-6,
+                               max_sweeps=max_sweeps if scheme != "multigrid" else 200)
+            except SolverError as exc:
+                extra.append({"model": name, "what": f"precision {prec} ({scheme})", "status": "diverged",
+                              "note": str(exc)[:90]})
+                continue
             extra.append({"model": name, "what": f"precision {prec} ({scheme})", "status": c.report.status,
                           "final_error": c.error[-1], "min_error": min(c.error),
                           "finite": bool(np.all(np.isfinite(c.error)))})

@@ -84,9 +84,9 @@ def test_bad_grid_is_input_error(kwargs, match):
 
 # ---------------------------------------------------------------- solver options
 def test_unknown_precision_is_input_error(ctx):
-    """GlslDiffusion(precision='fp64') is an InputError listing fp32 and fp16."""
+    """GlslDiffusion(precision='fp64') is an InputError listing fp32, fp16 and paper."""
     p = DiffusionProblem(G, 0.3, 0.1, {"z-": 1.0})
-    with pytest.raises(InputError, match=r"precision='fp64'; choose one of \('fp32', 'fp16'\)"):
+    with pytest.raises(InputError, match=r"precision='fp64'; choose one of \('fp32', 'fp16', 'paper'\)"):
         GlslDiffusion(p, ctx, precision="fp64")
 
 
