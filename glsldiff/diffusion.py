@@ -235,13 +235,10 @@ class GlslDiffusion:
         1e-2 on slowly converging grids: an increment below half an fp16 ulp is lost)."""
         return 1e-2 if self.buffers == "fp32" else 5e-2
 
-    def activate(self) -> None:
-        """Bind this solver's textures to their units and render into its state's ``dst``
-        over this level's texels (the state may be larger when shared)."""
+    def bind_textures(self) -> None:
+        """Bind the material, source and weight textures to the units the programs read."""
         for unit, tex in enumerate(self._textures.values(), start=1):
             tex.use(unit)
-        self.state.dst.use()
-        self.ctx.viewport = (0, 0, *self.size)
 
     # ---- iteration --------------------------------------------------------------
     def sweep(self, n: int = 1) -> None:
@@ -249,16 +246,18 @@ class GlslDiffusion:
         gl.make_current(self.ctx)
         t0 = time.perf_counter()
         bound = self.ctx.fbo if self.ctx.fbo is not None else self.ctx.detect_framebuffer(0)
+        self.bind_textures()
         for _ in range(n):
-            self.activate()
+            self.state.dst.use()
+            self.ctx.viewport = (0, 0, *self.size)  # this level's texels of a (maybe shared) state
             self.state.src.use(0)
             for vao, mode in self._draws:
                 vao.render(mode)
             self.state.swap()
         self.sweeps_run += n
         self.ctx.finish()  # sweeps are timed: wait for the GPU
-        bound.use()
-        self.sweep_seconds += time.perf_counter() - t0  # leave the caller's framebuffer bound, never ours
+        bound.use()  # leave the caller's framebuffer bound, never ours
+        self.sweep_seconds += time.perf_counter() - t0
 
     def unknown(self) -> NDArray[np.float64]:
         """Current iterate (``kappa phi`` or ``phi``) as a ``(nz, ny, nx, 3)`` float64 volume."""

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import replace
 from typing import Callable, Sequence
 
 import moderngl
@@ -43,7 +44,7 @@ from glsldiff.graph import BOUNDARY, INACTIVE
 from glsldiff.hierarchy import Hierarchy
 from glsldiff.polydiffusion import PolygridDiffusion
 from glsldiff.problem import DiffusionProblem
-from glsldiff.reference import ConvergenceMonitor, assemble, diverged_message
+from glsldiff.reference import ConvergenceMonitor, LinearSystem, assemble, assemble_rhs, diverged_message
 from glsldiff.report import SolveReport, contraction_error_estimate
 
 logger = logging.getLogger(__name__)
@@ -121,7 +122,7 @@ class MultilevelDiffusion:
         except Exception:
             self.release()
             raise
-        self._full_systems: dict[int, object] = {}
+        self._full_systems: dict[int, LinearSystem] = {}
 
     @property
     def finest(self) -> PolygridDiffusion:
@@ -240,8 +241,7 @@ class MultilevelDiffusion:
         lv = self.levels[lev]
         arrays, tex, fbo = self._residual[lev]
         fbo.clear(0.0, 0.0, 0.0, 0.0)
-        for unit, t in enumerate(lv._textures.values(), start=1):
-            t.use(unit)
+        lv.bind_textures()
         lv.state.src.use(0)
         self._draw(fbo, lv.size, arrays)
         return tex
@@ -262,9 +262,11 @@ class MultilevelDiffusion:
             full = self.finest.problem.q
             for lev in range(1, len(self.levels)):
                 self.levels[lev].set_q(self.hierarchy.restrict_q(full, lev))
-        self._full_systems.pop(0, None)
+        # every level's source changed: keep the cached matrices, renew their right-hand sides
+        self._full_systems = {lev: replace(s, b=assemble_rhs(self.levels[lev].problem))
+                              for lev, s in self._full_systems.items()}
 
-    def _system(self, lev: int):  # noqa: ANN202
+    def _system(self, lev: int) -> LinearSystem:
         if lev not in self._full_systems:
             self._full_systems[lev] = assemble(self.levels[lev].problem)
         return self._full_systems[lev]
@@ -444,11 +446,8 @@ class MultilevelDiffusion:
             raise SolverError(diverged_message(self.problem, "GLSL multigrid", cycles))
         phi = self.problem.to_phi(system.to_volume(x, self.problem.node_shape))
         seconds = time.perf_counter() - t0
-        levels = [{"level": lev, "n": lv.problem.grid.n, "updated": lv.updated_nodes,
-                   "nodes": lv.problem.grid.n_active, "sweeps": per_level_sweeps[lev],
-                   "residual": history[-1][1] if lev == 0 else float("nan"),
-                   "seconds": self._level_seconds[lev]}
-                  for lev, lv in enumerate(self.levels)]
+        levels = [self._level_row(lev, per_level_sweeps[lev], history[-1][1] if lev == 0 else float("nan"),
+                                  self._level_seconds[lev]) for lev in range(len(self.levels))]
         rep = SolveReport(f"glsl-multigrid-{fine.precision}", nodes=system.n, sweeps=cycles,
                           residual=history[-1][1], seconds=seconds, converged=status == "converged",
                           residuals=history, status=status,
