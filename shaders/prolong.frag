@@ -3,13 +3,15 @@
 // copies the coarse node in T_source (its parent, or the nearest active coarse node where the
 // parent was removed; x < 0 at removed fine nodes). The unknown kappa*phi (STENCIL_PAPER) is
 // rescaled by kappa_fine / kappa_coarse so that phi is what is copied.
-// ADD = 0: initial guess (coarse-to-fine solve); ADD = 1: correction added to the fine state.
+// ADD = 0: initial guess (coarse-to-fine solve); ADD = 1: correction, times u_alpha, added to the
+// fine state (multigrid's damped coarse-grid correction; u_alpha = 1 for a full-multigrid start).
 #include "common.glsl"
 uniform sampler2D u_coarse;    // coarse unknown
 uniform sampler2D u_source;    // .xy coarse texel of the source node
 uniform sampler2D u_kappa_c;   // coarse kappa
 uniform vec3 u_kappa_c_lo;     // MATERIAL_8BIT: the coarse level's decode range
 uniform vec3 u_kappa_c_hi;
+uniform float u_alpha;         // ADD: correction factor
 layout(location = 0) out vec4 f_color;
 
 void main() {
@@ -29,7 +31,7 @@ void main() {
 #endif
     }
 #if ADD
-    v += fetch(u_state, p);
+    v = u_alpha * v + fetch(u_state, p);
 #endif
     f_color = vec4(v, 0.0);
 }

@@ -120,6 +120,22 @@ def test_prolong_pass_matches_cpu(ctx, hier, stencil):
         np.testing.assert_allclose(hier.grids[0].unpack(other)[act], s.finest.unknown()[act], rtol=0)
 
 
+def test_damped_correction_pass_matches_cpu(ctx, hier):
+    """Multigrid prolongation adds alpha * P e to the fine state (alpha = coarse_correction)."""
+    p = _problem(hier.grids[0], "conservative", hetero=True)
+    with MultilevelDiffusion(hier, p, "multigrid", ctx=ctx, coarse_correction=0.7) as s:
+        fine, coarse = s.levels
+        rng = np.random.default_rng(3)
+        x = rng.uniform(0.5, 1.0, fine.problem.grid.shape + (3,))
+        e = rng.uniform(-1.0, 1.0, coarse.problem.grid.shape + (3,))
+        fine.set_initial(x)
+        coarse.set_initial(e)
+        s.prolong(1, s.coarse_correction)
+        act = hier.grids[0].active
+        want = x + 0.7 * hier.prolong_phi(e * coarse.problem.grid.active[..., None], 1)
+        np.testing.assert_allclose(fine.unknown()[act], want[act], rtol=2e-6, atol=1e-6)
+
+
 @pytest.mark.parametrize("stencil", ["paper", "conservative"])
 def test_residual_and_restrict_passes_match_cpu(ctx, hier, stencil):
     p = _problem(hier.grids[0], stencil, hetero=True)
@@ -287,3 +303,6 @@ def test_bad_options(ctx, hier):
         MultilevelDiffusion(hier, p, "adaptive", ctx=ctx, depths=[1.0])
     with pytest.raises(InputError, match="precision"):
         PolygridDiffusion(p, ctx, "fp8")
+    for bad in (0.0, 1.5, float("nan"), "0.7"):
+        with pytest.raises(InputError, match="coarse_correction"):
+            MultilevelDiffusion(hier, p, "multigrid", ctx=ctx, coarse_correction=bad)
