@@ -1,0 +1,107 @@
+"""Scene files: every field validated with a one-line error naming it."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from glsldiff.errors import InputError
+from glsldiff.scene import default_scene, load_scene, parse_scene
+
+GOOD = """
+[mesh]
+source = "sphere"
+size_mm = 20.0
+
+[polygrid]
+n = 4
+cubes = 8
+levels = 2
+
+[material]
+preset = "skin1"
+
+[[lights]]
+type = "directional"
+direction = [0, 1, 1]
+
+[camera]
+fov_deg = 40.0
+
+[output]
+width = 64
+height = 48
+"""
+
+
+def _write(tmp_path: Path, text: str) -> Path:
+    p = tmp_path / "scene.toml"
+    p.write_text(text)
+    return p
+
+
+def test_good_scene_and_defaults(tmp_path):
+    s = load_scene(_write(tmp_path, GOOD))
+    assert s.mesh.source == "sphere" and s.mesh.size_mm == 20.0
+    assert s.polygrid.n == 4 and s.polygrid.levels == 2
+    assert s.material.preset == "skin1" and s.material.eta == 1.3
+    assert s.lights[0].type == "directional" and s.lights[0].irradiance == (1.0, 1.0, 1.0)
+    assert (s.output.width, s.output.height) == (64, 48)
+    assert s.options.scheme == "hierarchical" and s.options.exitant == "p1"
+    d = default_scene()
+    assert d.mesh.source == "bunny" and d.material.procedural == "veins" and d.lights
+
+
+@pytest.mark.parametrize("edit, field", [
+    ('source = "sphere"', "[mesh].source"),                                        # replaced below: missing mesh file
+    ('preset = "skin1"', "[material].preset"),                                     # unknown preset
+    ("size_mm = 20.0", "[mesh].size_mm"),                                          # negative size
+    ("n = 4", "[polygrid].n"),                                                     # odd n
+    ("fov_deg = 40.0", "[camera].fov_deg"),                                        # out of range
+    ("width = 64", "[output].width"),                                              # not an integer
+    ('type = "directional"', "[lights.0].type"),                                   # unknown light
+    ("direction = [0, 1, 1]", "[lights.0].direction"),                             # zero vector
+])
+def test_bad_fields_name_the_field(tmp_path, edit, field):
+    bad = {'source = "sphere"': 'source = "no_such_mesh.obj"', 'preset = "skin1"': 'preset = "unobtainium"',
+           "size_mm = 20.0": "size_mm = -5.0", "n = 4": "n = 5", "fov_deg = 40.0": "fov_deg = 200.0",
+           "width = 64": 'width = "wide"', 'type = "directional"': 'type = "laser"',
+           "direction = [0, 1, 1]": "direction = [0, 0, 0]"}[edit]
+    with pytest.raises(InputError) as e:
+        load_scene(_write(tmp_path, GOOD.replace(edit, bad)))
+    msg = str(e.value)
+    assert field in msg and "\n" not in msg, msg
+
+
+def test_unreadable_environment_map_and_other_errors(tmp_path):
+    (tmp_path / "env.exr").write_bytes(b"not an exr file")
+    text = GOOD + '\n[[lights]]\ntype = "environment"\npath = "env.exr"\n'
+    with pytest.raises(InputError, match=r"\[lights.1\].path.*not a readable OpenEXR"):
+        load_scene(_write(tmp_path, text))
+    with pytest.raises(InputError, match=r"\[lights.1\].path.*does not exist"):
+        load_scene(_write(tmp_path, GOOD + '\n[[lights]]\ntype = "environment"\npath = "none.exr"\n'))
+    with pytest.raises(InputError, match="unknown table"):
+        load_scene(_write(tmp_path, GOOD + "\n[lighting]\nx = 1\n"))
+    with pytest.raises(InputError, match=r"\[material\].colour.*unknown key"):
+        load_scene(_write(tmp_path, GOOD.replace('preset = "skin1"', 'colour = "red"')))
+    with pytest.raises(InputError, match="not valid TOML"):
+        load_scene(_write(tmp_path, "[mesh\nsource="))
+    with pytest.raises(InputError, match="does not exist"):
+        load_scene(tmp_path / "missing.toml")
+    with pytest.raises(InputError, match=r"\[mesh\]: missing"):
+        parse_scene({})
+    with pytest.raises(InputError, match="no light"):
+        load_scene(_write(tmp_path, GOOD.split("[[lights]]")[0]))
+    with pytest.raises(InputError, match=r"\[material\].sigma_s_prime"):
+        load_scene(_write(tmp_path, GOOD.replace('preset = "skin1"', "sigma_a = [0.1, 0.1, 0.1]")))
+    with pytest.raises(InputError, match=r"\[polygrid\].levels"):
+        load_scene(_write(tmp_path, GOOD.replace("levels = 2", "levels = 4")))
+
+
+def test_relative_paths_resolve_against_the_scene_folder(tmp_path):
+    from glsldiff import io
+
+    io.write_exr(tmp_path / "env.exr", np.ones((8, 16, 3), np.float32))
+    s = load_scene(_write(tmp_path, GOOD + '\n[[lights]]\ntype = "environment"\npath = "env.exr"\nscale = 0.5\n'))
+    assert s.resolve(s.lights[1].path) == tmp_path / "env.exr"
