@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from glsldiff.errors import GlsldiffError
+from glsldiff.errors import GlsldiffError, InputError
 
 
 def _fmt(v: object) -> str:
@@ -57,6 +57,39 @@ def cmd_demo(args: argparse.Namespace) -> int:
     print("error_phi: relative L2 of the GPU fluence vs the scipy direct solve of the same system; "
           "error_image: same for the front-face radiance image; est_error: the solver's own estimate.")
     print(f"wrote {cfg.regions ** 2} EXR images, contact_sheet.png and report.csv to {cfg.out}/")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from glsldiff import render
+    from glsldiff.scene import default_scene, load_scene
+
+    out = render.check_output(args.out)   # before any work
+    scene = load_scene(args.scene) if args.scene else default_scene()
+    if args.frames < 1:
+        raise InputError(f"--frames={args.frames} must be >= 1")
+    with render.Renderer() as r:
+        img, rep = r.render(scene)
+        print(f"scene: {scene.source}")
+        print("\n".join(rep.lines()))
+        for k in range(2, args.frames + 1):   # repeat frames: what a frame costs once set up
+            img, again = r.render(scene)
+            ran = [p["pass"] for p in again.passes if p["ran"]]
+            print(f"frame {k}: ran {', '.join(ran)}; frame {again.frame_seconds * 1e3:.1f} ms "
+                  f"= {1.0 / max(again.frame_seconds, 1e-9):.1f} fps-equivalent")
+    exr, png, exposure = render.save(img, out, scene, rep)
+    print(f"wrote {exr} (linear radiance) and {png} (exposure {exposure:.3g}, gamma 2.2)")
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from glsldiff.validate import validate
+
+    rows = validate(args.cases, Path(args.out), size=args.size, spp=args.spp)
+    print_table("diffusion renderer vs Mitsuba 3 volpath (multiple scattering) and the dipole", rows)
+    print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
+          "image's own relative standard error; times in seconds (diffusion: t1+t2+t3 of a frame).")
+    print(f"wrote validation.csv and validation_<case>.png (diffusion | MC multiple | MC all) to {args.out}/")
     return 0
 
 
@@ -189,6 +222,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true")
     _add_gl(p)
     p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("render", help="render a TOML scene (default: the bunny in veined marble) to OpenEXR + PNG")
+    p.add_argument("scene", nargs="?", help="scene file (TOML, see glsldiff.scene); none = the built-in default")
+    p.add_argument("-o", "--out", default="render.exr", help="output .exr (a tone-mapped .png goes beside it)")
+    p.add_argument("--frames", type=int, default=1, help="render the scene this many times (frame 2+ reuse passes)")
+    _add_gl(p)
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("validate", help="render validation scenes with diffusion and with Mitsuba 3 "
+                                        "(pip install glsldiff[validation]); relative RMSE and times")
+    p.add_argument("--cases", nargs="+", default=["slab", "sphere", "sphere-albedo0.9", "sphere-veins"])
+    p.add_argument("--size", type=int, default=64, help="image side, pixels")
+    p.add_argument("--spp", type=int, default=256, help="Monte Carlo samples per pixel")
+    p.add_argument("--out", default="bench-out/validation")
+    _add_gl(p)
+    p.set_defaults(func=cmd_validate)
 
     p = sub.add_parser("bench", help="benchmarks")
     bsub = p.add_subparsers(dest="bench", required=True)

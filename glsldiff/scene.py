@@ -106,8 +106,8 @@ class LightSpec:
     type: str
     direction: tuple[float, float, float] | None = None
     position: tuple[float, float, float] | None = None
-    irradiance: tuple[float, float, float] | None = None
-    intensity: tuple[float, float, float] | None = None
+    irradiance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    intensity: tuple[float, float, float] = (1.0e4, 1.0e4, 1.0e4)
     cone_deg: float = 30.0
     falloff_deg: float = 25.0
     path: str | None = None

@@ -1,0 +1,417 @@
+"""glsldiff.lighting: pass 1, transmitted irradiance at boundary nodes (Wang et al. 2008 sec. 5).
+
+Expected values are computed here independently: Fresnel from its own s/p formula, shadow
+regions from box geometry, hemispherical integrals by trapezoid quadrature, visibility by
+Moller-Trumbore ray casting against the mesh triangles.
+"""
+from __future__ import annotations
+
+import math
+
+import moderngl
+import numpy as np
+import pytest
+
+from glsldiff import lighting as L
+from glsldiff import mesh as M
+from glsldiff.errors import InputError
+
+pytest.importorskip("trimesh")
+pytest.importorskip("pymeshlab")
+
+ETA = 1.3
+
+
+# ---- independent references ---------------------------------------------------------------
+def fresnel_t(eta, cos_i):
+    """1 - unpolarised Fresnel reflectance, written out here (not glsldiff.optics)."""
+    c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)
+    sin_t2 = (1.0 - c * c) / eta**2
+    ct = np.sqrt(np.clip(1.0 - sin_t2, 0.0, 1.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rs = ((c - eta * ct) / (c + eta * ct)) ** 2
+        rp = ((eta * c - ct) / (eta * c + ct)) ** 2
+    r = np.where(sin_t2 >= 1.0, 1.0, 0.5 * (rs + rp))
+    return 1.0 - np.nan_to_num(r, nan=1.0)
+
+
+def hemispherical(eta, f=lambda t: 1.0):
+    """2 pi int_0^1 f(t) t F_t(eta, t) dt by the trapezoid rule on 400k intervals."""
+    t = np.linspace(0.0, 1.0, 400_001)
+    return 2.0 * math.pi * np.trapezoid(f(t) * t * fresnel_t(eta, t), t)
+
+
+def ray_hits(mesh, origins, direction):
+    """Whether rays origins + s direction (s > 0) hit any triangle (Moller-Trumbore)."""
+    tri = mesh.triangles
+    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    d = np.asarray(direction, dtype=np.float64)
+    pvec = np.cross(d, e2)                                   # (F, 3)
+    det = np.einsum("fj,fj->f", e1, pvec)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    out = np.zeros(len(origins), dtype=bool)
+    for i, o in enumerate(origins):
+        tvec = o - a
+        u = np.einsum("fj,fj->f", tvec, pvec) * inv
+        q = np.cross(tvec, e1)
+        v = (q @ d) * inv
+        s = np.einsum("fj,fj->f", e2, q) * inv
+        out[i] = np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > 1e-9))
+    return out
+
+
+def latlong(height, width, fn):
+    """A lat-long map from fn(x, y, z) with the documented convention (row 0 = +z, u = 0 at
+    azimuth -pi, azimuth increasing with u)."""
+    theta = (np.arange(height) + 0.5) * math.pi / height
+    phi = -math.pi + (np.arange(width) + 0.5) * 2.0 * math.pi / width
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    x, y, z = np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)
+    img = fn(x, y, z)
+    return np.repeat(img[..., None], 3, axis=2) if img.ndim == 2 else img
+
+
+# ---- meshes ---------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def sphere():
+    return M.sphere_mesh(10.0, 4, center=(3.0, -2.0, 5.0))
+
+
+@pytest.fixture(scope="module")
+def torus():
+    return M.torus_mesh(10.0, 4.0, 48, 24)
+
+
+@pytest.fixture(scope="module")
+def two_boxes():
+    """A 20 x 20 x 10 mm slab and a 4 x 4 x 2 mm box floating above it (z 15..17)."""
+    big = M.box_mesh((20.0, 20.0, 10.0))
+    small = M.box_mesh((4.0, 4.0, 2.0), origin=(8.0, 8.0, 15.0))
+    return M.Mesh(np.vstack([big.vertices, small.vertices]),
+                  np.vstack([big.faces, small.faces + len(big.vertices)]), name="two boxes")
+
+
+@pytest.fixture(scope="module")
+def slab_top():
+    xs = np.linspace(0.25, 19.75, 40)
+    X, Y = np.meshgrid(xs, xs, indexing="ij")
+    pts = np.c_[X.ravel(), Y.ravel(), np.full(X.size, 10.0)]
+    return pts, np.tile([0.0, 0.0, 1.0], (len(pts), 1))
+
+
+# ---- directional light -------------------------------------------------------------------------
+def test_directional_sphere_closed_form_and_far_side(ctx, sphere):
+    p, n = sphere.vertices, sphere.vertex_normals
+    w = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)
+    irr = np.array([1.0, 2.0, 3.0])
+    light = L.DirectionalLight(direction=(2.0, 4.0, 6.0), irradiance=irr)  # normalised inside
+    assert np.allclose(light.direction, w)
+    E, info = L.incident_light(sphere, p, n, [light], eta=ETA, ctx=ctx)
+    assert E.shape == (len(p), 3) and E.dtype == np.float64
+    cos = n @ w
+    ref = (np.clip(cos, 0, None) * fresnel_t(ETA, cos))[:, None] * irr
+    lit = cos > 0.1
+    np.testing.assert_allclose(E[lit], ref[lit], rtol=1e-9)
+    assert np.all(E[cos <= 0] == 0.0)
+    assert info[0]["light"] == "directional" and info[0]["shadow_map"] == "1024x1024"
+    assert info[0]["seconds"] >= 0 and info[0]["facing"] == int((cos > 0).sum())
+    assert info[0]["shadowed"] < 0.02 * info[0]["facing"]  # only at the terminator
+
+    # the shadow map itself: nodes on the surface and 0.3 mm inside, with and without normals
+    for pts in (p, p - 0.3 * n):
+        for nn in (None, n):
+            v = L.visibility(sphere, pts, light, ctx=ctx, normals=nn)
+            assert v.shape == (len(p),) and v.min() >= 0 and v.max() <= 1
+            assert np.all(v[cos > 0.15] == 1.0), "lit side must be lit (no shadow acne)"
+            assert np.all(v[cos < -0.15] == 0.0), "far side must be in shadow"
+
+
+@pytest.mark.parametrize("kind", ["directional", "point", "spot_cube", "spot"])
+def test_box_casts_shadow(ctx, two_boxes, slab_top, kind):
+    pts, nrm = slab_top
+    x, y = pts[:, 0], pts[:, 1]
+    I = np.array([3.0, 2.0, 1.0])
+    if kind == "directional":
+        w = np.array([0.3, 0.0, 1.0]) / math.hypot(0.3, 1.0)
+        light = L.DirectionalLight(w, I)
+        # shadow of the box 8..12 x 8..12 at heights 15..17 shifted by -0.3 (z - 10) in x
+        lo_x, hi_x, lo_y, hi_y = 8.0 - 2.1, 12.0 - 1.5, 8.0, 12.0
+        cos = np.full(len(pts), w[2])
+        expected = (cos * fresnel_t(ETA, cos))[:, None] * I
+    else:
+        pos = np.array([10.0, 10.0, 40.0])
+        if kind == "point":
+            light = L.PointLight(pos, I)
+        elif kind == "spot_cube":  # wide cone: six cube views
+            light = L.SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=80.0, falloff_deg=70.0)
+        else:
+            light = L.SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=40.0, falloff_deg=35.0)
+        # central projection from 30 mm above the slab: the box top (z = 17) casts the widest
+        half = 2.0 * 30.0 / 23.0
+        lo_x = lo_y = 10.0 - half
+        hi_x = hi_y = 10.0 + half
+        d = pos - pts
+        r2 = (d**2).sum(axis=1)
+        cos = d[:, 2] / np.sqrt(r2)
+        expected = (cos * fresnel_t(ETA, cos) / r2)[:, None] * I  # all inside the falloff angle
+    E, info = L.incident_light(two_boxes, pts, nrm, [light], eta=ETA, ctx=ctx, shadow_map_size=512)
+    m = 0.35  # mm from the shadow edge
+    inside = (x > lo_x + m) & (x < hi_x - m) & (y > lo_y + m) & (y < hi_y - m)
+    outside = (x < lo_x - m) | (x > hi_x + m) | (y < lo_y - m) | (y > hi_y + m)
+    assert inside.sum() > 40 and outside.sum() > 1000
+    assert np.all(E[inside] == 0.0), "points in the cast shadow must get no light"
+    np.testing.assert_allclose(E[outside], expected[outside], rtol=1e-9)
+    label = "6 x 512x512 (cube)" if kind in ("point", "spot_cube") else "512x512"
+    assert info[0]["shadow_map"] == label
+    assert inside.sum() <= info[0]["shadowed"] <= len(pts) - outside.sum()
+
+
+def test_visibility_matches_ray_casting(ctx, torus):
+    """Torus (self-shadowing): shadow-map visibility vs exact ray casting, directional and point."""
+    rng = np.random.default_rng(3)
+    idx = rng.choice(len(torus.vertices), 400, replace=False)
+    p, n = torus.vertices[idx], torus.vertex_normals[idx]
+    cases = [L.DirectionalLight((1.0, 0.2, 0.25), 1.0), L.DirectionalLight((1.0, 0.2, 0.1), 1.0),
+             L.PointLight((25.0, 3.0, 6.0), 1.0), L.PointLight((0.0, 0.0, 1.0), 1.0)]  # last: in the hole
+    lit = shadowed = 0
+    for light in cases:
+        v = L.visibility(torus, p, light, ctx=ctx, shadow_map_size=512, normals=n)
+        if isinstance(light, L.DirectionalLight):
+            w = np.broadcast_to(np.asarray(light.direction), p.shape)
+        else:
+            d = np.asarray(light.position) - p
+            w = d / np.linalg.norm(d, axis=1, keepdims=True)
+        cos = np.einsum("ij,ij->i", n, w)
+        sel = np.flatnonzero(cos > 0.25)
+        truth = np.ones(len(sel), dtype=bool)
+        for k, i in enumerate(sel):
+            o = p[i] + 1e-4 * n[i]
+            if isinstance(light, L.DirectionalLight):
+                truth[k] = not ray_hits(torus, o[None], w[i])[0]
+            else:  # only hits before the light count
+                dist = np.linalg.norm(np.asarray(light.position) - o)
+                truth[k] = not _hit_before(torus, o, w[i], dist)
+        agree = np.mean((v[sel] > 0.5) == truth)
+        assert agree >= 0.97, f"{light}: shadow map agrees with ray casting on {agree:.1%} only"
+        lit, shadowed = lit + truth.sum(), shadowed + (~truth).sum()
+        assert np.all(v[cos < -0.3] < 0.5), "points facing away from the light are shadowed"
+    assert lit > 300 and shadowed > 100, "the cases must exercise both outcomes"
+
+
+def _hit_before(mesh, origin, direction, dist):
+    tri = mesh.triangles
+    a, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    pvec = np.cross(direction, e2)
+    det = np.einsum("fj,fj->f", e1, pvec)
+    ok = np.abs(det) > 1e-12
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    tvec = origin - a
+    u = np.einsum("fj,fj->f", tvec, pvec) * inv
+    q = np.cross(tvec, e1)
+    v = (q @ direction) * inv
+    s = np.einsum("fj,fj->f", e2, q) * inv
+    return bool(np.any(ok & (u >= 0) & (v >= 0) & (u + v <= 1) & (s > 1e-9) & (s < dist)))
+
+
+# ---- point and spot lights -------------------------------------------------------------------
+def test_point_light_inverse_square(ctx, two_boxes):
+    """E = I cos F_t / r^2: doubling the height above a slab point quarters E (F_t, cos = 1)."""
+    p = np.array([[3.0, 4.0, 10.0], [3.0, 4.0, 10.0], [3.0, 4.0, 10.0]])
+    n = np.tile([0.0, 0.0, 1.0], (3, 1))
+    I = np.array([1.0, 10.0, 100.0])
+    vals = []
+    for h in (5.0, 10.0, 20.0):
+        E, info = L.incident_light(two_boxes, p[:1], n[:1], [L.PointLight((3.0, 4.0, 10.0 + h), I)],
+                                   eta=ETA, ctx=ctx, shadow_map_size=256)
+        vals.append(E[0])
+        np.testing.assert_allclose(E[0], I * fresnel_t(ETA, 1.0) / h**2, rtol=1e-12)
+    np.testing.assert_allclose(vals[0] / vals[1], 4.0, rtol=1e-12)
+    np.testing.assert_allclose(vals[1] / vals[2], 4.0, rtol=1e-12)
+    # oblique: cos and 1/r^2 together, shadows off
+    pos = np.array([13.0, -2.0, 18.0])
+    q = np.array([[5.0, 6.0, 10.0], [15.0, 15.0, 10.0]])
+    E, info = L.incident_light(two_boxes, q, n[:2], [L.PointLight(pos, I, shadows=False)], eta=ETA)
+    d = pos - q
+    r = np.linalg.norm(d, axis=1)
+    cos = d[:, 2] / r
+    np.testing.assert_allclose(E, (cos * fresnel_t(ETA, cos) / r**2)[:, None] * I, rtol=1e-12)
+    assert info[0]["shadow_map"] == "none (shadows off)"
+
+
+def test_spot_cutoff_and_falloff(ctx, two_boxes):
+    pos = np.array([3.0, 3.0, 24.0])  # 14 mm above the slab; the small box's shadow lies at y > 10
+    x = np.linspace(3.0, 19.9, 200)
+    p = np.c_[x, np.full_like(x, 3.0), np.full_like(x, 10.0)]
+    n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    spot = L.SpotLight(pos, (0.0, 0.0, -1.0), (1.0, 1.0, 1.0), cone_deg=38.0, falloff_deg=28.0)
+    point = L.PointLight(pos, (1.0, 1.0, 1.0))
+    Es, _ = L.incident_light(two_boxes, p, n, [spot], eta=ETA, ctx=ctx, shadow_map_size=256)
+    Ep, _ = L.incident_light(two_boxes, p, n, [point], eta=ETA, ctx=ctx, shadow_map_size=256)
+    d = p - pos
+    ang = np.degrees(np.arccos(-d[:, 2] / np.linalg.norm(d, axis=1)))
+    assert ang.min() < 27.0 and ang.max() > 39.0
+    full, off, mid = ang < 28.0, ang > 38.0, (ang > 28.5) & (ang < 37.5)
+    np.testing.assert_allclose(Es[full], Ep[full], rtol=1e-12)
+    assert np.all(Es[off] == 0.0) and np.all(Ep[off] > 0)
+    ratio = Es[mid, 0] / Ep[mid, 0]
+    assert np.all((ratio > 0) & (ratio < 1)) and np.all(np.diff(ratio) <= 1e-12)
+    c = np.cos(np.radians(ang[mid]))
+    t = (c - math.cos(math.radians(38.0))) / (math.cos(math.radians(28.0)) - math.cos(math.radians(38.0)))
+    np.testing.assert_allclose(ratio, t * t * (3 - 2 * t), rtol=1e-9)
+
+
+# ---- environment light ---------------------------------------------------------------------------
+@pytest.mark.parametrize("vis", [False, True])
+@pytest.mark.parametrize("eta", [1.0, ETA])
+def test_environment_constant_on_sphere(ctx, sphere, vis, eta):
+    Lrad = np.array([0.5, 1.0, 2.0])
+    img = np.ones((24, 48, 3)) * Lrad
+    light = L.EnvironmentLight(img, scale=2.0, visibility=vis, directions=32)
+    E, info = L.incident_light(sphere, sphere.vertices, sphere.vertex_normals, [light], eta=eta, ctx=ctx,
+                               shadow_map_size=256)
+    expected = 2.0 * Lrad * hemispherical(eta)  # pi L (1 - external hemispherical Fresnel)
+    if eta == 1.0:
+        np.testing.assert_allclose(expected, 2.0 * math.pi * Lrad, rtol=1e-9)
+    np.testing.assert_allclose(E, np.broadcast_to(expected, E.shape), rtol=0.01)
+    assert info[0]["light"] == "environment" and info[0]["sh_order"] == 2
+    assert info[0]["shadow_map"] == ("32 x 256x256" if vis else "none (visibility off)")
+
+
+def test_environment_linear_map_convention(ctx, sphere):
+    """L = 1 + 0.5 x + 0.3 y + 0.2 z: E(n) = pi + 2 pi / 3 (0.5 n_x + 0.3 n_y + 0.2 n_z) at eta 1,
+    and on +z with Fresnel: 2 pi int (1 + 0.2 t) t F_t dt."""
+    img = latlong(48, 96, lambda x, y, z: 1.0 + 0.5 * x + 0.3 * y + 0.2 * z)
+    n = sphere.vertex_normals
+    E, _ = L.incident_light(sphere, sphere.vertices, n, [L.EnvironmentLight(img, visibility=False)],
+                            eta=1.0, ctx=ctx)
+    ref = math.pi + 2.0 * math.pi / 3.0 * (n @ np.array([0.5, 0.3, 0.2]))
+    np.testing.assert_allclose(E[:, 1], ref, rtol=2e-3)
+    c = L.sh_project(img)
+    up = L.sh_irradiance(c, [[0.0, 0.0, 1.0]], eta=ETA)
+    np.testing.assert_allclose(up[0], hemispherical(ETA, lambda t: 1.0 + 0.2 * t), rtol=2e-3)
+    # order 0 keeps only the mean
+    E0, _ = L.incident_light(sphere, sphere.vertices, n,
+                             [L.EnvironmentLight(img, order=0, visibility=False)], eta=1.0)
+    np.testing.assert_allclose(E0, math.pi, rtol=2e-3)
+
+
+def test_sh_projection_is_orthonormal():
+    d, omega = L.latlong_directions(64, 128)
+    np.testing.assert_allclose(omega.sum(), 4.0 * math.pi, rtol=1e-12)
+    Y = L.sh_basis(d.reshape(-1, 3), 2)
+    gram = (Y * omega.reshape(-1, 1)).T @ Y
+    np.testing.assert_allclose(gram, np.eye(9), atol=2e-3)
+    # Y_1,-1, Y_10, Y_11 = sqrt(3 / 4 pi) (y, z, x)
+    u = np.array([[0.6, 0.0, 0.8]])
+    np.testing.assert_allclose(L.sh_basis(u, 1)[0], [1 / math.sqrt(4 * math.pi)] +
+                               list(math.sqrt(3 / (4 * math.pi)) * np.array([0.0, 0.8, 0.6])), rtol=1e-12)
+    np.testing.assert_allclose(L.transfer_coefficients(2), [math.pi, 2 * math.pi / 3, math.pi / 4], rtol=1e-10)
+
+
+def test_environment_visibility_on_torus(ctx, torus):
+    """Ambient occlusion lowers the inner ring; compare with ray-cast visibility."""
+    img = np.ones((16, 32, 3))
+    p, n = torus.vertices, torus.vertex_normals
+    K = 48
+    E0, _ = L.incident_light(torus, p, n, [L.EnvironmentLight(img, visibility=False)], eta=ETA, ctx=ctx)
+    E1, info = L.incident_light(torus, p, n, [L.EnvironmentLight(img, directions=K)], eta=ETA, ctx=ctx,
+                                shadow_map_size=256)
+    rho = np.hypot(p[:, 0], p[:, 1])
+    inner = np.flatnonzero(rho < 6.1)
+    outer = np.flatnonzero(rho > 13.9)
+    assert len(inner) >= 24 and len(outer) >= 24
+    np.testing.assert_allclose(E1[outer], E0[outer], rtol=1e-9)  # nothing blocks the outer equator
+    ratio = E1[inner, 0] / E0[inner, 0]
+    assert ratio.max() < 0.8, "the inner ring sees the opposite side of the torus"
+    assert 0.0 < info[0]["mean_visibility"] < 1.0
+    ao = L.visibility(torus, p, L.EnvironmentLight(img, directions=K), ctx=ctx, shadow_map_size=256,
+                      normals=n)
+    assert np.all(ao[outer] == 1.0) and ao[inner].max() < 0.8
+    # independent: the same K Fibonacci directions, visibility by ray casting
+    dirs = L.fibonacci_directions(K)
+    assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0) and abs(dirs.mean(axis=0)).max() < 0.05
+    for i in inner[::6]:
+        cos = dirs @ n[i]
+        wk = np.clip(cos, 0, None) * fresnel_t(ETA, cos)
+        vis = np.array([not ray_hits(torus, (p[i] + 1e-4 * n[i])[None], w)[0] if c > 0 else False
+                        for w, c in zip(dirs, cos)])
+        expected = (wk * vis).sum() / wk.sum()
+        assert abs(E1[i, 0] / E0[i, 0] - expected) < 0.06
+
+
+# ---- mixed, info, GL hygiene ------------------------------------------------------------------------
+def test_lights_add_up_and_release_gl_objects(ctx, sphere, monkeypatch):
+    created = []
+    for name in ("texture", "framebuffer", "buffer", "program", "vertex_array"):
+        orig = getattr(moderngl.Context, name)
+
+        def wrap(self, *a, _orig=orig, **k):
+            obj = _orig(self, *a, **k)
+            created.append(obj)
+            return obj
+        monkeypatch.setattr(moderngl.Context, name, wrap)
+    p, n = sphere.vertices, sphere.vertex_normals
+    lights = [L.DirectionalLight((0, 0, 1), 1.0), L.PointLight((0, 30, 0), 50.0),
+              L.SpotLight((30, 0, 0), (-1, 0, 0), 80.0, cone_deg=20, falloff_deg=10),
+              L.EnvironmentLight(np.full((8, 16, 3), 0.1), directions=8)]
+    E, info = L.incident_light(sphere, p, n, lights, eta=ETA, ctx=ctx, shadow_map_size=128)
+    assert [i["light"] for i in info] == ["directional", "point", "spot", "environment"]
+    assert created and all(isinstance(o.mglo, moderngl.InvalidObject) for o in created), \
+        "every GL object created by incident_light must be released"
+    monkeypatch.undo()
+    parts = [L.incident_light(sphere, p, n, [li], eta=ETA, ctx=ctx, shadow_map_size=128)[0] for li in lights]
+    np.testing.assert_allclose(E, sum(parts), rtol=1e-12, atol=0)
+    assert all(L.casts_shadows(li) for li in lights)
+    assert not L.casts_shadows(L.PointLight((0, 0, 0), 1.0, shadows=False))
+    assert not L.casts_shadows(L.EnvironmentLight(np.ones((2, 4, 3)), visibility=False))
+    empty, info = L.incident_light(sphere, np.zeros((0, 3)), np.zeros((0, 3)), lights, eta=ETA, ctx=ctx)
+    assert empty.shape == (0, 3) and len(info) == 4
+
+
+# ---- bad input -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("make, field", [
+    (lambda: L.DirectionalLight((0, 0, 0), 1.0), "direction"),
+    (lambda: L.DirectionalLight((0, 0, 1), (1.0, -1.0, 1.0)), "irradiance"),
+    (lambda: L.DirectionalLight((0, 0, 1), (1.0, np.nan, 1.0)), "irradiance"),
+    (lambda: L.DirectionalLight((0, 1), 1.0), "direction"),
+    (lambda: L.PointLight((0, 0, np.inf), 1.0), "position"),
+    (lambda: L.PointLight((0, 0, 1), (1.0, np.inf, 0.0)), "intensity"),
+    (lambda: L.PointLight((0, 0, 1), -2.0), "intensity"),
+    (lambda: L.SpotLight((0, 0, 1), (0, 0, 0), 1.0), "direction"),
+    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=0.0, falloff_deg=0.0), "cone_deg"),
+    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=180.0), "cone_deg"),
+    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=20.0, falloff_deg=30.0), "falloff_deg"),
+    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=20.0, falloff_deg=-1.0), "falloff_deg"),
+    (lambda: L.EnvironmentLight(np.ones((4, 8))), "image"),
+    (lambda: L.EnvironmentLight(np.full((4, 8, 3), np.nan)), "image"),
+    (lambda: L.EnvironmentLight(-np.ones((4, 8, 3))), "image"),
+    (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), scale=-1.0), "scale"),
+    (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), order=9), "order"),
+    (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), directions=0), "directions"),
+    (lambda: L.sh_project(np.ones((4, 8, 4))), "image"),
+])
+def test_bad_light_parameters(make, field):
+    with pytest.raises(InputError, match=field) as exc:
+        make()
+    assert "\n" not in str(exc.value)
+
+
+def test_bad_incident_light_arguments(ctx, sphere):
+    p, n = sphere.vertices[:10], sphere.vertex_normals[:10]
+    sun = [L.DirectionalLight((0, 0, 1), 1.0)]
+    cases = [
+        (dict(eta=0.0), "eta"), (dict(eta=-1.3), "eta"), (dict(eta=np.nan), "eta"),
+        (dict(normals=n[:9]), "normals"), (dict(normals=np.zeros((10, 3))), "normals"),
+        (dict(points=p[:, :2]), "points"), (dict(points=np.where(p > 0, np.nan, p)), "points"),
+        (dict(lights=["sun"]), r"lights\[0\]"), (dict(shadow_map_size=0), "shadow_map_size"),
+        (dict(shadow_map_size=100.5), "shadow_map_size"), (dict(mesh="bunny"), "mesh"),
+    ]
+    for change, field in cases:
+        args = dict(mesh=sphere, points=p, normals=n, lights=sun, eta=ETA, ctx=ctx) | change
+        with pytest.raises(InputError, match=field):
+            L.incident_light(**args)
+    with pytest.raises(InputError, match="normals"):
+        L.visibility(sphere, p, sun[0], ctx=ctx, normals=n[:3])
+    with pytest.raises(InputError, match="light"):
+        L.visibility(sphere, p, "sun", ctx=ctx)
