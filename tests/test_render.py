@@ -89,3 +89,43 @@ def test_output_path_is_checked_before_work_and_files_are_whole(tmp_path, render
     np.testing.assert_allclose(back, img, rtol=1e-6)
     assert png.is_file() and exposure > 0
     assert not [p for p in Path(tmp_path).iterdir() if p.name.startswith(".")]   # no temporary left
+
+
+def test_every_light_kind_single_scattering_and_procedural_materials(tmp_path, renderer):
+    from glsldiff.scene import MaterialSpec, OptionsSpec
+
+    env = np.zeros((16, 32, 3), np.float32)
+    env[:8] = 0.2                                   # bright upper hemisphere
+    io.write_exr(tmp_path / "env.exr", env)
+    lights = (LightSpec("point", position=(0.0, 40.0, 40.0), intensity=(2000.0,) * 3),
+              LightSpec("spot", position=(40.0, 0.0, 40.0), direction=(-1.0, 0.0, -1.0), intensity=(2000.0,) * 3,
+                        cone_deg=20.0, falloff_deg=10.0),
+              LightSpec("environment", path="env.exr"))
+    base = dataclasses.replace(_scene(lights=lights, base_dir=tmp_path), specular=SpecularSpec(0.05, 0.2))
+    off, rep_off = renderer.render(base)
+    on, rep_on = renderer.render(dataclasses.replace(base, options=OptionsSpec(single_scattering=True)))
+    assert np.all(np.isfinite(on)) and on.min() >= 0.0
+    assert not rep_on.ran("pass1") and not rep_on.ran("pass2")   # single scattering is part of pass 3
+    assert np.all(on >= off - 1e-6) and on.sum() > off.sum()
+    assert len([n for n in rep_off.notes if n.startswith("light:")]) == 3
+    for kind in ("layers", "inclusions", "veins"):
+        img, rep = renderer.render(dataclasses.replace(base, material=MaterialSpec(procedural=kind, seed=1)))
+        assert rep.ran("material") and rep.ran("pass2") and not rep.ran("pass1")
+        assert np.all(np.isfinite(img)) and img.max() > 0
+
+
+def test_block_volume_through_a_shell(tmp_path, renderer):
+    from glsldiff.material import coefficients
+    from glsldiff.scene import MaterialSpec
+
+    sa = np.full((4, 8, 8, 3), 0.01)
+    sa[:, :, 4:] = 0.5                               # half the block absorbs strongly
+    kappa, mu = coefficients(sa, np.full_like(sa, 1.0))
+    np.savez(tmp_path / "block.npz", kappa=kappa, mu=mu, h_mm=1.0)
+    scene = _scene(material=MaterialSpec(preset=None, volume="block.npz", core="marble", sigma_a=None),
+                   base_dir=tmp_path)
+    img, rep = renderer.render(scene)
+    assert "via shell" in rep.notes[0] and np.all(np.isfinite(img)) and img.max() > 0
+    np.savez(tmp_path / "bad.npz", kappa=kappa)
+    with pytest.raises(InputError, match=r"\[material\].volume"):
+        renderer.render(_scene(material=MaterialSpec(preset=None, volume="bad.npz"), base_dir=tmp_path))
