@@ -381,7 +381,7 @@ class Renderer:
             src = m.source if m.source in _samples() else str(scene.resolve(m.source))
             mesh = load_mesh(src, size_mm=m.size_mm)
         pg = build_polygrid(mesh, n=g.n, n_cubes=g.cubes)
-        hier = Hierarchy.build(pg, g.levels) if g.levels > 1 else None
+        hier = Hierarchy.build(pg, g.levels)   # levels = 1: the polygrid alone
         render_mesh = subdivide(mesh, pg.lattice.h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
         self._geo = {"mesh": mesh, "render_mesh": render_mesh, "pg": pg, "hier": hier, "vertices": v, "faces": f,
@@ -417,11 +417,7 @@ class Renderer:
         if self._solver is None:
             problem = DiffusionProblem(pg, self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
                                        stencil="conservative")
-            hier = self._geo["hier"]
-            if hier is None:
-                from glsldiff.hierarchy import Hierarchy
-                hier = Hierarchy.build(pg, 1)
-            self._solver = MultilevelDiffusion(hier, problem, opts.scheme, ctx=self.ctx, precision=opts.precision)
+            self._solver = MultilevelDiffusion(self._geo["hier"], problem, opts.scheme, ctx=self.ctx, precision=opts.precision)
             warm = False
         else:
             self._solver.set_q(self._q)

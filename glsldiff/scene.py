@@ -162,8 +162,12 @@ class Scene:
 
     def resolve(self, path: str) -> Path:
         """A path from the scene file, relative to the file's directory."""
-        p = Path(path).expanduser()
-        return p if p.is_absolute() else self.base_dir / p
+        return _resolve(self.base_dir, path)
+
+
+def _resolve(base_dir: Path, path: str) -> Path:
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else base_dir / p
 
 
 def default_scene() -> Scene:
@@ -224,6 +228,14 @@ class _Table:
             self.fail(key, f"{v!r} is not one of {', '.join(choices)}")
         return v
 
+    def preset_name(self, key: str, name: str | None) -> None:
+        """Fail unless ``name`` (if given) is a known material preset."""
+        if name is not None:
+            try:
+                lookup_preset(name)
+            except InputError as exc:
+                self.fail(key, str(exc))
+
     def boolean(self, key: str, default: bool) -> bool:
         v = self.data.get(key, default)
         if not isinstance(v, bool):
@@ -256,31 +268,18 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
     if t.has("preset") and t.has("sigma_a"):
         t.fail("preset", "give either a preset or sigma_a/sigma_s_prime, not both")
     name = t.string("preset", None if kinds else "marble")
-    if name is not None:
-        try:
-            lookup_preset(name)
-        except InputError as exc:
-            t.fail("preset", str(exc))
+    t.preset_name("preset", name)
     sa = t.vec3("sigma_a", None, nonneg=True)
     ss = t.vec3("sigma_s_prime", None, nonneg=True)
     if ss is not None and min(sa[i] + ss[i] for i in range(3)) <= 0:
         t.fail("sigma_s_prime", "sigma_a + sigma_s_prime must be > 0 in every channel")
     vein = t.string("vein", None)
-    if vein is not None:
-        try:
-            lookup_preset(vein)
-        except InputError as exc:
-            t.fail("vein", str(exc))
+    t.preset_name("vein", vein)
     core = t.string("core", "mean")
-    if core != "mean":
-        try:
-            lookup_preset(core)
-        except InputError as exc:
-            t.fail("core", str(exc))
+    t.preset_name("core", None if core == "mean" else core)
     volume = t.string("volume", None)
     if volume is not None:
-        p = Path(volume).expanduser()
-        p = p if p.is_absolute() else scene_dir / p
+        p = _resolve(scene_dir, volume)
         if not p.is_file():
             t.fail("volume", f"file {str(p)!r} does not exist")
     return MaterialSpec(preset=name, sigma_a=sa, sigma_s_prime=ss, eta=t.number("eta", 1.3, 0.0, lo_open=True),
@@ -304,8 +303,7 @@ def _light(t: _Table, scene_dir: Path) -> LightSpec:
         t.fail("falloff_deg", f"must be <= cone_deg ({cone}), got {falloff}")
     path = t.string("path", None)
     if path is not None:
-        p = Path(path).expanduser()
-        p = p if p.is_absolute() else scene_dir / p
+        p = _resolve(scene_dir, path)
         if not p.is_file():
             t.fail("path", f"environment map {str(p)!r} does not exist")
         from glsldiff.io import read_exr
@@ -343,8 +341,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     source = m.string("source", "bunny")
     from glsldiff.mesh import SAMPLE_MESHES
     if source not in SAMPLE_MESHES and source != "sphere":
-        p = Path(source).expanduser()
-        p = p if p.is_absolute() else base_dir / p
+        p = _resolve(base_dir, source)
         if not p.is_file():
             m.fail("source", f"mesh file {str(p)!r} does not exist (sample names: "
                              f"{', '.join(SAMPLE_MESHES)}, sphere)")

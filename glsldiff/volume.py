@@ -14,6 +14,7 @@ derived, so every node stays physical.
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -48,6 +49,15 @@ def _unit(positions: NDArray) -> NDArray[np.float64]:
 def _noise(u: NDArray, seed: int, cells: int = 6) -> NDArray[np.float64]:
     g = np.random.default_rng(seed).uniform(-1.0, 1.0, (cells + 1,) * 3)
     return map_coordinates(g, (u * cells).T[::-1], order=3, mode="nearest")
+
+
+@lru_cache(maxsize=4)
+def _vein_lattice(cells: int, seed: int, sigma_a: tuple, sigma_s_prime: tuple, eta: float,
+                  base_name: str | None, vein_name: str | None) -> tuple[NDArray, NDArray]:
+    """The veins lattice, built once per material (single scattering samples the material
+    many times per frame)."""
+    base = preset(base_name) if base_name else Preset("custom", np.array(sigma_s_prime), np.array(sigma_a), eta)
+    return marble_volume((cells,) * 3, seed=seed, base=base, vein=preset(vein_name) if vein_name else None)
 
 
 def blend_weight(kind: str, positions: NDArray, seed: int) -> NDArray[np.float64]:
@@ -93,10 +103,8 @@ def node_material(scene: Scene, positions: NDArray, polygrid: Any = None) -> tup
                 {"material": spec.preset or "coefficients"})
     if spec.procedural == "veins":
         cells = 64
-        vein = preset(spec.vein) if spec.vein else None
-        b = (Preset("custom", base[1], base[0], spec.eta) if spec.sigma_a is not None
-             else preset(spec.preset or "marble"))
-        kv, mv = marble_volume((cells,) * 3, seed=spec.seed, base=b, vein=vein)
+        kv, mv = _vein_lattice(cells, spec.seed, tuple(base[0]), tuple(base[1]), spec.eta,
+                               spec.preset if spec.sigma_a is None else None, spec.vein)
         coords = (_unit(positions) * (cells - 1)).T[::-1]   # (z, y, x) lattice order
         kappa = np.stack([map_coordinates(kv[..., c], coords, order=1, mode="nearest") for c in range(3)], -1)
         mu = np.stack([map_coordinates(mv[..., c], coords, order=1, mode="nearest") for c in range(3)], -1)
