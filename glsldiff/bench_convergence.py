@@ -75,6 +75,7 @@ class Curve:
     error: list[float]
     report: Any
     depths: Sequence[float | None] | None = None
+    textures: list[dict[str, Any]] | None = None   # per level: blocks held, texels (MultilevelDiffusion.texture_rows)
 
     def first_below(self, target: float) -> tuple[float, float]:
         """``(work, seconds)`` at the first check with error <= target (nan if never)."""
@@ -108,10 +109,11 @@ def run_scheme(hierarchy: Hierarchy, problem: DiffusionProblem, ref_b: NDArray, 
     try:
         _, rep = s.solve(tol=tol, check_every=check_every, max_sweeps=max_sweeps, callback=record, keep=keep,
                          **options)
+        textures = s.texture_rows()
     finally:
         if own:
             s.release()
-    return Curve(scheme, work, secs, err, rep, depths)
+    return Curve(scheme, work, secs, err, rep, depths, textures)
 
 
 def choose_depths(hierarchy: Hierarchy, problem: DiffusionProblem, ref_b: NDArray, target: float = 0.005,
@@ -197,6 +199,11 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
                         "levels": " ".join(f"L{r['level']}:n{r['n']}x{r['sweeps']}" for r in lv),
                         "note": "" if scheme != "adaptive" else
                         "depths mm " + ",".join("all" if d is None else f"{d:.2f}" for d in depths)})
+        if scheme == "adaptive":  # figure 8: blocks no node of a level uses are dropped from its textures
+            for t in c.textures or []:
+                extra.append({"model": name, "what": f"adaptive textures level {t['level']}",
+                              "blocks": f"{t['blocks']}/{t['of_blocks']}", "texture": t["texture"],
+                              "texels_vs_all_blocks": t["texels"] / t["full_texels"]})
         for wk, sk, ek in zip(c.work, c.seconds, c.error):
             curves_rows.append({"model": name, "scheme": scheme, "work": wk, "seconds": sk, "error": ek})
     single = [r for r in summary if r["scheme"] == "single"]

@@ -15,7 +15,10 @@ T_mu, T_q, T_w1, T_w2) and its sweep primitives. Schemes:
     As hierarchical, but at each finer level only the nodes within ``depths[l]`` mm of the
     surface are updated (figure 8); deeper nodes keep the value copied from the coarser level.
     Their sweeps draw primitives over the updated nodes only, and their residual is that of
-    the system with the deeper nodes pinned (:meth:`LinearSystem.pinned`).
+    the system with the deeper nodes pinned (:meth:`LinearSystem.pinned`). Texture blocks
+    (z-slices of a cube) with no node that the level uses are dropped from that level's
+    textures (:func:`used_nodes`); the returned fluence at the nodes a level does not hold
+    is the coarser levels' value copied down (parent injection).
 ``"multigrid"``
     Beyond the paper (which skipped it): V-cycles of the correction scheme on the same
     pyramids. Each level has its own ping-pong pair (as the paper notes, the V-cycle needs
@@ -42,7 +45,9 @@ from glsldiff import gl
 from glsldiff.errors import InputError, SolverError
 from glsldiff.graph import BOUNDARY, INACTIVE
 from glsldiff.hierarchy import Hierarchy
+from glsldiff.diffusion import PRECISIONS
 from glsldiff.polydiffusion import PolygridDiffusion
+from glsldiff.polygrid import Polygrid
 from glsldiff.problem import DiffusionProblem
 from glsldiff.reference import ConvergenceMonitor, LinearSystem, assemble, assemble_rhs, diverged_message
 from glsldiff.report import SolveReport, contraction_error_estimate
@@ -73,6 +78,29 @@ def update_masks(hierarchy: Hierarchy, depths: Sequence[float | None]) -> list[N
     return out
 
 
+def used_nodes(hierarchy: Hierarchy, masks: Sequence[NDArray[np.bool_] | None]) -> list[NDArray[np.bool_]]:
+    """Per level (finest first), the nodes an adaptive solve touches: those it updates, the
+    nodes their stencils read (interior neighbours, boundary partners) and, below the
+    finest, the prolongation sources of the finer level's used nodes."""
+    out: list[NDArray[np.bool_]] = []
+    for lev, mask in enumerate(masks):
+        lat = hierarchy.grids[lev].lattice
+        upd = (lat.kind != INACTIVE) if mask is None else np.asarray(mask, dtype=bool)
+        used = upd.copy()
+        used[lat.neighbours[upd[lat.interior]].ravel()] = True
+        used[lat.link[upd[lat.boundary]]] = True
+        if lev > 0:
+            src = hierarchy.transfers[lev - 1].source[out[-1]]
+            used[src[src >= 0]] = True
+        out.append(used & (lat.kind != INACTIVE))
+    return out
+
+
+def used_blocks(grid: Polygrid, used: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``(cubes * n,)`` texture blocks (z-slices ``cube * n + z``) holding a used node."""
+    return np.asarray(used, dtype=bool).reshape(grid.shape[0] * grid.n, grid.n * grid.n).any(axis=1)
+
+
 class MultilevelDiffusion:
     """A multiresolution GLSL solver of ``problem`` (on ``hierarchy.grids[0]``).
 
@@ -100,12 +128,16 @@ class MultilevelDiffusion:
     precision
         ``"fp32"``, ``"fp16"`` (radiance buffers) or ``"paper"`` (fp16 buffers, 8-bit
         kappa/mu), see :class:`~glsldiff.diffusion.GlslDiffusion`.
+    drop_blocks
+        ``"adaptive"`` only: leave the texture blocks a level does not use out of its
+        textures (the paper; default). ``False`` keeps every block (same result, more
+        texture memory), for comparison.
     """
 
     def __init__(self, hierarchy: Hierarchy, problem: DiffusionProblem, scheme: str = "hierarchical",
                  ctx: moderngl.Context | None = None, precision: str = "fp32",
                  depths: Sequence[float | None] | None = None, damping: float = 0.8,
-                 coarse_correction: float = 0.7) -> None:
+                 coarse_correction: float = 0.7, drop_blocks: bool = True) -> None:
         if scheme not in SCHEMES:
             raise InputError(f"scheme={scheme!r}; choose one of {SCHEMES}")
         if (depths is not None) != (scheme == "adaptive"):
@@ -116,17 +148,26 @@ class MultilevelDiffusion:
         self.hierarchy, self.scheme = hierarchy, scheme
         self.ctx = ctx if ctx is not None else gl.get_context()
         gl.make_current(self.ctx)
+        if precision not in PRECISIONS:
+            raise InputError(f"precision={precision!r}; choose one of {PRECISIONS}")
         problems = hierarchy.problems(problem) if scheme != "single" else [problem]
         masks = update_masks(hierarchy, depths) if depths is not None else [None] * len(problems)
         self.masks = masks
+        self.used = used_nodes(hierarchy, masks) if scheme == "adaptive" else None
+        if self.used is not None and drop_blocks:  # drop the texture blocks a level does not use
+            problems = [replace(p, grid=p.grid.with_blocks(used_blocks(p.grid, u)))
+                        for p, u in zip(problems, self.used)]
         mg = scheme == "multigrid"
         self.levels: list[PolygridDiffusion] = []
         self._objects: list = []
         try:
+            shared = None
+            if not mg:  # one ping-pong pair for all levels, as large as the largest level's textures
+                size = tuple(max(p.grid.texture_size[i] for p in problems) for i in (0, 1))
+                shared = self._keep(gl.PingPong.create(self.ctx, size, "fp32" if precision == "fp32" else "fp16"))
             for lev, p in enumerate(problems):
-                state = None if (mg or lev == 0) else self.levels[0].state
                 self.levels.append(PolygridDiffusion(
-                    p, self.ctx, precision, update=masks[lev], state=state,
+                    p, self.ctx, precision, update=masks[lev], state=shared,
                     damping=damping if mg else 1.0, interior_rhs=mg and lev > 0))
             self._build_transfers()
         except Exception:
@@ -316,6 +357,7 @@ class MultilevelDiffusion:
         levels: list[dict[str, object]] = []
         work = 0
         L = len(self.levels)
+        coarse_phi: dict[int, NDArray[np.float64]] = {}
         if not keep and self.scheme != "single":
             for lev in range(L - 1, 0, -1):
                 lv = self.levels[lev]
@@ -331,6 +373,8 @@ class MultilevelDiffusion:
                     _, rep = lv.solve(tol=level_tol, max_sweeps=max_sweeps, check_every=check_every, keep=True)
                     n, res = rep.sweeps, rep.residual
                 work += n * lv.updated_nodes
+                if self.used is not None:
+                    coarse_phi[lev] = lv.fluence()
                 self.prolong(lev)
                 self.ctx.finish()
                 levels.append(self._level_row(lev, n, res, time.perf_counter() - t1))
@@ -347,10 +391,37 @@ class MultilevelDiffusion:
         phi, rep = fine.solve(tol=tol, max_sweeps=max_sweeps, check_every=check_every, keep=True, callback=cb)
         work += rep.sweeps * fine.updated_nodes
         levels.append(self._level_row(0, rep.sweeps, rep.residual, time.perf_counter() - t1))
+        if self.used is not None:
+            phi = self._fill_unused(phi, coarse_phi)
         rep.method = f"glsl-{self.scheme}-{fine.precision}"
         rep.seconds = time.perf_counter() - t0
         rep.levels, rep.work = levels, work
         return phi, rep
+
+    def _fill_unused(self, phi: NDArray, coarse_phi: dict[int, NDArray]) -> NDArray[np.float64]:
+        """Adaptive scheme: the fluence at the nodes the finest level does not use (dropped
+        or never read), copied down from the coarsest level that holds them."""
+        L = len(self.levels)
+        if L == 1:
+            return phi
+        filled = coarse_phi[L - 1]
+        for lev in range(L - 2, -1, -1):
+            mine = phi if lev == 0 else coarse_phi[lev]
+            used = self.used[lev].reshape(mine.shape[:-1])
+            filled = np.where(used[..., None], mine, self.hierarchy.prolong_phi(filled, lev + 1))
+        return filled
+
+    def texture_rows(self) -> list[dict[str, object]]:
+        """Per level: texture blocks held / in the polygrid and texels per texture (the
+        adaptive scheme drops unused blocks)."""
+        rows = []
+        for lev, lv in enumerate(self.levels):
+            m = lv.problem.grid.mosaic
+            w, h = lv.size
+            full = self.hierarchy.grids[lev].texture_size if self.scheme != "single" else lv.size
+            rows.append({"level": lev, "blocks": m.n_slots, "of_blocks": m.n_blocks, "texture": f"{w}x{h}",
+                         "texels": w * h, "full_texels": full[0] * full[1]})
+        return rows
 
     def _pin(self, lev: int) -> None:
         """Adaptive scheme: make level ``lev``'s residual checks those of its pinned system."""
@@ -364,8 +435,11 @@ class MultilevelDiffusion:
 
     def _level_row(self, lev: int, sweeps: int, residual: float, seconds: float) -> dict[str, object]:
         lv = self.levels[lev]
+        m = lv.problem.grid.mosaic
+        held = "" if m.n_slots == m.n_blocks else f" ({m.n_slots}/{m.n_blocks} blocks)"
         return {"level": lev, "n": lv.problem.grid.n, "updated": lv.updated_nodes,
-                "nodes": lv.problem.grid.n_active, "sweeps": sweeps, "residual": residual, "seconds": seconds}
+                "nodes": lv.problem.grid.n_active, "sweeps": sweeps, "residual": residual, "seconds": seconds,
+                "texture": "x".join(map(str, lv.size)) + held}
 
     # ---- multigrid ---------------------------------------------------------------------
     def vcycle(self, lev: int = 0, pre: int = 3, post: int = 3, coarsest: int = 30) -> int:
@@ -484,4 +558,4 @@ class MultilevelDiffusion:
         self.release()
 
 
-__all__ = ["MultilevelDiffusion", "SCHEMES", "update_masks"]
+__all__ = ["MultilevelDiffusion", "SCHEMES", "update_masks", "used_nodes", "used_blocks"]

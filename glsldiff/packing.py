@@ -26,29 +26,53 @@ from glsldiff.errors import InputError
 VERTEX = np.dtype([("pos", "f4", 2), ("off", "i4", 12)])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Mosaic:
     """``n_blocks`` blocks of ``bw x bh`` texels tiled into a texture of at most
-    ``max_texture_size`` texels per edge."""
+    ``max_texture_size`` texels per edge.
+
+    ``kept`` (``(n_blocks,)`` bool, default all) drops blocks from the texture: the kept
+    ones are tiled in order and a dropped block has no texels (the adaptive scheme drops
+    the blocks a level does not use, Wang et al. 2008 sec. 5.3)."""
 
     bw: int
     bh: int
     n_blocks: int
     max_texture_size: int = 16384
+    kept: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
+        if self.kept is not None:
+            kept = np.asarray(self.kept, dtype=bool)
+            if kept.shape != (self.n_blocks,):
+                raise InputError(f"kept has shape {kept.shape}, expected ({self.n_blocks},)")
+            if not kept.any():
+                raise InputError("a mosaic must keep at least one block")
+            object.__setattr__(self, "kept", kept)
         if self.bw > self.max_texture_size or self.bh > self.max_texture_size:
             raise InputError(f"a z-slice block of {self.bw}x{self.bh} texels exceeds the texture size limit "
                              f"{self.max_texture_size}; use a coarser grid")
         w, h = self.texture_size
         if h > self.max_texture_size:
-            raise InputError(f"{self.n_blocks} blocks of {self.bw}x{self.bh} texels need a {w}x{h} "
+            raise InputError(f"{self.n_slots} blocks of {self.bw}x{self.bh} texels need a {w}x{h} "
                              f"texture, over the limit {self.max_texture_size}; use fewer nodes")
+
+    @cached_property
+    def slot(self) -> NDArray[np.int64]:
+        """``(n_blocks,)`` tile slot of each block, -1 where dropped."""
+        if self.kept is None:
+            return np.arange(self.n_blocks, dtype=np.int64)
+        return np.where(self.kept, np.cumsum(self.kept) - 1, -1).astype(np.int64)
+
+    @property
+    def n_slots(self) -> int:
+        """Blocks held in the texture."""
+        return self.n_blocks if self.kept is None else int(self.kept.sum())
 
     @cached_property
     def tiles(self) -> tuple[int, int]:
         """``(tiles_x, tiles_y)``: blocks per texture row and column (near-square texture)."""
-        nb = self.n_blocks
+        nb = self.n_slots
         tiles_x = max(1, min(nb, round(math.sqrt(nb * self.bh / self.bw)), self.max_texture_size // self.bw))
         return tiles_x, -(-nb // tiles_x)
 
@@ -59,21 +83,29 @@ class Mosaic:
         return tx * self.bw, ty * self.bh
 
     def block_origin(self, k: ArrayLike) -> NDArray[np.int64]:
-        """Texel ``(x, y)`` of texel ``(0, 0)`` of block(s) ``k``."""
-        k = np.asarray(k, dtype=np.int64)
+        """Texel ``(x, y)`` of texel ``(0, 0)`` of block(s) ``k``; ``(-1, -1)`` for a dropped block."""
+        s = self.slot[np.asarray(k, dtype=np.int64)]
         tx = self.tiles[0]
-        return np.stack([(k % tx) * self.bw, (k // tx) * self.bh], axis=-1)
+        origin = np.stack([(s % tx) * self.bw, (s // tx) * self.bh], axis=-1)
+        return np.where(s[..., None] >= 0, origin, -1)
 
     def texel(self, flat: ArrayLike) -> NDArray[np.int64]:
-        """Texel ``(x, y)`` of flat node index(es) (block-major, then y, then x)."""
+        """Texel ``(x, y)`` of flat node index(es) (block-major, then y, then x); ``(-1, -1)``
+        for a node of a dropped block."""
         flat = np.asarray(flat, dtype=np.int64)
         k, r = np.divmod(flat, self.bw * self.bh)
         y, x = np.divmod(r, self.bw)
-        return self.block_origin(k) + np.stack([x, y], axis=-1)
+        origin = self.block_origin(k)
+        return np.where(origin >= 0, origin + np.stack([x, y], axis=-1), -1)
+
+    def kept_nodes(self) -> NDArray[np.bool_]:
+        """``(n_blocks * bh * bw,)`` flat mask of the nodes that have a texel."""
+        return np.repeat(self.slot >= 0, self.bw * self.bh)
 
     def pack(self, nodes: ArrayLike, components: int = 4) -> NDArray[np.float32]:
         """``(n_blocks, bh, bw[, c])`` (or any shape with that many nodes first) ->
-        ``(height, width, components)`` float32 texture, unused texels 0."""
+        ``(height, width, components)`` float32 texture, unused texels 0 (dropped blocks
+        are left out)."""
         arr = np.asarray(nodes, dtype=np.float32)
         n = self.n_blocks * self.bh * self.bw
         if arr.size == n:
@@ -85,18 +117,26 @@ class Mosaic:
         c = arr.shape[1]
         if c > components:
             raise InputError(f"node array has {c} channels, texture only {components}")
+        if self.kept is not None:
+            arr = arr[self.kept_nodes()]
         tx, ty = self.tiles
         pad = np.zeros((tx * ty * self.bh * self.bw, components), dtype=np.float32)
-        pad[:n, :c] = arr
+        pad[:arr.shape[0], :c] = arr
         w, h = self.texture_size
         return pad.reshape(ty, tx, self.bh, self.bw, components).transpose(0, 2, 1, 3, 4).reshape(h, w, components)
 
-    def unpack(self, texture: ArrayLike, channels: int = 3) -> NDArray[np.float32]:
-        """Inverse of :meth:`pack`: ``(height, width, c)`` -> ``(n_blocks, bh, bw, channels)``."""
+    def unpack(self, texture: ArrayLike, channels: int = 3, fill: float = 0.0) -> NDArray[np.float32]:
+        """Inverse of :meth:`pack`: ``(height, width, c)`` -> ``(n_blocks, bh, bw, channels)``;
+        the nodes of dropped blocks get ``fill``."""
         tex = np.asarray(texture)
         tx, ty = self.tiles
         blocks = tex.reshape(ty, self.bh, tx, self.bw, tex.shape[-1]).transpose(0, 2, 1, 3, 4)
-        return blocks.reshape(tx * ty, self.bh, self.bw, tex.shape[-1])[: self.n_blocks, ..., :channels]
+        held = blocks.reshape(tx * ty, self.bh, self.bw, tex.shape[-1])[: self.n_slots, ..., :channels]
+        if self.kept is None:
+            return held
+        out = np.full((self.n_blocks,) + held.shape[1:], fill, dtype=held.dtype)
+        out[self.kept] = held
+        return out
 
 
 @dataclass(frozen=True)

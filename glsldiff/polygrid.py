@@ -63,6 +63,7 @@ class Polygrid:
     polycube: "Polycube | None" = None
     seconds: dict[str, float] = field(default_factory=dict)
     max_texture_size: int = 16384
+    kept_blocks: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         self.mosaic  # validates the texture size
@@ -139,8 +140,19 @@ class Polygrid:
     # ---- texture packing (figure 6) ----------------------------------------------------
     @cached_property
     def mosaic(self) -> Mosaic:
-        """x-y slices of each cube as ``n x n`` blocks, cubes in order, slices by increasing z."""
-        return Mosaic(self.n, self.n, self.shape[0] * self.n, self.max_texture_size)
+        """x-y slices of each cube as ``n x n`` blocks, cubes in order, slices by increasing z;
+        only the :attr:`kept_blocks` where given (see :meth:`with_blocks`)."""
+        return Mosaic(self.n, self.n, self.shape[0] * self.n, self.max_texture_size, self.kept_blocks)
+
+    def with_blocks(self, kept: NDArray[np.bool_] | None) -> "Polygrid":
+        """The same polygrid packed with only the ``kept`` blocks (``(cubes * n,)`` bool, block
+        ``cube * n + z``; ``None``: all): node arrays keep their shape, the textures drop the
+        other blocks, whose nodes no solver pass may then read. Cached derived data is shared."""
+        out = replace(self, kept_blocks=None if kept is None else np.asarray(kept, dtype=bool))
+        for name in ("graph", "d"):
+            if name in self.__dict__:
+                out.__dict__[name] = self.__dict__[name]
+        return out
 
     @property
     def texture_size(self) -> tuple[int, int]:
@@ -155,7 +167,7 @@ class Polygrid:
 
     def unpack(self, texture: ArrayLike, channels: int = 3) -> NDArray[np.float32]:
         """Packed texture -> ``shape + (channels,)``."""
-        return self.mosaic.unpack(texture, channels).reshape(self.shape + (channels,))
+        return self.mosaic.unpack(texture, channels).reshape(self.shape + (channels,))  # dropped blocks: 0
 
     # ---- boundary data -------------------------------------------------------------------
     def source_volume(self, q: ArrayLike | None) -> NDArray[np.float64]:

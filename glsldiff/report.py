@@ -75,7 +75,8 @@ class SolveReport:
             res = float(lv["residual"])  # type: ignore[arg-type]
             line += (f"\n  level {lv['level']} (n={lv['n']}, {lv['updated']}/{lv['nodes']} nodes updated): "
                      f"{lv['sweeps']} sweeps, residual {'-' if math.isnan(res) else f'{res:.2e}'}, "
-                     f"{float(lv['seconds']):.3f} s")  # type: ignore[arg-type]
+                     f"{float(lv['seconds']):.3f} s"  # type: ignore[arg-type]
+                     + (f", texture {lv['texture']}" if "texture" in lv else ""))
         return line
 
 

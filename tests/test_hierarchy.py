@@ -246,6 +246,31 @@ def test_adaptive_pins_deep_nodes(ctx, hier):
     assert 0 < err < 0.05
 
 
+def test_adaptive_drops_unused_blocks(ctx):
+    """Figure 8's "removed from textures": on a 3x3x3-cube box the deep z-slices are dropped
+    from the finest level's textures, which get smaller, and the fluence is the same as with
+    every block kept (the nodes no level holds get the coarse value copied down)."""
+    pg = box_polygrid((3, 3, 3), 6, size=6.0)
+    h2 = Hierarchy.build(pg, 2)
+    p = _problem(pg)
+    depths = [pg.lattice.h, None]
+    out = {}
+    for drop in (True, False):
+        with MultilevelDiffusion(h2, p, "adaptive", ctx=ctx, depths=depths, drop_blocks=drop) as s:
+            out[drop], rep = s.solve(tol=1e-6)
+            rows = s.texture_rows()
+        assert rep.converged
+        if drop:
+            assert rows[0]["blocks"] < rows[0]["of_blocks"] and rows[0]["texels"] < rows[0]["full_texels"]
+            used = s.used[0]
+            assert not used.all() and np.all(used[pg.lattice.boundary])
+        else:
+            assert all(r["blocks"] == r["of_blocks"] for r in rows)
+    act = pg.active
+    assert np.isfinite(out[True]).all() and np.all(out[True][act] > 0)
+    np.testing.assert_allclose(out[True][act], out[False][act], rtol=1e-5, atol=1e-7)
+
+
 def test_frame_coherence_saves_sweeps(ctx, hier):
     """After a small light move, the previous frame's solution reaches a figure-15 error of
     1e-3 with under half the node updates of a cold hierarchical start."""

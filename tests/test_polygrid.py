@@ -122,6 +122,29 @@ def test_mosaic_round_trip_and_texels():
     np.testing.assert_array_equal(tex[xy[:, 1], xy[:, 0], :3], data)
 
 
+def test_mosaic_drops_blocks():
+    """A mosaic keeping some blocks tiles only those: smaller texture, the same values at the
+    kept nodes, texel (-1, -1) and the fill value at the dropped ones."""
+    kept = np.zeros(23, dtype=bool)
+    kept[[0, 3, 4, 10, 22]] = True
+    full, m = Mosaic(5, 5, 23, max_texture_size=64), Mosaic(5, 5, 23, max_texture_size=64, kept=kept)
+    assert m.n_slots == 5 and np.prod(m.texture_size) < np.prod(full.texture_size)
+    data = np.random.default_rng(1).normal(size=(23 * 25, 3)).astype(np.float32)
+    tex = m.pack(data)
+    assert tex.shape == (m.texture_size[1], m.texture_size[0], 4)
+    keep_nodes = m.kept_nodes()
+    back = m.unpack(tex, fill=-7.0).reshape(-1, 3)
+    np.testing.assert_array_equal(back[keep_nodes], data[keep_nodes])
+    assert np.all(back[~keep_nodes] == -7.0)
+    xy = m.texel(np.arange(23 * 25))
+    assert np.all(xy[~keep_nodes] == -1)
+    np.testing.assert_array_equal(tex[xy[keep_nodes, 1], xy[keep_nodes, 0], :3], data[keep_nodes])
+    with pytest.raises(InputError, match="at least one"):
+        Mosaic(5, 5, 23, kept=np.zeros(23, dtype=bool))
+    with pytest.raises(InputError, match="kept has shape"):
+        Mosaic(5, 5, 23, kept=np.ones(5, dtype=bool))
+
+
 def test_figure6_layout():
     """Cube c's slice z is texture block c * n + z: cubes in scan-line order, slices by increasing z."""
     pg = box_polygrid((2, 2, 1), 4)
