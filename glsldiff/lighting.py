@@ -24,6 +24,10 @@ Lights
     A point light times a smooth cone factor: 1 inside ``falloff_deg`` of the axis, 0 beyond
     ``cone_deg``, and the smoothstep ``t^2 (3 - 2 t)`` in between, with
     ``t = (cos a - cos cone) / (cos falloff - cos cone)`` and a the angle from the axis.
+:class:`ProjectorLight`
+    A pinhole projector: a point light whose radiant intensity towards x is ``intensity``
+    times its ``image`` sampled where x projects (:func:`projector_factor`): irradiance
+    ``I img(u, v) (n . w)^+ / r^2``, 0 outside the image's frustum and behind the projector.
 :class:`EnvironmentLight`
     A lat-long radiance map (see below).
 
@@ -37,7 +41,9 @@ interpolated position, so they are exact up to float32: along the light directio
 directional light (orthographic view fitted to the mesh's bounding sphere), Euclidean distance
 from the light for point and spot lights (a spot light up to ``cone_deg`` = 60 uses one
 perspective view of its cone, wider spots and point lights six 90-degree cube faces packed
-3 x 2 in one texture). Every shadow map is ``shadow_map_size`` squared per view.
+3 x 2 in one texture). A projector is shadowed as the hard-edged spot light whose cone
+circumscribes its frustum (:attr:`ProjectorLight.spot`). Every shadow map is
+``shadow_map_size`` squared per view.
 
 The map is read back and each point is compared in numpy against the *midpoint*
 ``(front + back) / 2`` of the first object along the light ray (Woo's midpoint shadow map,
@@ -108,8 +114,8 @@ from glsldiff.errors import InputError
 from glsldiff.optics import fresnel_transmittance
 
 __all__ = [
-    "DirectionalLight", "PointLight", "SpotLight", "EnvironmentLight", "Light",
-    "casts_shadows", "incident_light", "visibility", "spot_factor",
+    "DirectionalLight", "PointLight", "SpotLight", "ProjectorLight", "EnvironmentLight", "Light",
+    "casts_shadows", "incident_light", "visibility", "spot_factor", "projector_factor",
     "sh_basis", "sh_project", "sh_evaluate", "sh_irradiance", "transfer_coefficients",
     "fibonacci_directions", "latlong_directions",
     "BIAS_TEXELS", "BIAS_SLOPE", "MAX_BIAS_TAN", "ENV_SHADOW_MAP_MAX", "MAX_SH_ORDER",
@@ -296,6 +302,81 @@ class SpotLight:
 
 
 @dataclass(frozen=True, eq=False)
+class ProjectorLight:
+    """Pinhole projector casting an RGB image (the capture setup of Wang et al. 2008, sec. 4.1).
+
+    Parameters
+    ----------
+    position
+        ``(3,)`` centre of projection, mm.
+    direction
+        ``(3,)`` optical axis from the projector *into* the scene (normalised on construction).
+    image
+        ``(H, W, 3)`` float radiance-scale map, finite and >= 0, as seen from the projector:
+        row 0 is the top (towards ``up``), column 0 the projector's left. Stored as a
+        read-only float64 copy.
+    intensity
+        ``(3,)`` RGB radiant intensity of a white (1.0) pixel: irradiance
+        ``I img(u, v) cos / r^2`` at distance r mm.
+    up
+        ``(3,)`` the image's up direction (orthogonalised against ``direction``; normalised
+        on construction); must not be parallel to ``direction``.
+    fov_deg
+        Vertical full field of view in degrees, in (0, 180); the horizontal one follows
+        from the aspect ratio W / H.
+    shadows
+        Whether :func:`incident_light` renders a shadow map for it (that of :attr:`spot`).
+    """
+
+    position: tuple[float, float, float]
+    direction: tuple[float, float, float]
+    image: NDArray[np.float64]
+    intensity: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_deg: float = 30.0
+    shadows: bool = True
+
+    def __post_init__(self) -> None:
+        pos = _vector(self.position, "ProjectorLight.position")
+        object.__setattr__(self, "position", tuple(float(x) for x in pos))
+        fwd = _unit(self.direction, "ProjectorLight.direction")
+        up = _unit(self.up, "ProjectorLight.up")
+        if np.linalg.norm(np.cross(fwd, up)) < 1e-6:
+            raise InputError(f"ProjectorLight.up={self.up!r} is parallel to direction={self.direction!r}; "
+                             "give an up vector across the optical axis")
+        object.__setattr__(self, "direction", fwd)
+        object.__setattr__(self, "up", up)
+        img = _radiance_map(self.image, "ProjectorLight.image")
+        img.setflags(write=False)
+        object.__setattr__(self, "image", img)
+        object.__setattr__(self, "intensity", _rgb(self.intensity, "ProjectorLight.intensity"))
+        object.__setattr__(self, "fov_deg", _real(self.fov_deg, "ProjectorLight.fov_deg", 0.0, 180.0,
+                                                  lo_open=True, hi_open=True))
+        object.__setattr__(self, "shadows", _bool(self.shadows, "ProjectorLight.shadows"))
+
+    @property
+    def aspect(self) -> float:
+        """Image width over height."""
+        return self.image.shape[1] / self.image.shape[0]
+
+    @cached_property
+    def frame(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Unit ``right, up, forward`` of the projector (right-handed camera frame)."""
+        fwd = np.asarray(self.direction)
+        right = np.cross(fwd, self.up)
+        right /= np.linalg.norm(right)
+        return right, np.cross(right, fwd), fwd
+
+    @cached_property
+    def spot(self) -> SpotLight:
+        """The hard-edged spot light whose cone circumscribes the frustum (for shadow maps)."""
+        tan_half = math.tan(math.radians(self.fov_deg) / 2.0)
+        cone = math.degrees(math.atan(tan_half * math.hypot(1.0, self.aspect)))
+        return SpotLight(self.position, self.direction, self.intensity, cone_deg=cone, falloff_deg=cone,
+                         shadows=self.shadows)
+
+
+@dataclass(frozen=True, eq=False)
 class EnvironmentLight:
     """Distant radiance from every direction: a lat-long (equirectangular) map.
 
@@ -339,19 +420,19 @@ class EnvironmentLight:
         return self.scale * sh_project(self.image, self.order)
 
 
-Light = Union[DirectionalLight, PointLight, SpotLight, EnvironmentLight]
+Light = Union[DirectionalLight, PointLight, SpotLight, ProjectorLight, EnvironmentLight]
 _KINDS = {DirectionalLight: "directional", PointLight: "point", SpotLight: "spot",
-          EnvironmentLight: "environment"}
+          ProjectorLight: "projector", EnvironmentLight: "environment"}
+_KIND_NAMES = "a DirectionalLight, PointLight, SpotLight, ProjectorLight or EnvironmentLight"
 
 
 def casts_shadows(light: Light) -> bool:
     """Whether :func:`incident_light` needs shadow maps for ``light``."""
     if isinstance(light, EnvironmentLight):
         return light.visibility
-    if isinstance(light, (DirectionalLight, PointLight, SpotLight)):
+    if isinstance(light, (DirectionalLight, PointLight, SpotLight, ProjectorLight)):
         return light.shadows
-    raise InputError(f"light must be a DirectionalLight, PointLight, SpotLight or EnvironmentLight, "
-                     f"got {type(light).__name__}")
+    raise InputError(f"light must be {_KIND_NAMES}, got {type(light).__name__}")
 
 
 def spot_factor(light: SpotLight, cos_axis: ArrayLike) -> NDArray[np.float64]:
@@ -363,6 +444,40 @@ def spot_factor(light: SpotLight, cos_axis: ArrayLike) -> NDArray[np.float64]:
         return (c > c_cone).astype(np.float64)
     t = np.clip((c - c_cone) / (c_fall - c_cone), 0.0, 1.0)
     return t * t * (3.0 - 2.0 * t)
+
+
+def projector_factor(light: ProjectorLight, points: ArrayLike) -> NDArray[np.float64]:
+    """Image factor ``(N, 3)`` of a projector at ``points`` (N, 3) mm.
+
+    Each point is projected through the pinhole (vertical half angle ``fov_deg / 2``, aspect
+    W / H; image row 0 towards ``up``, column 0 on the projector's left) and the image is
+    sampled bilinearly (pixel centres at half-integer positions, clamped at the border);
+    0 outside the frustum and behind the projector. The irradiance on a surface is
+    ``intensity * factor * (n . w)^+ / r^2``.
+    """
+    if not isinstance(light, ProjectorLight):
+        raise InputError(f"light must be a ProjectorLight, got {type(light).__name__}")
+    p = _points(points)
+    img = light.image
+    H, W, _ = img.shape
+    right, up, fwd = light.frame
+    d = p - np.asarray(light.position)
+    z = d @ fwd
+    ok = z > 0.0
+    tan_half = math.tan(math.radians(light.fov_deg) / 2.0)
+    zs = np.where(ok, z, 1.0) * tan_half
+    nx, ny = (d @ right) / (zs * light.aspect), (d @ up) / zs
+    ok &= (np.abs(nx) <= 1.0) & (np.abs(ny) <= 1.0)
+    fx = (nx + 1.0) * 0.5 * W - 0.5
+    fy = (1.0 - ny) * 0.5 * H - 0.5
+    x0, y0 = np.floor(fx), np.floor(fy)
+    wx, wy = (fx - x0)[:, None], (fy - y0)[:, None]
+    x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+    xa, xb = np.clip(x0, 0, W - 1), np.clip(x0 + 1, 0, W - 1)
+    ya, yb = np.clip(y0, 0, H - 1), np.clip(y0 + 1, 0, H - 1)
+    out = ((1.0 - wy) * ((1.0 - wx) * img[ya, xa] + wx * img[ya, xb])
+           + wy * ((1.0 - wx) * img[yb, xa] + wx * img[yb, xb]))
+    return np.where(ok[:, None], out, 0.0)
 
 
 # ---------------------------------------------------------------------------------------
@@ -794,6 +909,8 @@ class _DepthRenderer:
 
     def shadow_map(self, light: Light, size: int, direction: NDArray[np.float64] | None = None
                    ) -> _ShadowMap:
+        if isinstance(light, ProjectorLight):
+            light = light.spot
         if isinstance(light, DirectionalLight) or direction is not None:
             w = np.asarray(light.direction if direction is None else direction, dtype=np.float64)
             return self.render(self.directional_view(w, size), size)
@@ -856,8 +973,7 @@ def _light_list(lights: Any) -> list[Light]:
         raise InputError(f"lights must be a sequence of lights, got {type(lights).__name__}") from None
     for i, light in enumerate(out):
         if not isinstance(light, tuple(_KINDS)):
-            raise InputError(f"lights[{i}] must be a DirectionalLight, PointLight, SpotLight or "
-                             f"EnvironmentLight, got {type(light).__name__}")
+            raise InputError(f"lights[{i}] must be {_KIND_NAMES}, got {type(light).__name__}")
     return out
 
 
@@ -881,14 +997,15 @@ def visibility(mesh: Any, points: ArrayLike, light: Light, ctx: moderngl.Context
     optional, set the slope part of the bias (see the module docstring). For an
     :class:`EnvironmentLight` the result is the ambient-occlusion fraction over its
     ``directions`` (weighted by ``(n . w)^+`` when normals are given, else unweighted), with
-    shadow maps of at most ``ENV_SHADOW_MAP_MAX`` texels.
+    shadow maps of at most ``ENV_SHADOW_MAP_MAX`` texels. For a :class:`ProjectorLight` it is
+    the shadowing alone (points outside the frustum count as lit); its image is
+    :func:`projector_factor`.
     """
     _mesh_arrays(mesh)
     p = _points(points)
     n = None if normals is None else _normals(normals, len(p))
     if not isinstance(light, tuple(_KINDS)):
-        raise InputError(f"light must be a DirectionalLight, PointLight, SpotLight or EnvironmentLight, "
-                         f"got {type(light).__name__}")
+        raise InputError(f"light must be {_KIND_NAMES}, got {type(light).__name__}")
     size = _size(shadow_map_size)
     if len(p) == 0:
         return np.ones(0)
@@ -949,7 +1066,8 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
     info
         One dict per light: ``light`` (kind), ``shadow_map`` (e.g. ``"1024x1024"``,
         ``"6 x 1024x1024 (cube)"``, ``"64 x 512x512"`` or ``"none (shadows off)"``),
-        ``seconds``, ``facing`` (points with n . w > 0, or with any lit direction),
+        ``seconds``, ``facing`` (points with n . w > 0, or with any lit direction; for a
+        projector also inside its frustum on a non-black pixel),
         ``shadowed`` (facing points with visibility < 0.5), ``max`` (largest E_t of the
         light, per channel), and for environments ``sh_order``, ``directions`` and (with
         visibility) ``mean_visibility``, the cosine-Fresnel weighted visible fraction.
@@ -983,6 +1101,9 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                     scale = np.where(r2 > 0, scale / np.where(r2 > 0, r2, 1.0), 0.0)
                 if isinstance(light, SpotLight):
                     scale = scale * spot_factor(light, -(w @ np.asarray(light.direction)))
+                if isinstance(light, ProjectorLight):
+                    radiometric = radiometric * projector_factor(light, p)     # (N, 3)
+                    scale = np.where(radiometric.any(axis=1), scale, 0.0)
                 facing = scale > 0
                 if needs_map:
                     assert renderer is not None
@@ -997,7 +1118,7 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                     info["shadow_map"] = "none (shadows off)"
                     info["shadowed"] = 0
                 info["facing"] = int(facing.sum())
-                e = scale[:, None] * radiometric[None, :]
+                e = scale[:, None] * np.atleast_2d(radiometric)
             total += e
             info["max"] = [float(x) for x in (e.max(axis=0) if len(e) else np.zeros(3))]
             info["seconds"] = time.perf_counter() - t0

@@ -14,8 +14,10 @@ Stages, in the one direction data flows (numpy arrays between them):
   warm-started from the previous frame's solution when only the light changed.
 * **pass 3** (t3, every frame): the mesh rasterised with moderngl; per vertex, the
   multiple-scattering term interpolated from the boundary nodes times ``F_t(eta, n.w_o)``,
-  plus Ward specular per light (per-vertex shadow visibility), plus optional single
-  scattering (:mod:`glsldiff.single`).
+  plus Ward specular per light (per-vertex shadow visibility; a projector's image factor,
+  :func:`glsldiff.lighting.projector_factor`, is folded into it as its channel mean, so the
+  highlight takes the intensity's colour), plus optional single scattering
+  (:mod:`glsldiff.single`, with the projector's RGB image factor).
 
 Exitant radiance (``[options].exitant``; ``phi`` fluence, ``E_t`` transmitted irradiance,
 ``C = (1 + Fdr)/(1 - Fdr)``; the solver's boundary condition is ``phi + 2 C kappa dphi/dn = q``):
@@ -54,7 +56,7 @@ from scipy.spatial import cKDTree
 from glsldiff import gl
 from glsldiff.errors import InputError
 from glsldiff.optics import boundary_constant, fdr
-from glsldiff.scene import LightSpec, Scene, vec
+from glsldiff.scene import LightSpec, Scene, read_light_image, vec
 
 MAX_SHADER_LIGHTS = 4  # lights with specular highlights in pass 3 (environment light: diffuse only)
 
@@ -219,7 +221,7 @@ uniform float u_eta;
 uniform float u_rho_s;
 uniform float u_alpha;
 uniform int u_nlights;
-uniform int u_type[MAX_LIGHTS];       // 0 directional, 1 point, 2 spot
+uniform int u_type[MAX_LIGHTS];       // 0 directional, 1 point (or projector), 2 spot
 uniform vec3 u_lvec[MAX_LIGHTS];      // directional: towards the light; point/spot: position (mm)
 uniform vec3 u_axis[MAX_LIGHTS];      // spot axis (from the light into the scene)
 uniform vec3 u_power[MAX_LIGHTS];     // directional: irradiance; point/spot: intensity
@@ -275,8 +277,8 @@ def _light_uniforms(lights: list[LightSpec]) -> dict[str, Any]:
         if lt.type == "directional":
             d = vec(lt.direction)
             typ[i], lvec[i], power[i] = 0, tuple(d / np.linalg.norm(d)), lt.irradiance
-        else:
-            typ[i], lvec[i], power[i] = (1 if lt.type == "point" else 2), lt.position, lt.intensity
+        else:  # a projector is a point light here: its image factor, 0 outside the frustum, is in v_vis
+            typ[i], lvec[i], power[i] = (2 if lt.type == "spot" else 1), lt.position, lt.intensity
             if lt.type == "spot":
                 axis[i] = lt.direction
                 cone[i] = (math.cos(math.radians(lt.cone_deg)), math.cos(math.radians(lt.falloff_deg)))
@@ -437,11 +439,15 @@ class Renderer:
         if lt.type == "spot":
             return lighting.SpotLight(vec(lt.position), vec(lt.direction) / np.linalg.norm(lt.direction),
                                       vec(lt.intensity), lt.cone_deg, lt.falloff_deg, lt.shadows)
-        from glsldiff.io import read_exr
-        return lighting.EnvironmentLight(np.asarray(read_exr(scene.resolve(lt.path)), np.float64), lt.scale)
+        if lt.type == "projector":
+            return lighting.ProjectorLight(vec(lt.position), vec(lt.direction),
+                                           read_light_image(scene.resolve(lt.image)), vec(lt.intensity),
+                                           up=lt.up if lt.up is not None else (0.0, 1.0, 0.0),
+                                           fov_deg=lt.fov_deg, shadows=lt.shadows)
+        return lighting.EnvironmentLight(read_light_image(scene.resolve(lt.path), exr_only=True), lt.scale)
 
     def _pass3(self, scene: Scene) -> NDArray[np.float32]:
-        from glsldiff.lighting import visibility
+        from glsldiff.lighting import projector_factor, visibility
 
         geo, opts = self._geo, scene.options
         v, f, nrm = geo["vertices"], geo["faces"], geo["normals"]
@@ -454,11 +460,15 @@ class Renderer:
         shader_lights = [lt for lt in scene.lights if lt.type != "environment"][:MAX_SHADER_LIGHTS]
         vis_key = _key(scene.mesh, scene.polygrid, scene.lights)
         if self._keys.get("vis") != vis_key:
-            vis = np.ones((len(v), 4))
+            # per shader light: shadow visibility (V,) and RGB image factor (V, 3), 1 but for projectors
+            vis, tint = np.ones((len(v), 4)), np.ones((len(v), 4, 3))
             for i, lt in enumerate(shader_lights):
+                light = self._light(lt, scene)
                 if lt.shadows:
-                    vis[:, i] = visibility(geo["mesh"], v, self._light(lt, scene), ctx=self.ctx, normals=nrm)
-            self._vis, self._keys["vis"] = vis, vis_key
+                    vis[:, i] = visibility(geo["mesh"], v, light, ctx=self.ctx, normals=nrm)
+                if lt.type == "projector":
+                    tint[:, i] = projector_factor(light, v)
+            self._vis, self._tint, self._keys["vis"] = vis, tint, vis_key
         eye, target, up = frame_camera(scene, v)
         ss = np.zeros_like(v)
         if opts.single_scattering:
@@ -468,7 +478,8 @@ class Renderer:
         dist = float(np.linalg.norm(eye - target))
         proj = perspective(scene.camera.fov_deg, w / h, max(1e-3, dist - 2 * radius), dist + 2 * radius)
         mvp = proj @ look_at(eye, target, up)
-        return shade(self.ctx, v, f, nrm, ms, self._vis, ss, shader_lights, eye, mvp, eta,
+        vis = self._vis * self._tint.mean(axis=2)   # the shader's visibility is one number per light
+        return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (w, h))
 
     def _single(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
@@ -506,7 +517,7 @@ class Renderer:
                     c0, c1 = math.cos(math.radians(lt.cone_deg)), math.cos(math.radians(lt.falloff_deg))
                     s = np.clip((c - c0) / max(c1 - c0, 1e-9), 0.0, 1.0)
                     E = E * (s * s * (3 - 2 * s))[:, None]
-            E = E * self._vis[:, i:i + 1]
+            E = E * self._vis[:, i:i + 1] * self._tint[:, i]
             out += single_scattering(v, nrm, view, np.ascontiguousarray(ldir), np.ascontiguousarray(E),
                                      medium, scene.material.eta)
         return out

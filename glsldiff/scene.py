@@ -26,11 +26,20 @@ silently ignored).
     core = "mean"             # inner core below the shell: a preset name or "mean"
     shell_mm = 4.0            # shell thickness (default: the block's depth)
 
-    [[lights]]                # directional | point | spot | environment
+    [[lights]]                # directional | point | spot | projector | environment
     type = "directional"
     direction = [0.3, 1.0, 0.6]   # towards the light
     irradiance = [1.0, 1.0, 1.0]
     shadows = true
+
+    [[lights]]                # a pinhole projector casting an image
+    type = "projector"
+    position = [0, 0, 200]
+    direction = [0, 0, -1]    # optical axis, into the scene
+    image = "pattern.png"     # OpenEXR (linear) or 8-bit PNG/JPEG (sRGB); row 0 towards up
+    up = [0, 1, 0]            # default [0, 1, 0]
+    fov_deg = 30.0            # vertical full field of view
+    intensity = [1e4, 1e4, 1e4]   # radiant intensity of a white pixel
 
     [camera]
     position = [0, 40, 250]
@@ -69,7 +78,7 @@ from glsldiff.errors import InputError
 from glsldiff.material import preset as lookup_preset
 
 PROCEDURAL = ("veins", "layers", "inclusions")
-LIGHT_TYPES = ("directional", "point", "spot", "environment")
+LIGHT_TYPES = ("directional", "point", "spot", "projector", "environment")
 SCHEMES = ("single", "hierarchical", "multigrid")
 EXITANT = ("p1", "arbree", "paper")
 
@@ -113,6 +122,9 @@ class LightSpec:
     path: str | None = None
     scale: float = 1.0
     shadows: bool = True
+    image: str | None = None                            # projector image file
+    up: tuple[float, float, float] | None = None        # projector up; None: (0, 1, 0)
+    fov_deg: float = 30.0                               # projector vertical field of view
 
 
 @dataclass(frozen=True)
@@ -168,6 +180,23 @@ class Scene:
 def _resolve(base_dir: Path, path: str) -> Path:
     p = Path(path).expanduser()
     return p if p.is_absolute() else base_dir / p
+
+
+def read_light_image(path: str | Path, exr_only: bool = False) -> NDArray[np.float64]:
+    """``(H, W, 3)`` linear RGB of a light's image file: OpenEXR as stored, or an 8-bit PNG or
+    JPEG (any file OpenCV decodes) converted BGR -> RGB and sRGB-decoded to [0, 1].
+    ``exr_only``: read every file as OpenEXR. Raises on a file that cannot be decoded."""
+    p = Path(path)
+    if exr_only or p.suffix.lower() == ".exr":
+        from glsldiff.io import read_exr
+        return np.asarray(read_exr(p), dtype=np.float64)
+    import cv2
+
+    bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"{p}: OpenCV cannot read it as an 8-bit PNG or JPEG")
+    c = bgr[..., ::-1].astype(np.float64) / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
 def default_scene() -> Scene:
@@ -288,12 +317,31 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
                         shell_mm=t.number("shell_mm", None, 0.0, lo_open=True))
 
 
+def _image_file(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool) -> str | None:
+    """``[table].key``, a light's image file (relative to the scene file), read once to check
+    that it exists, decodes (:func:`read_light_image`) and has finite pixels >= 0."""
+    path = t.string(key, None)
+    if path is None:
+        return None
+    p = _resolve(scene_dir, path)
+    if not p.is_file():
+        t.fail(key, f"{what} {str(p)!r} does not exist")
+    kind = "OpenEXR" if exr_only else "OpenEXR, PNG or JPEG"
+    try:
+        img = read_light_image(p, exr_only)
+    except Exception as exc:  # OpenEXR raises plain exceptions on corrupt files
+        t.fail(key, f"{what} {str(p)!r} is not a readable {kind} file ({' '.join(str(exc).split())})")
+    if not np.all(np.isfinite(img)) or img.min() < 0:
+        t.fail(key, f"{what} {str(p)!r} has negative or non-finite pixels")
+    return path
+
+
 def _light(t: _Table, scene_dir: Path) -> LightSpec:
     kind = t.data.get("type")
     if kind not in LIGHT_TYPES:
         t.fail("type", f"{kind!r} is not one of {', '.join(LIGHT_TYPES)}")
     need = {"directional": ("direction",), "point": ("position",), "spot": ("position", "direction"),
-            "environment": ("path",)}[kind]
+            "projector": ("position", "direction", "image"), "environment": ("path",)}[kind]
     for k in need:
         if not t.has(k):
             t.fail(k, f"a {kind} light needs {k}")
@@ -301,23 +349,25 @@ def _light(t: _Table, scene_dir: Path) -> LightSpec:
     falloff = t.number("falloff_deg", min(25.0, cone), 0.0)
     if falloff > cone:
         t.fail("falloff_deg", f"must be <= cone_deg ({cone}), got {falloff}")
-    path = t.string("path", None)
-    if path is not None:
-        p = _resolve(scene_dir, path)
-        if not p.is_file():
-            t.fail("path", f"environment map {str(p)!r} does not exist")
-        from glsldiff.io import read_exr
-        try:
-            img = read_exr(p)
-        except Exception as exc:  # OpenEXR raises plain exceptions on corrupt files
-            t.fail("path", f"environment map {str(p)!r} is not a readable OpenEXR file ({exc})")
-        if not np.all(np.isfinite(img)) or img.min() < 0:
-            t.fail("path", f"environment map {str(p)!r} has negative or non-finite pixels")
-    return LightSpec(kind, direction=t.vec3("direction", None, nonzero=True), position=t.vec3("position", None),
+    fov = t.number("fov_deg", 30.0, 0.0, lo_open=True)
+    if fov >= 180.0:
+        t.fail("fov_deg", f"must be < 180, got {fov}")
+    direction = t.vec3("direction", None, nonzero=True)
+    up = t.vec3("up", None, nonzero=True)
+    if kind == "projector":
+        u = up if up is not None else (0.0, 1.0, 0.0)
+        a, b = vec(direction), vec(u)
+        if np.linalg.norm(np.cross(a, b)) < 1e-6 * np.linalg.norm(a) * np.linalg.norm(b):
+            t.fail("up", f"{list(u)}{'' if up else ' (the default)'} is parallel to direction "
+                         f"{list(direction)}; give an up vector across the optical axis")
+    return LightSpec(kind, direction=direction, position=t.vec3("position", None),
                      irradiance=t.vec3("irradiance", (1.0, 1.0, 1.0), nonneg=True),
                      intensity=t.vec3("intensity", (1.0e4, 1.0e4, 1.0e4), nonneg=True),
-                     cone_deg=cone, falloff_deg=falloff, path=path, scale=t.number("scale", 1.0, 0.0),
-                     shadows=t.boolean("shadows", True))
+                     cone_deg=cone, falloff_deg=falloff,
+                     path=_image_file(t, "path", scene_dir, "environment map", exr_only=True),
+                     scale=t.number("scale", 1.0, 0.0), shadows=t.boolean("shadows", True),
+                     image=_image_file(t, "image", scene_dir, "projector image", exr_only=False),
+                     up=up, fov_deg=fov)
 
 
 _TABLES = {"mesh": MeshSpec, "polygrid": PolygridSpec, "material": MaterialSpec, "lights": LightSpec,

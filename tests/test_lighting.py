@@ -127,7 +127,7 @@ def test_directional_sphere_closed_form_and_far_side(ctx, sphere):
             assert np.all(v[cos < -0.15] == 0.0), "far side must be in shadow"
 
 
-@pytest.mark.parametrize("kind", ["directional", "point", "spot_cube", "spot"])
+@pytest.mark.parametrize("kind", ["directional", "point", "spot_cube", "spot", "projector"])
 def test_box_casts_shadow(ctx, two_boxes, slab_top, kind):
     pts, nrm = slab_top
     x, y = pts[:, 0], pts[:, 1]
@@ -145,6 +145,8 @@ def test_box_casts_shadow(ctx, two_boxes, slab_top, kind):
             light = L.PointLight(pos, I)
         elif kind == "spot_cube":  # wide cone: six cube views
             light = L.SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=80.0, falloff_deg=70.0)
+        elif kind == "projector":  # a white image whose frustum covers the slab (half width 17 mm)
+            light = L.ProjectorLight(pos, (0.0, 0.0, -1.0), np.ones((3, 4, 3)), I, fov_deg=60.0)
         else:
             light = L.SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=40.0, falloff_deg=35.0)
         # central projection from 30 mm above the slab: the box top (z = 17) casts the widest
@@ -261,6 +263,99 @@ def test_spot_cutoff_and_falloff(ctx, two_boxes):
     np.testing.assert_allclose(ratio, t * t * (3 - 2 * t), rtol=1e-9)
 
 
+# ---- projector ------------------------------------------------------------------------------------
+def _pixel_points(light, depth):
+    """Points at ``depth`` mm along the axis that project onto every pixel centre, (H, W, 3);
+    built from the documented convention (row 0 towards up, column 0 on the left)."""
+    H, W, _ = light.image.shape
+    t = math.tan(math.radians(light.fov_deg) / 2.0)
+    fwd = np.asarray(light.direction)
+    up = np.asarray(light.up) - (np.asarray(light.up) @ fwd) * fwd
+    up /= np.linalg.norm(up)
+    right = np.cross(fwd, up)
+    nx = (np.arange(W) + 0.5) / W * 2.0 - 1.0
+    ny = 1.0 - (np.arange(H) + 0.5) / H * 2.0
+    NY, NX = np.meshgrid(ny, nx, indexing="ij")
+    return (np.asarray(light.position) + depth * (fwd + (NX * t * W / H)[..., None] * right
+                                                  + (NY * t)[..., None] * up))
+
+
+def test_projector_pixel_irradiance_on_a_plane(ctx):
+    """E_t = I img(pixel) cos F_t / r^2 at the points each pixel centre lands on; bilinear between."""
+    rng = np.random.default_rng(3)
+    img = rng.uniform(0.0, 2.0, (5, 7, 3))
+    I = np.array([300.0, 200.0, 100.0])
+    pos = np.array([2.0, -3.0, 40.0])
+    light = L.ProjectorLight(pos, (0.1, 0.2, -1.0), img, I, up=(0.0, 1.0, 0.3), fov_deg=35.0, shadows=False)
+    # the plane z = 0, tilted against the axis: project the pixel rays onto it
+    centres = _pixel_points(light, 1.0) - pos                   # ray directions (H, W, 3)
+    p = (pos + centres * (-pos[2] / centres[..., 2])[..., None]).reshape(-1, 3)
+    n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
+    E, info = L.incident_light(M.box_mesh((1.0, 1.0, 1.0)), p, n, [light], eta=ETA)   # no shadow map
+    d = pos - p
+    r2 = (d**2).sum(axis=1)
+    cos = d[:, 2] / np.sqrt(r2)
+    expected = (cos * fresnel_t(ETA, cos) / r2)[:, None] * I * img.reshape(-1, 3)
+    np.testing.assert_allclose(E, expected, rtol=1e-9)
+    assert info[0]["light"] == "projector" and info[0]["shadow_map"] == "none (shadows off)"
+    np.testing.assert_allclose(L.projector_factor(light, p), img.reshape(-1, 3), rtol=1e-9)
+    # half way between two pixel centres (same row): the mean of the two pixels
+    mid = 0.5 * (_pixel_points(light, 25.0)[2, 3] + _pixel_points(light, 25.0)[2, 4])
+    np.testing.assert_allclose(L.projector_factor(light, mid[None])[0], 0.5 * (img[2, 3] + img[2, 4]), rtol=1e-9)
+
+
+def test_projector_is_dark_outside_its_frustum_and_behind_it(ctx):
+    light = L.ProjectorLight((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), np.ones((4, 8, 3)), 1.0, fov_deg=40.0,
+                             shadows=False)
+    t = math.tan(math.radians(20.0))
+    # on the axis, just inside / outside the top edge and the (2x wider) side edge, and behind
+    p = np.array([[0.0, 0.0, 10.0], [0.0, 0.99 * 10 * t, 10.0], [0.0, 1.01 * 10 * t, 10.0],
+                  [0.99 * 20 * t, 0.0, 10.0], [1.01 * 20 * t, 0.0, 10.0], [0.0, 0.0, -10.0],
+                  [0.0, 0.0, 0.0]])
+    n = np.tile([0.0, 0.0, -1.0], (len(p), 1))
+    n[5] = (0.0, 0.0, 1.0)                                   # the point behind faces the projector
+    E, info = L.incident_light(M.box_mesh((1.0, 1.0, 1.0)), p, n, [light], eta=ETA)
+    lit = np.array([True, True, False, True, False, False, False])
+    assert np.all(E[lit] > 0) and np.all(E[~lit] == 0.0), E
+    assert info[0]["facing"] == int(lit.sum())
+    np.testing.assert_array_equal(L.projector_factor(light, p)[:, 0] > 0, lit)
+
+
+def test_projector_image_orientation(ctx):
+    """Column 0 is the projector's left, row 0 its top (up), also for an oblique frame."""
+    left = np.zeros((4, 6, 3))
+    left[:, :3] = 1.0
+    top = np.zeros((4, 6, 3))
+    top[:2] = 1.0
+    # looking along +x with up +z: the projector's left is +y
+    kw = dict(position=(0.0, 0.0, 0.0), direction=(1.0, 0.0, 0.0), intensity=1.0, up=(0.0, 0.3, 1.0),
+              fov_deg=30.0, shadows=False)
+    p = np.array([[30.0, 3.0, 0.0], [30.0, -3.0, 0.0], [30.0, 0.0, 3.0], [30.0, 0.0, -3.0]])
+    n = np.tile([-1.0, 0.0, 0.0], (4, 1))
+    mesh = M.box_mesh((1.0, 1.0, 1.0))
+    E_left, _ = L.incident_light(mesh, p, n, [L.ProjectorLight(image=left, **kw)], eta=ETA)
+    E_top, _ = L.incident_light(mesh, p, n, [L.ProjectorLight(image=top, **kw)], eta=ETA)
+    assert E_left[0, 0] > 0 and E_left[1, 0] == 0.0        # +y (left) lit, -y dark
+    assert E_top[2, 0] > 0 and E_top[3, 0] == 0.0          # +z (up) lit, -z dark
+
+
+def test_projector_shadow_uses_the_spot_machinery(ctx, two_boxes, slab_top):
+    """The frustum-covering spot: same shadow map, so the same visibility as that spot light."""
+    light = L.ProjectorLight((10.0, 10.0, 40.0), (0.0, 0.0, -1.0), np.ones((2, 4, 3)), 1.0, fov_deg=40.0)
+    spot = light.spot
+    assert isinstance(spot, L.SpotLight) and spot.cone_deg == spot.falloff_deg
+    t = math.tan(math.radians(20.0))
+    assert math.isclose(math.tan(math.radians(spot.cone_deg)), t * math.hypot(1.0, 2.0))
+    pts, nrm = slab_top
+    v = L.visibility(two_boxes, pts, light, ctx=ctx, normals=nrm, shadow_map_size=256)
+    np.testing.assert_array_equal(v, L.visibility(two_boxes, pts, spot, ctx=ctx, normals=nrm,
+                                                  shadow_map_size=256))
+    assert (v == 0).sum() > 40 and (v == 1).sum() > 1000
+    assert L.casts_shadows(light) and not L.casts_shadows(L.ProjectorLight((0, 0, 1), (0, 0, -1),
+                                                                           np.ones((1, 1, 3)), 1.0,
+                                                                           shadows=False))
+
+
 # ---- environment light ---------------------------------------------------------------------------
 @pytest.mark.parametrize("vis", [False, True])
 @pytest.mark.parametrize("eta", [1.0, ETA])
@@ -354,9 +449,10 @@ def test_lights_add_up_and_release_gl_objects(ctx, sphere, monkeypatch):
     p, n = sphere.vertices, sphere.vertex_normals
     lights = [L.DirectionalLight((0, 0, 1), 1.0), L.PointLight((0, 30, 0), 50.0),
               L.SpotLight((30, 0, 0), (-1, 0, 0), 80.0, cone_deg=20, falloff_deg=10),
+              L.ProjectorLight((0, -30, 0), (0, 1, 0), np.full((4, 6, 3), 0.5), 80.0, up=(0, 0, 1)),
               L.EnvironmentLight(np.full((8, 16, 3), 0.1), directions=8)]
     E, info = L.incident_light(sphere, p, n, lights, eta=ETA, ctx=ctx, shadow_map_size=128)
-    assert [i["light"] for i in info] == ["directional", "point", "spot", "environment"]
+    assert [i["light"] for i in info] == ["directional", "point", "spot", "projector", "environment"]
     assert created and all(isinstance(o.mglo, moderngl.InvalidObject) for o in created), \
         "every GL object created by incident_light must be released"
     monkeypatch.undo()
@@ -366,7 +462,7 @@ def test_lights_add_up_and_release_gl_objects(ctx, sphere, monkeypatch):
     assert not L.casts_shadows(L.PointLight((0, 0, 0), 1.0, shadows=False))
     assert not L.casts_shadows(L.EnvironmentLight(np.ones((2, 4, 3)), visibility=False))
     empty, info = L.incident_light(sphere, np.zeros((0, 3)), np.zeros((0, 3)), lights, eta=ETA, ctx=ctx)
-    assert empty.shape == (0, 3) and len(info) == 4
+    assert empty.shape == (0, 3) and len(info) == 5
 
 
 # ---- bad input -------------------------------------------------------------------------------------------
@@ -390,6 +486,17 @@ def test_lights_add_up_and_release_gl_objects(ctx, sphere, monkeypatch):
     (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), order=9), "order"),
     (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), directions=0), "directions"),
     (lambda: L.sh_project(np.ones((4, 8, 4))), "image"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, fov_deg=0.0), "fov_deg"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, fov_deg=180.0), "fov_deg"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, up=(0, 0, 2)), "parallel"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 1, 0), np.ones((2, 2, 3)), 1.0), "parallel"),  # default up
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, up=(0, 0, 0)), "up"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), -np.ones((2, 2, 3)), 1.0), "image.*negative"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2)), 1.0), "image.*shape"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 4)), 1.0), "image.*shape"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.full((2, 2, 3), np.inf), 1.0), "image"),
+    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), -1.0), "intensity"),
+    (lambda: L.projector_factor(L.SpotLight((0, 0, 1), (0, 0, -1), 1.0), np.zeros((1, 3))), "ProjectorLight"),
 ])
 def test_bad_light_parameters(make, field):
     with pytest.raises(InputError, match=field) as exc:

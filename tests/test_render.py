@@ -129,3 +129,45 @@ def test_block_volume_through_a_shell(tmp_path, renderer):
     np.savez(tmp_path / "bad.npz", kappa=kappa)
     with pytest.raises(InputError, match=r"\[material\].volume"):
         renderer.render(_scene(material=MaterialSpec(preset=None, volume="bad.npz"), base_dir=tmp_path))
+
+
+def test_projector_lights_its_image_side_and_a_new_image_reruns_pass_1_only(tmp_path, renderer):
+    from PIL import Image
+
+    from glsldiff.scene import OptionsSpec
+
+    half = np.zeros((16, 32, 3), np.uint8)
+    half[:, :16] = 255                                 # white on the projector's left half
+    Image.fromarray(half, "RGB").save(tmp_path / "left.png")
+    io.write_exr(tmp_path / "right.exr", half[:, ::-1].astype(np.float32) / 255.0)
+    # projector and camera on +z looking at the sphere: the projector's left is image left (-x)
+    proj = LightSpec("projector", position=(0.0, 0.0, 60.0), direction=(0.0, 0.0, -1.0), image="left.png",
+                     intensity=(4000.0,) * 3, fov_deg=30.0)
+    scene = _scene(lights=(proj,), base_dir=tmp_path,
+                   camera=CameraSpec(position=(0.0, 0.0, 70.0), target=(0.0, 0.0, 0.0)))
+
+    def halves(img, silhouette, margin):
+        """Mean luminance of the object's left and right parts, ``margin`` columns off its middle."""
+        lum = img.mean(axis=2)
+        obj = silhouette.mean(axis=2) > 0
+        cols = np.broadcast_to(np.arange(lum.shape[1]), lum.shape)
+        mid = 0.5 * (cols[obj].min() + cols[obj].max())
+        return lum[obj & (cols < mid - margin)].mean(), lum[obj & (cols > mid + margin)].mean()
+
+    img, rep = renderer.render(scene)
+    assert np.all(np.isfinite(img)) and img.min() >= 0.0
+    left, right = halves(img, img, 2)
+    assert left > 3.0 * right > 0.0, (left, right)     # lit half; diffusion carries some light across
+    # pass 3: specular and single scattering (per-vertex image factor) stay on the lit side
+    img2, rep2 = renderer.render(dataclasses.replace(scene, specular=SpecularSpec(0.05, 0.2),
+                                                     options=OptionsSpec(single_scattering=True)))
+    assert not rep2.ran("pass1") and not rep2.ran("pass2")
+    gain = halves(img2 - img, img, 4)                  # beyond the image edge's ramp (pixel + vertex)
+    assert gain[0] > 0.01 * left and gain[1] == 0.0, gain
+    # only the image changed: pass 1 runs again (pass 2 warm-started), no re-packing
+    flipped = dataclasses.replace(scene, lights=(dataclasses.replace(proj, image="right.exr"),))
+    img3, rep3 = renderer.render(flipped)
+    assert rep3.ran("pass1") and rep3.ran("pass2") and not rep3.ran("setup") and not rep3.ran("material")
+    left3, right3 = halves(img3, img3, 2)
+    assert right3 > 3.0 * left3 > 0.0, (left3, right3)
+    np.testing.assert_allclose(img3, img[:, ::-1], rtol=0.05, atol=1e-3 * img.max())   # the mirror image

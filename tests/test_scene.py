@@ -105,3 +105,59 @@ def test_relative_paths_resolve_against_the_scene_folder(tmp_path):
     io.write_exr(tmp_path / "env.exr", np.ones((8, 16, 3), np.float32))
     s = load_scene(_write(tmp_path, GOOD + '\n[[lights]]\ntype = "environment"\npath = "env.exr"\nscale = 0.5\n'))
     assert s.resolve(s.lights[1].path) == tmp_path / "env.exr"
+
+
+PROJECTOR = '\n[[lights]]\ntype = "projector"\nposition = [0, 0, 60]\ndirection = [0, 0, -1]\nimage = "{image}"\n'
+
+
+def test_projector_light_parses_and_its_png_is_decoded_from_srgb(tmp_path):
+    from PIL import Image
+
+    from glsldiff import io
+    from glsldiff.scene import read_light_image
+
+    rgb8 = np.array([[[255, 0, 0], [0, 128, 0]], [[0, 0, 10], [255, 255, 255]]], np.uint8)
+    Image.fromarray(rgb8, "RGB").save(tmp_path / "pattern.png")
+    s = load_scene(_write(tmp_path, GOOD + PROJECTOR.format(image="pattern.png")))
+    lt = s.lights[1]
+    assert lt.type == "projector" and lt.image == "pattern.png" and lt.up is None and lt.fov_deg == 30.0
+    assert s.resolve(lt.image) == tmp_path / "pattern.png"
+    img = read_light_image(s.resolve(lt.image))
+    c = rgb8 / 255.0                                          # sRGB decode, in RGB order
+    np.testing.assert_allclose(img, np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4), rtol=1e-12)
+    assert img[0, 0, 0] == 1.0 and img[0, 0, 1] == 0.0 and abs(img[0, 1, 1] - 0.2158605) < 1e-6
+    # an OpenEXR image is taken as linear, with up and fov_deg given
+    io.write_exr(tmp_path / "pattern.exr", np.full((3, 4, 3), 2.5, np.float32))
+    s = load_scene(_write(tmp_path, GOOD + PROJECTOR.format(image="pattern.exr") + "up = [1, 0, 0]\nfov_deg = 50\n"))
+    assert s.lights[1].up == (1.0, 0.0, 0.0) and s.lights[1].fov_deg == 50.0
+    np.testing.assert_array_equal(read_light_image(s.resolve(s.lights[1].image)), 2.5)
+
+
+@pytest.mark.parametrize("extra, image, field, match", [
+    ("", "none.png", "image", "projector image .* does not exist"),
+    ("", "broken.png", "image", "not a readable OpenEXR, PNG or JPEG file"),
+    ("", "broken.exr", "image", "not a readable OpenEXR, PNG or JPEG file"),
+    ("fov_deg = 180.0\n", "ok.png", "fov_deg", "must be < 180"),
+    ("fov_deg = 0\n", "ok.png", "fov_deg", "must be >"),
+    ("up = [0, 0, 2]\n", "ok.png", "up", "parallel to direction"),
+])
+def test_bad_projector_fields(tmp_path, extra, image, field, match):
+    from PIL import Image
+
+    Image.fromarray(np.zeros((2, 2, 3), np.uint8), "RGB").save(tmp_path / "ok.png")
+    (tmp_path / "broken.png").write_bytes(b"not a png")
+    (tmp_path / "broken.exr").write_bytes(b"not an exr")
+    with pytest.raises(InputError, match=rf"\[lights\.1\]\.{field}: .*{match}") as e:
+        load_scene(_write(tmp_path, GOOD + PROJECTOR.format(image=image) + extra))
+    assert "\n" not in str(e.value)
+
+
+def test_projector_needs_an_image_and_a_default_up_across_its_axis(tmp_path):
+    with pytest.raises(InputError, match=r"\[lights\.1\]\.image: a projector light needs image"):
+        load_scene(_write(tmp_path, GOOD + PROJECTOR.replace('image = "{image}"\n', "")))
+    from PIL import Image
+
+    Image.fromarray(np.zeros((2, 2, 3), np.uint8), "RGB").save(tmp_path / "ok.png")
+    text = GOOD + PROJECTOR.format(image="ok.png").replace("direction = [0, 0, -1]", "direction = [0, -2, 0]")
+    with pytest.raises(InputError, match=r"\[lights\.1\]\.up: .*\(the default\) is parallel"):
+        load_scene(_write(tmp_path, text))
