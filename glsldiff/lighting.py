@@ -977,8 +977,11 @@ def _light_list(lights: Any) -> list[Light]:
     return out
 
 
-def _ft(eta: float, cos: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Fresnel transmittance for cosines clipped to [0, 1] (0 where cos <= 0)."""
+def _ft(eta: float | None, cos: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Fresnel transmittance for cosines clipped to [0, 1] (0 where cos <= 0); 1 for
+    ``eta=None`` (the incident irradiance, no interface)."""
+    if eta is None:
+        return np.where(cos > 0.0, 1.0, 0.0)
     c = np.clip(cos, 0.0, 1.0)
     return np.where(cos > 0.0, np.asarray(fresnel_transmittance(eta, c)), 0.0)
 
@@ -1036,7 +1039,7 @@ def _to_light(light: Light, p: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Sequence[Light],
-                   eta: float, ctx: moderngl.Context | None = None,
+                   eta: float | None, ctx: moderngl.Context | None = None,
                    shadow_map_size: int = 1024) -> tuple[NDArray[np.float64], list[dict[str, Any]]]:
     """Transmitted irradiance at boundary nodes (pass 1; formulas in the module docstring).
 
@@ -1051,7 +1054,8 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
     lights
         Lights (a single light is accepted too).
     eta
-        Relative refractive index n_inside / n_outside, > 0.
+        Relative refractive index n_inside / n_outside, > 0; ``None``: the incident
+        irradiance (no Fresnel factor), e.g. for a diffuse surface reflectance.
     ctx
         GL context for the shadow maps; default :func:`glsldiff.gl.get_context` (only
         created when some light needs a shadow map).
@@ -1075,7 +1079,7 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
     _mesh_arrays(mesh)
     p = _points(points)
     n = _normals(normals, len(p))
-    eta_v = _real(eta, "eta", 0.0, math.inf, lo_open=True, hi_open=True)
+    eta_v = None if eta is None else _real(eta, "eta", 0.0, math.inf, lo_open=True, hi_open=True)
     light_list = _light_list(lights)
     size = _size(shadow_map_size)
     total = np.zeros((len(p), 3))
@@ -1129,7 +1133,7 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
     return total, infos
 
 
-def _environment(light: EnvironmentLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float,
+def _environment(light: EnvironmentLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float | None,
                  renderer: _DepthRenderer | None, size: int, info: dict[str, Any]) -> NDArray[np.float64]:
     coeffs = light.sh
     info["sh_order"] = light.order

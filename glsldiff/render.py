@@ -17,7 +17,9 @@ Stages, in the one direction data flows (numpy arrays between them):
   plus Ward specular per light (per-vertex shadow visibility; a projector's image factor,
   :func:`glsldiff.lighting.projector_factor`, is folded into it as its channel mean, so the
   highlight takes the intensity's colour), plus optional single scattering
-  (:mod:`glsldiff.single`, with the projector's RGB image factor).
+  (:mod:`glsldiff.single`, with the projector's RGB image factor), plus an optional
+  measured diffuse surface reflectance ``rho_d / pi * E`` (``[material].reflectance``,
+  :mod:`glsldiff.inverse.reflectance`; ``E`` the incident irradiance with shadows).
 
 Exitant radiance (``[options].exitant``; ``phi`` fluence, ``E_t`` transmitted irradiance,
 ``C = (1 + Fdr)/(1 - Fdr)``; the solver's boundary condition is ``phi + 2 C kappa dphi/dn = q``):
@@ -43,7 +45,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -473,6 +475,8 @@ class Renderer:
         ss = np.zeros_like(v)
         if opts.single_scattering:
             ss = self._single(scene, eye)
+        if scene.material.reflectance is not None:
+            ss = ss + self._surface_diffuse(scene)
         w, h = scene.output.width, scene.output.height
         radius = 0.5 * float(np.linalg.norm(np.ptp(v, axis=0)))
         dist = float(np.linalg.norm(eye - target))
@@ -481,6 +485,25 @@ class Renderer:
         vis = self._vis * self._tint.mean(axis=2)   # the shader's visibility is one number per light
         return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (w, h))
+
+    def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:
+        """Per-vertex measured diffuse surface reflection ``rho_d / pi * E`` (Lambertian), with
+        ``E`` the incident irradiance of all lights (shadows, environment visibility);
+        cached until the lights, the geometry or the reflectance change (a change of the
+        reflectance alone re-runs neither the material stage nor pass 1-2)."""
+        from glsldiff.lighting import incident_light
+        from glsldiff.volume import surface_reflectance
+
+        geo = self._geo
+        rho_key = _key(self._keys.get("geometry"), scene.material.reflectance, scene.material.volume)
+        if self._keys.get("rho") != rho_key:
+            self._rho, self._keys["rho"] = geo["interp"] @ surface_reflectance(scene, geo["pg"]), rho_key
+        key = _key(rho_key, self._keys.get("light"))
+        if self._keys.get("diffuse") != key:
+            E, _ = incident_light(geo["mesh"], geo["vertices"], geo["normals"],
+                                  [self._light(lt, scene) for lt in scene.lights], None, ctx=self.ctx)
+            self._diffuse, self._keys["diffuse"] = self._rho * E / math.pi, key
+        return self._diffuse
 
     def _single(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
         from glsldiff.single import single_scattering
@@ -527,7 +550,8 @@ class Renderer:
         """One frame: ``(h, w, 3)`` linear radiance (row 0 = top) and the report."""
         rep = RenderReport(renderer=gl.describe(self.ctx), image_size=(scene.output.width, scene.output.height))
         geo_key = _key(scene.mesh, scene.polygrid, str(scene.base_dir))
-        mat_key = _key(geo_key, scene.material, scene.options.scheme, scene.options.precision, str(scene.base_dir))
+        mat_key = _key(geo_key, replace(scene.material, reflectance=None),  # pass 3 alone uses the reflectance
+                       scene.options.scheme, scene.options.precision, str(scene.base_dir))
         light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir))
         solve_key = _key(mat_key, light_key, scene.options.tol)
 
@@ -568,7 +592,9 @@ class Renderer:
         rep.solver = self._solve_report
         rep.clamped_vertices = self._clamped
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
-                         f"single scattering: {'on' if scene.options.single_scattering else 'off'}")
+                         f"single scattering: {'on' if scene.options.single_scattering else 'off'}; "
+                         f"diffuse surface reflectance: "
+                         f"{'off' if scene.material.reflectance is None else scene.material.reflectance}")
         for info in getattr(self, "_light_info", []):
             rep.notes.append("light: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                                                    for k, v in info.items()))

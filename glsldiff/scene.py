@@ -25,6 +25,9 @@ silently ignored).
     volume = "block.npz"      # kappa, mu (nz, ny, nx, 3) and h_mm; mapped through a shell layer
     core = "mean"             # inner core below the shell: a preset name or "mean"
     shell_mm = 4.0            # shell thickness (default: the block's depth)
+    reflectance = 0.03        # optional diffuse surface albedo added in pass 3 (scalar or RGB), or
+                              # "rho.exr": a measured map over the block's face, tiled like the volume
+                              # (glsldiff.inverse.reflectance)
 
     [[lights]]                # directional | point | spot | projector | environment
     type = "directional"
@@ -108,6 +111,7 @@ class MaterialSpec:
     volume: str | None = None
     core: str = "mean"
     shell_mm: float | None = None
+    reflectance: tuple[float, float, float] | str | None = None   # diffuse surface albedo, or a map (EXR)
 
 
 @dataclass(frozen=True)
@@ -311,14 +315,24 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
         p = _resolve(scene_dir, volume)
         if not p.is_file():
             t.fail("volume", f"file {str(p)!r} does not exist")
+    reflectance: Any = None
+    if isinstance(t.data.get("reflectance"), str):
+        if volume is None:
+            t.fail("reflectance", "a reflectance map tiles like the block volume: give [material].volume too, "
+                                  "or a constant albedo")
+        reflectance = _image_file(t, "reflectance", scene_dir, "reflectance map", exr_only=True)
+    else:
+        reflectance = t.vec3("reflectance", None, nonneg=True)
+        if reflectance is not None and max(reflectance) > 1.0:
+            t.fail("reflectance", f"a diffuse albedo must be in [0, 1], got {list(reflectance)}")
     return MaterialSpec(preset=name, sigma_a=sa, sigma_s_prime=ss, eta=t.number("eta", 1.3, 0.0, lo_open=True),
                         procedural=t.string("procedural", None, PROCEDURAL), vein=vein,
                         seed=t.integer("seed", 0, 0), volume=volume, core=core,
-                        shell_mm=t.number("shell_mm", None, 0.0, lo_open=True))
+                        shell_mm=t.number("shell_mm", None, 0.0, lo_open=True), reflectance=reflectance)
 
 
 def _image_file(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool) -> str | None:
-    """``[table].key``, a light's image file (relative to the scene file), read once to check
+    """``[table].key``, an image file (relative to the scene file), read once to check
     that it exists, decodes (:func:`read_light_image`) and has finite pixels >= 0."""
     path = t.string(key, None)
     if path is None:

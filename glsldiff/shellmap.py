@@ -368,3 +368,23 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
         "seconds": time.perf_counter() - t0,
     }
     return kappa, mu, info
+
+
+def map_surface(pg: Polygrid, image: ArrayLike, period_mm: tuple[float, float],
+                tiling: Tiling = "wrap") -> Array:
+    """A map over the block's captured face (e.g. the measured diffuse reflectance,
+    :mod:`glsldiff.inverse.reflectance`), ``(H, W, C)`` covering ``period_mm`` = (x, y)
+    extent in mm, read at the boundary nodes, ``(n_boundary, C)``, with the same surface
+    coordinates and tiling as :func:`map_shell` (bilinear, pixel centres at integer
+    coordinates like the block's voxels)."""
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 3 or not np.all(np.isfinite(img)):
+        raise InputError(f"a surface map must be a finite (H, W, C) array, got shape {img.shape}")
+    px, py = (_positive("period_mm", p, "map extent, mm") for p in period_mm)
+    if tiling not in ("wrap", "mirror"):
+        raise InputError(f"tiling={tiling!r}; choose 'wrap' or 'mirror'")
+    geo = shell_coordinates(pg, depth_from="nodes")
+    b = pg.lattice.boundary
+    h, w = img.shape[:2]
+    return _trilinear(img[None], geo["u"][b] / (px / w), geo["v"][b] / (py / h), np.zeros(b.size), tiling)
+

@@ -11,6 +11,10 @@
 
 Blending happens on the optical coefficients (sigma_a, sigma_s'), then kappa and mu are
 derived, so every node stays physical.
+
+:func:`surface_reflectance` gives the optional diffuse surface albedo at the boundary
+nodes: a constant, or a measured map over the block's face tiled like the volume
+(:func:`glsldiff.shellmap.map_surface`).
 """
 from __future__ import annotations
 
@@ -79,6 +83,37 @@ def blend_weight(kind: str, positions: NDArray, seed: int) -> NDArray[np.float64
     raise InputError(f"unknown procedural volume {kind!r}")
 
 
+def _block(scene: Scene) -> tuple[NDArray, NDArray, float]:
+    """kappa, mu and h_mm of the scene's block volume file."""
+    path = scene.resolve(scene.material.volume)
+    try:
+        with np.load(path) as z:
+            return np.asarray(z["kappa"], float), np.asarray(z["mu"], float), float(z["h_mm"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"{scene.source}: [material].volume: {str(path)!r} is not an npz with kappa, mu "
+                         f"and h_mm ({exc})") from exc
+
+
+def surface_reflectance(scene: Scene, polygrid: Any) -> NDArray[np.float64] | None:
+    """``(n_boundary, 3)`` diffuse surface albedo at the boundary nodes, or ``None`` without
+    ``[material].reflectance``. A map has one pixel per block voxel (``h_mm``) in x-y, e.g.
+    the face nodes of :func:`glsldiff.inverse.reflectance.diffuse_reflectance`, and is tiled
+    like the volume; values are clipped to [0, 1]."""
+    r = scene.material.reflectance
+    if r is None:
+        return None
+    nb = len(polygrid.boundary_positions)
+    if not isinstance(r, str):
+        return np.tile(np.asarray(r, dtype=np.float64), (nb, 1))
+    from glsldiff.io import read_exr
+    from glsldiff.shellmap import map_surface
+
+    _, _, h = _block(scene)
+    img = np.asarray(read_exr(scene.resolve(r)), np.float64)[..., :3]
+    rho = map_surface(polygrid, img, (img.shape[1] * h, img.shape[0] * h))
+    return np.clip(rho, 0.0, 1.0)
+
+
 def node_material(scene: Scene, positions: NDArray, polygrid: Any = None) -> tuple[NDArray, NDArray, dict]:
     """``(N, 3)`` kappa (mm) and mu (mm^-1) at ``positions`` (mm), and a small info dict."""
     spec = scene.material
@@ -88,12 +123,7 @@ def node_material(scene: Scene, positions: NDArray, polygrid: Any = None) -> tup
         from glsldiff.shellmap import map_shell
 
         path = scene.resolve(spec.volume)
-        try:
-            with np.load(path) as z:
-                kb, mb, h = np.asarray(z["kappa"], float), np.asarray(z["mu"], float), float(z["h_mm"])
-        except (OSError, KeyError, ValueError) as exc:
-            raise InputError(f"{scene.source}: [material].volume: {str(path)!r} is not an npz with kappa, mu "
-                             f"and h_mm ({exc})") from exc
+        kb, mb, h = _block(scene)
         core: Any = spec.core if spec.core == "mean" else preset(spec.core)
         kappa, mu, info = map_shell(polygrid, kb, mb, h, core=core, thickness_mm=spec.shell_mm)
         return kappa.reshape(-1, 3), mu.reshape(-1, 3), {"material": f"volume {path.name} via shell", **info}

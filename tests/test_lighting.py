@@ -373,6 +373,20 @@ def test_environment_constant_on_sphere(ctx, sphere, vis, eta):
     assert info[0]["shadow_map"] == ("32 x 256x256" if vis else "none (visibility off)")
 
 
+def test_incident_irradiance_without_interface(ctx, sphere):
+    """``eta=None``: the irradiance arriving at the surface (no Fresnel factor), as a diffuse
+    surface reflectance needs: E0 cos for a directional light, pi L for a constant sky."""
+    p, n = sphere.vertices, sphere.vertex_normals
+    light = L.DirectionalLight(direction=(0.0, 0.0, 1.0), irradiance=(1.0, 2.0, 3.0))
+    E, _ = L.incident_light(sphere, p, n, [light], eta=None, ctx=ctx)
+    cos = n[:, 2]
+    lit = cos > 0.1
+    np.testing.assert_allclose(E[lit], cos[lit, None] * np.array([1.0, 2.0, 3.0]), rtol=1e-12)
+    env = L.EnvironmentLight(np.full((24, 48, 3), 0.5), visibility=False)
+    E, _ = L.incident_light(sphere, p, n, [env], eta=None, ctx=ctx)
+    np.testing.assert_allclose(E, math.pi * 0.5, rtol=0.01)
+
+
 def test_environment_linear_map_convention(ctx, sphere):
     """L = 1 + 0.5 x + 0.3 y + 0.2 z: E(n) = pi + 2 pi / 3 (0.5 n_x + 0.3 n_y + 0.2 n_z) at eta 1,
     and on +z with Fresnel: 2 pi int (1 + 0.2 t) t F_t dt."""

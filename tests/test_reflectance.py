@@ -67,3 +67,23 @@ def test_bad_input():
     back = Measurements(meas.shape, meas.h, "z-", "z+", meas.incoming, meas.radiance, eta=meas.eta)
     with pytest.raises(InputError, match="front-lit"):
         diffuse_reflectance(back, kappa, mu, 0, 1.0)
+
+
+def test_command_writes_the_map_the_renderer_reads(tmp_path, capsys):
+    from glsldiff import io
+    from glsldiff.cli import main
+    from glsldiff.inverse.measurements import save_measurements
+
+    E = np.array([2.0, 1.5, 1.0])
+    rho_true = np.linspace(0.01, 0.05, 8 * 10 * 3).reshape(8, 10, 3)
+    meas, kappa, mu, _ = _uniform_front(rho_true, E)
+    save_measurements(tmp_path / "m.npz", meas)
+    np.savez(tmp_path / "mat.npz", kappa=kappa, mu=mu, stencil="conservative")
+    out = tmp_path / "rho.exr"
+    assert main(["reflectance", str(tmp_path / "m.npz"), str(tmp_path / "mat.npz"), "--irradiance", "2", "1.5",
+                 "1", "-o", str(out)]) == 0
+    np.testing.assert_allclose(io.read_exr(out), rho_true, rtol=1e-5)
+    assert "rho_d" in capsys.readouterr().out
+    assert main(["reflectance", str(tmp_path / "m.npz"), str(tmp_path / "mat.npz"), "-o",
+                 str(tmp_path / "r.png")]) != 0
+    assert "must be an .exr" in capsys.readouterr().err and not (tmp_path / "r.png").exists()

@@ -171,3 +171,38 @@ def test_projector_lights_its_image_side_and_a_new_image_reruns_pass_1_only(tmp_
     left3, right3 = halves(img3, img3, 2)
     assert right3 > 3.0 * left3 > 0.0, (left3, right3)
     np.testing.assert_allclose(img3, img[:, ::-1], rtol=0.05, atol=1e-3 * img.max())   # the mirror image
+
+
+def test_diffuse_surface_reflectance_adds_rho_E_over_pi_in_pass_3_only(tmp_path, renderer):
+    """``[material].reflectance``: the image gains rho/pi * E (Lambertian, incident irradiance
+    without Fresnel) and changing only the reflectance re-runs pass 3 alone."""
+    from glsldiff.scene import MaterialSpec
+
+    cam = CameraSpec(position=(0.0, 0.0, 60.0), target=(0.0, 0.0, 0.0))
+    base = _scene(camera=cam)
+    img0, _ = renderer.render(base)
+    lit = dataclasses.replace(base, material=dataclasses.replace(base.material, reflectance=(0.2, 0.1, 0.0)))
+    img1, rep = renderer.render(lit)
+    assert [p["pass"] for p in rep.passes if p["ran"]] == ["pass3"]
+    assert "diffuse surface reflectance: (0.2, 0.1, 0.0)" in rep.notes[0]
+    h, w = img0.shape[:2]
+    c = (slice(h // 2 - 2, h // 2 + 2), slice(w // 2 - 2, w // 2 + 2))   # faces the light and the camera
+    added = (img1[c] - img0[c]).reshape(-1, 3).mean(axis=0)
+    np.testing.assert_allclose(added, np.array([0.2, 0.1, 0.0]) / np.pi, rtol=0.03, atol=1e-6)
+
+    # a measured map tiles over the block's face: one pixel per voxel (h_mm), here two halves
+    from glsldiff.material import coefficients
+
+    kappa, mu = coefficients(np.full((4, 8, 8, 3), 0.01), np.full((4, 8, 8, 3), 1.0))
+    np.savez(tmp_path / "block.npz", kappa=kappa, mu=mu, h_mm=2.5)
+    rho = np.zeros((8, 8, 3), np.float32)
+    rho[:, :4] = 0.3
+    io.write_exr(tmp_path / "rho.exr", rho)
+    mat = MaterialSpec(preset=None, volume="block.npz", core="marble", reflectance="rho.exr")
+    img2, _ = renderer.render(_scene(camera=cam, material=mat, base_dir=tmp_path))
+    none, _ = renderer.render(_scene(camera=cam, material=dataclasses.replace(mat, reflectance=None),
+                                     base_dir=tmp_path))
+    diff = (img2 - none).mean(axis=2)
+    assert diff.min() >= -1e-6 and 0.0 < diff.max() <= 0.3 / np.pi * 1.05
+    obj = diff[none.mean(axis=2) > 0]       # both halves of the map show (exact layout: test_shellmap)
+    assert 0.2 < (obj > 0.5 * obj.max()).mean() < 0.9 and (obj < 0.3 * obj.max()).mean() > 0.1

@@ -161,3 +161,28 @@ def test_projector_needs_an_image_and_a_default_up_across_its_axis(tmp_path):
     text = GOOD + PROJECTOR.format(image="ok.png").replace("direction = [0, 0, -1]", "direction = [0, -2, 0]")
     with pytest.raises(InputError, match=r"\[lights\.1\]\.up: .*\(the default\) is parallel"):
         load_scene(_write(tmp_path, text))
+
+
+@pytest.mark.parametrize("value, match", [
+    ("1.5", "in \\[0, 1\\]"),
+    ("[0.1, -0.1, 0.2]", "negative"),
+    ('"rho.exr"', "give \\[material\\].volume too"),
+])
+def test_bad_reflectance(tmp_path, value, match):
+    text = GOOD.replace('preset = "skin1"', f'preset = "skin1"\nreflectance = {value}')
+    with pytest.raises(InputError, match=match) as e:
+        load_scene(_write(tmp_path, text))
+    assert "[material].reflectance" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_reflectance_constant_and_map(tmp_path):
+    from glsldiff import io
+
+    s = load_scene(_write(tmp_path, GOOD.replace('preset = "skin1"', 'preset = "skin1"\nreflectance = 0.04')))
+    assert s.material.reflectance == (0.04, 0.04, 0.04)
+    np.savez(tmp_path / "block.npz", kappa=np.ones((2, 3, 3, 3)), mu=np.zeros((2, 3, 3, 3)), h_mm=1.0)
+    text = GOOD.replace('preset = "skin1"', 'volume = "block.npz"\nreflectance = "rho.exr"')
+    with pytest.raises(InputError, match="reflectance map .* does not exist"):
+        load_scene(_write(tmp_path, text))
+    io.write_exr(tmp_path / "rho.exr", np.full((3, 3, 3), 0.05, np.float32))
+    assert load_scene(_write(tmp_path, text)).material.reflectance == "rho.exr"

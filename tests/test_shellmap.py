@@ -13,7 +13,7 @@ from glsldiff.mesh import sphere_mesh
 from glsldiff.polygrid import box_polygrid, build_polygrid
 from glsldiff.problem import DiffusionProblem
 from glsldiff.lattice import STEPS
-from glsldiff.shellmap import FACE_FRAMES, map_shell, shell_coordinates
+from glsldiff.shellmap import FACE_FRAMES, map_shell, map_surface, shell_coordinates
 
 RGB_A = np.array([1.0, 2.0, 4.0])
 RGB_S = np.array([1.0, 0.8, 0.6])
@@ -156,6 +156,25 @@ def test_tiling_period_and_face_frames():
     bottom, gb = _face(pg, 4)  # -z face: u = -x, u / h = -gx - 0.5
     st = _sigma_t(kappa, bottom)
     np.testing.assert_allclose(st, 0.5 * (vals[(-gb[:, 0] - 1) % 3] + vals[-gb[:, 0] % 3]), rtol=1e-12)
+
+
+def test_surface_map_reads_like_the_block_top_layer():
+    """A face map (one pixel per voxel) lands at the boundary nodes exactly where the block's
+    top layer does (same coordinates and tiling), on every face of a box."""
+    pg = box_polygrid((4, 2, 2), 4, size=2.0)
+    vals = np.array([1.0, 2.0, 4.0])
+    kb, mb = _x_block(vals, ny=2)
+    kappa, _, _ = map_shell(pg, kb, mb, 0.5)
+    top = 1.0 / (3.0 * kb[0])                                  # (ny, nx, 3) sigma_t of the top layer
+    got = map_surface(pg, top, (3 * 0.5, 2 * 0.5))
+    b = pg.lattice.boundary
+    np.testing.assert_allclose(got, 1.0 / (3.0 * kappa.reshape(-1, 3)[b]), rtol=1e-12)
+    twice = map_surface(pg, top, (3.0, 2.0))                   # a map over twice the extent
+    assert not np.allclose(twice, got)
+    with pytest.raises(InputError, match="surface map"):
+        map_surface(pg, top[..., 0], (1.5, 1.0))
+    with pytest.raises(InputError, match="period_mm"):
+        map_surface(pg, top, (0.0, 1.0))
 
 
 def test_v_is_up_on_side_faces_and_y_on_top():

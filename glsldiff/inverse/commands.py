@@ -55,6 +55,17 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("--no-png", action="store_true", help="skip the depth-slice pictures")
     p.set_defaults(func=cmd_fit)
 
+    p = sub.add_parser("reflectance", help="measured diffuse surface reflectance (paper sec. 6.1): a uniformly "
+                                          "lit front image minus the fitted material's multiple scattering")
+    p.add_argument("measurements", help="front-lit .npz measurements holding the uniformly lit condition")
+    p.add_argument("material", help="fitted material .npz (glsldiff fit -o)")
+    p.add_argument("--condition", type=int, default=0, help="index of the uniformly lit condition")
+    p.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
+                   help="irradiance of the uniform light (1 or 3 values, camera units x sr); "
+                        "default: the condition's q / F_t at normal incidence")
+    p.add_argument("-o", "--out", default="reflectance.exr", help="albedo map (.exr), [material].reflectance")
+    p.set_defaults(func=cmd_reflectance)
+
     b = bsub.add_parser("fit", help="inverse diffusion: figure 11 (E vs measurements, vs iterations), "
                                     "figure 13 (lambda), CPU vs GLSL forward solves")
     b.add_argument("--size", type=int, nargs=3, default=(32, 32, 8), metavar=("NX", "NY", "NZ"))
@@ -90,16 +101,17 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_truth(path: str, shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -> tuple[np.ndarray, np.ndarray]:
+    """kappa, mu of a material ``.npz`` on the measurements' grid ``shape``."""
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"--truth file {path!r} does not exist")
+        raise InputError(f"{what} {path!r} does not exist")
     with np.load(p) as d:
         if "kappa" not in d.files or "mu" not in d.files:
-            raise InputError(f"--truth file {path!r} lacks kappa/mu")
+            raise InputError(f"{what} {path!r} lacks kappa/mu")
         k, m = d["kappa"], d["mu"]
     if k.shape[:3] != tuple(shape) or m.shape != k.shape:
-        raise InputError(f"--truth volumes have shape {k.shape}, the measurements' grid is {tuple(shape)}")
+        raise InputError(f"{what} volumes have shape {k.shape}, the measurements' grid is {tuple(shape)}")
     return k, m
 
 
@@ -158,6 +170,30 @@ def cmd_fit(args: argparse.Namespace) -> int:
         depth_slices(png, result.kappa, result.mu, meas.h, truth=truth)
         print(f"wrote {png}")
     print(f"wrote {out} and {out.with_name(out.stem + '_trace.csv')} in {result.seconds:.1f} s")
+    return 0
+
+
+def cmd_reflectance(args: argparse.Namespace) -> int:
+    from glsldiff.inverse.measurements import load_measurements
+    from glsldiff.inverse.reflectance import diffuse_reflectance
+    from glsldiff.io import write_exr
+
+    out = check_writable(args.out)
+    if out.suffix.lower() != ".exr":
+        raise InputError(f"output {str(out)!r} must be an .exr file")
+    if args.irradiance is not None and len(args.irradiance) not in (1, 3):
+        raise InputError(f"--irradiance takes 1 or 3 values, got {len(args.irradiance)}")
+    meas = load_measurements(args.measurements)
+    k, m = _load_truth(args.material, meas.shape, "material file")
+    with np.load(args.material) as d:
+        stencil = str(d["stencil"]) if "stencil" in d.files else "conservative"
+        face_mean = str(d["face_mean"]) if "face_mean" in d.files else "arithmetic"
+    r = diffuse_reflectance(meas, k, m, args.condition, args.irradiance, stencil, face_mean)
+    write_exr(out, r.rho.astype(np.float32), {"glsldiff": "diffuse surface reflectance, one pixel per block "
+                                                          f"node of face {meas.observed_face}"})
+    print(r.summary())
+    print(f"wrote {out} ({r.rho.shape[1]}x{r.rho.shape[0]}); use it as [material].reflectance with the "
+          "block volume")
     return 0
 
 
