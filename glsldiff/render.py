@@ -257,7 +257,11 @@ void main() {
         else {
             vec3 d = u_lvec[i] - v_pos; float r2 = dot(d, d); wi = d * inversesqrt(r2);
             E = u_power[i] / r2;
-            if (u_type[i] == 2) E *= smoothstep(u_cone[i].x, u_cone[i].y, dot(-wi, normalize(u_axis[i])));
+            if (u_type[i] == 2) {  // lighting.spot_factor; a hard edge where falloff = cone
+                float c = dot(-wi, normalize(u_axis[i]));
+                E *= u_cone[i].y - u_cone[i].x > 1e-6 ? smoothstep(u_cone[i].x, u_cone[i].y, c)
+                                                      : step(u_cone[i].x, c);
+            }
         }
         float ci = dot(n, wi);
         if (ci <= 0.0) continue;
@@ -506,6 +510,7 @@ class Renderer:
         return self._diffuse
 
     def _single(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
+        from glsldiff.lighting import spot_factor
         from glsldiff.single import single_scattering
         from glsldiff.volume import node_material
 
@@ -536,10 +541,8 @@ class Renderer:
                 ldir = d / np.sqrt(r2)
                 E = vec(lt.intensity) / r2
                 if lt.type == "spot":
-                    c = -(ldir @ (vec(lt.direction) / np.linalg.norm(lt.direction)))
-                    c0, c1 = math.cos(math.radians(lt.cone_deg)), math.cos(math.radians(lt.falloff_deg))
-                    s = np.clip((c - c0) / max(c1 - c0, 1e-9), 0.0, 1.0)
-                    E = E * (s * s * (3 - 2 * s))[:, None]
+                    light = self._light(lt, scene)
+                    E = E * spot_factor(light, -(ldir @ np.asarray(light.direction)))[:, None]
             E = E * self._vis[:, i:i + 1] * self._tint[:, i]
             out += single_scattering(v, nrm, view, np.ascontiguousarray(ldir), np.ascontiguousarray(E),
                                      medium, scene.material.eta)

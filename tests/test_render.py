@@ -206,3 +206,19 @@ def test_diffuse_surface_reflectance_adds_rho_E_over_pi_in_pass_3_only(tmp_path,
     assert diff.min() >= -1e-6 and 0.0 < diff.max() <= 0.3 / np.pi * 1.05
     obj = diff[none.mean(axis=2) > 0]       # both halves of the map show (exact layout: test_shellmap)
     assert 0.2 < (obj > 0.5 * obj.max()).mean() < 0.9 and (obj < 0.3 * obj.max()).mean() > 0.1
+
+
+def test_hard_edged_spot_light(renderer):
+    """falloff = cone (allowed by scenes) is a hard edge in pass 1 and in the pass-3 shader
+    (GLSL's smoothstep is undefined for equal edges)."""
+    spot = LightSpec("spot", position=(0.0, 0.0, 60.0), direction=(0.0, 0.0, -1.0), intensity=(4000.0,) * 3,
+                     cone_deg=6.0, falloff_deg=6.0)
+    scene = _scene(lights=(spot,), camera=CameraSpec(position=(0.0, 0.0, 60.0), target=(0.0, 0.0, 0.0)),
+                   specular=SpecularSpec(0.5, 0.3))
+    img, _ = renderer.render(scene)
+    flat, _ = renderer.render(dataclasses.replace(scene, specular=SpecularSpec(0.0, 0.3)))
+    spec = (img - flat).mean(axis=2)
+    assert np.all(np.isfinite(img)) and spec.min() >= -1e-6
+    h, w = spec.shape
+    assert spec[h // 2, w // 2] > 0.0          # the highlight under the cone ...
+    assert spec[h // 2, w // 2 + w // 4 + 1] == 0.0  # ... none outside it (7.5 mm off axis: 8 deg > 6)
