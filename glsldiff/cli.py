@@ -86,10 +86,12 @@ def cmd_validate(args: argparse.Namespace) -> int:
     from glsldiff.validate import validate
 
     rows = validate(args.cases, Path(args.out), size=args.size, spp=args.spp)
-    print_table("diffusion renderer vs Mitsuba 3 volpath (multiple scattering) and the dipole", rows)
+    print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
+                "eta != 1: surface reflection removed) and the dipole", rows)
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
           "image's own relative standard error; times in seconds (diffusion: t1+t2+t3 of a frame).")
-    print(f"wrote validation.csv and validation_<case>.png (diffusion | MC multiple | MC all) to {args.out}/")
+    print(f"wrote validation.csv and validation_<case>.png (diffusion | MC multiple, or subsurface at eta != 1 "
+          f"| MC all, with the reflection at eta != 1) to {args.out}/")
     return 0
 
 
@@ -232,9 +234,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("validate", help="render validation scenes with diffusion and with Mitsuba 3 "
                                         "(pip install glsldiff[validation]); relative RMSE and times")
-    p.add_argument("--cases", nargs="+", default=["slab", "sphere", "sphere-albedo0.9", "sphere-veins"])
+    p.add_argument("--cases", nargs="+", default=["slab", "sphere", "sphere-albedo0.9", "sphere-veins",
+                                                  "sphere-constant", "sphere-eta1.3-constant", "sphere-sky",
+                                                  "sphere-eta1.3-sky"],
+                   help="validation cases (glsldiff.validate.CASES)")
     p.add_argument("--size", type=int, default=64, help="image side, pixels")
-    p.add_argument("--spp", type=int, default=256, help="Monte Carlo samples per pixel")
+    p.add_argument("--spp", type=int, default=256, help="Monte Carlo samples per pixel (a power of two >= 8: "
+                   "split into 2-4 renders of 4^k samples, all Mitsuba's low-discrepancy sampler takes)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)

@@ -26,11 +26,19 @@ Model
       :class:`~glsldiff.errors.InputError` (use ``eta = 1``, or an environment light).
   ``{"type": "constant", "radiance": (3,)}``
       Uniform environment radiance [RGB] from every direction.
-  ``{"type": "envmap", "image": (H, W, 3), "scale": float}``
-      Lat-long environment radiance [RGB] in Mitsuba's ``envmap`` convention, no ``to_world``:
-      row 0 is the +y pole, the last row the -y pole; along a row the columns run through the
-      directions -z (u = 0), +x (u = 1/4), +z (u = 1/2), -x (u = 3/4), u = (column + 0.5) / W
-      (measured, and pinned by a test). Bilinear lookup. ``scale`` (default 1) multiplies it.
+  ``{"type": "envmap", "image": (H, W, 3), "scale": float, "frame": "y_up" | "z_up"}``
+      Lat-long environment radiance [RGB], bilinear lookup; ``scale`` (default 1) multiplies it.
+      ``frame = "y_up"`` (default): Mitsuba's own ``envmap`` convention, no ``to_world``. Row
+      centres lie at the polar angle theta = pi row / (H - 1) from +y (row 0 *on* the +y pole,
+      the last row on the -y pole); column centres at u = (column + 0.5) / W, u running
+      through the directions -z (u = 0), +x (u = 1/4), +z (u = 1/2), -x (u = 3/4), wrapping
+      around (all measured, and pinned by a test). ``frame = "z_up"``: the convention of
+      :class:`glsldiff.lighting.EnvironmentLight` (row centres at theta = pi (row + 0.5) / H
+      from +z; azimuth phi = -pi + 2 pi u from +x towards +y, u = (column + 0.5) / W, so
+      u = 1/4 is -y, 1/2 is +x, 3/4 is +y). It is mapped onto Mitsuba's by mirroring the
+      columns (u -> 1 - u, exact), resampling the rows linearly in theta onto Mitsuba's row
+      centres, and the ``to_world`` rotation that sends Mitsuba's local (x, y, z) to world
+      (y, z, x); a test compares directions against :func:`glsldiff.lighting.latlong_directions`.
 
 - Camera: :class:`McCamera`, a pinhole with a *vertical* field of view (Mitsuba ``perspective``
   with ``fov_axis = "y"``); box reconstruction filter, so every pixel is the plain mean of its
@@ -71,7 +79,9 @@ boundary):
 
 With a dielectric boundary every refraction and internal reflection also counts (the camera ray
 entering is depth 1), so ``max_depth`` does not separate scattering orders there;
-:func:`render_scattering_orders` refuses ``eta != 1``.
+:func:`render_scattering_orders` refuses ``eta != 1``. What *can* be separated at any eta is the
+surface reflection: :func:`render_subsurface` renders the object a second time with an opaque,
+purely absorbing interior (same seed, low-discrepancy sampler) and subtracts.
 
 Noise
 -----
@@ -104,8 +114,8 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.errors import BackendError, InputError
 from glsldiff.mesh import Mesh
 
-__all__ = ["McCamera", "render_mitsuba", "render_scattering_orders", "single_scattering_share",
-           "LIGHT_TYPES", "RGB_VARIANTS"]
+__all__ = ["McCamera", "render_mitsuba", "render_scattering_orders", "render_subsurface",
+           "single_scattering_share", "LIGHT_TYPES", "RGB_VARIANTS", "ENV_FRAMES"]
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +123,12 @@ log = logging.getLogger(__name__)
 LIGHT_TYPES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "directional": (("direction", "irradiance"), ()),
     "constant": (("radiance",), ()),
-    "envmap": (("image",), ("scale",)),
+    "envmap": (("image",), ("scale", "frame")),
 }
+#: Lat-long conventions of an envmap light (module docstring).
+ENV_FRAMES = ("y_up", "z_up")
+#: Extinction [mm^-1] of the opaque, purely absorbing interior of :func:`render_subsurface`.
+OPAQUE_SIGMA_A = 1.0e4
 #: Mitsuba variants usable here (RGB rendering: spectral variants would upsample coefficients).
 RGB_VARIANTS = ("scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb")
 _VOLUME_KEYS = ("sigma_a", "sigma_s", "bbox_min", "bbox_max")
@@ -240,7 +254,10 @@ def _check_light(light: Any, eta: float) -> dict[str, Any]:
     scale = float(_finite_array("light['scale']", light.get("scale", 1.0)))
     if scale <= 0:
         raise InputError(f"light['scale'] must be > 0, got {scale}")
-    return {"type": "envmap", "image": img, "scale": scale}
+    frame = light.get("frame", "y_up")
+    if frame not in ENV_FRAMES:
+        raise InputError(f"light['frame'] = {frame!r} must be one of {', '.join(ENV_FRAMES)}")
+    return {"type": "envmap", "image": img, "scale": scale, "frame": frame}
 
 
 def _check_volume(volume: Any) -> dict[str, Any]:
@@ -381,8 +398,25 @@ def _emitter(mi: Any, light: dict[str, Any]) -> dict[str, Any]:
                 "irradiance": {"type": "rgb", "value": light["irradiance"].tolist()}}
     if light["type"] == "constant":
         return {"type": "constant", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}
-    bitmap = mi.Bitmap(np.ascontiguousarray(light["image"], dtype=np.float32))
-    return {"type": "envmap", "bitmap": bitmap, "scale": light["scale"]}
+    img = light["image"]
+    out: dict[str, Any] = {"type": "envmap", "scale": light["scale"]}
+    if light["frame"] == "z_up":
+        img = _z_up_to_mitsuba(img)
+        out["to_world"] = mi.ScalarTransform4f([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
+    out["bitmap"] = mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32))
+    return out
+
+
+def _z_up_to_mitsuba(img: NDArray[np.float64]) -> NDArray[np.float64]:
+    """A ``z_up`` (glsldiff) lat-long map as the bitmap of a Mitsuba ``envmap`` whose
+    ``to_world`` sends local (x, y, z) to world (y, z, x) (module docstring): columns mirrored,
+    rows resampled linearly in polar angle from glsldiff's row centres theta = pi (i + 0.5) / H
+    to Mitsuba's theta = pi j / (H - 1) (clamped to the first and last rows at the poles)."""
+    h = img.shape[0]
+    x = np.interp(np.arange(h) * np.pi / (h - 1), (np.arange(h) + 0.5) * np.pi / h, np.arange(h, dtype=float))
+    i0 = np.minimum(np.floor(x).astype(int), h - 2)
+    f = (x - i0)[:, None, None]
+    return ((1.0 - f) * img[i0] + f * img[i0 + 1])[:, ::-1]
 
 
 def _sensor(mi: Any, cam: McCamera, spp: int, seed: int, sampler: str) -> dict[str, Any]:
@@ -430,11 +464,13 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
         Depth from which volpath uses Russian roulette; default: never (see module docstring).
     sampler
         ``"independent"`` (any ``spp``) or ``"ldsampler"`` (Mitsuba's low-discrepancy sampler;
-        ``spp`` must be a power of two). With ``"ldsampler"`` each sample's random numbers depend
-        only on (pixel, sample index, dimension), so renders that differ only in ``max_depth``
-        share their path prefixes exactly (used by :func:`render_scattering_orders`); the
-        independent sampler draws from one stream per image block, so a path that stops earlier
-        shifts the numbers of all later samples.
+        ``spp`` must be a power of 4: 4, 16, 64, 256, ...; Mitsuba rounds any other count up
+        to one, 8 to 16 and 128 to 256, and renders that many). With ``"ldsampler"`` each
+        sample's random numbers depend only on (pixel, sample index, dimension), so renders
+        that differ only in ``max_depth`` (or in the medium) share their path prefixes exactly
+        (used by :func:`render_scattering_orders` and :func:`render_subsurface`); the
+        independent sampler draws from one stream per image block, so a path that stops
+        earlier shifts the numbers of all later samples.
     channels
         ``"auto"``: one RGB render if sigma_t = sigma_a + sigma_s is the same in the three
         channels (everywhere, for a volume), else ``"split"``; ``"split"``: one render per channel
@@ -472,8 +508,9 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
     rr_depth = _positive_int("rr_depth", rr_depth)
     if sampler not in _SAMPLERS:
         raise InputError(f"sampler must be one of {', '.join(_SAMPLERS)}, got {sampler!r}")
-    if sampler == "ldsampler" and spp & (spp - 1):
-        raise InputError(f"spp = {spp} must be a power of two with sampler='ldsampler'")
+    if sampler == "ldsampler" and (spp < 4 or spp & (spp - 1) or spp.bit_length() % 2 == 0):
+        raise InputError(f"spp = {spp} must be a power of 4 (4, 16, 64, 256, ...) with sampler='ldsampler' "
+                         "(Mitsuba would silently round it up to one)")
     if channels not in _CHANNEL_MODES:
         raise InputError(f"channels must be one of {', '.join(_CHANNEL_MODES)}, got {channels!r}")
     if volume is None:
@@ -530,7 +567,7 @@ def render_scattering_orders(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: Arr
     """Split the image into unscattered, single and multiple scattering (index-matched only).
 
     Renders three times with the same seed and ``sampler="ldsampler"`` (so ``spp`` must be a
-    power of two): ``max_depth`` = 1 (order 0), 2 (orders 0-1) and -1 (all orders), and
+    power of 4): ``max_depth`` = 1 (order 0), 2 (orders 0-1) and -1 (all orders), and
     subtracts. With a null boundary ``max_depth`` counts exactly the real scattering events
     (module docstring). The low-discrepancy sampler gives sample i of a pixel the same random
     number in dimension d in all three renders, and a truncated path consumes them in the same
@@ -542,7 +579,8 @@ def render_scattering_orders(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: Arr
     were seen in a chromatic medium.
 
     Raises InputError for ``eta != 1``: a dielectric boundary's refractions and internal
-    reflections are counted by ``max_depth`` too, so orders cannot be separated that way.
+    reflections are counted by ``max_depth`` too, so orders cannot be separated that way (use
+    :func:`render_subsurface`, which separates the surface reflection from all scattering orders).
 
     Returns
     -------
@@ -563,6 +601,38 @@ def render_scattering_orders(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: Arr
     full, info = render_mitsuba(*args, max_depth=-1, **kw)
     images = {"unscattered": low0, "single": low1 - low0, "multiple": full - low1, "full": full}
     return images, dict(info, seconds_total=i0["seconds"] + i1["seconds"] + info["seconds"])
+
+
+def render_subsurface(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None, eta: float,
+                      camera: McCamera, light: Mapping[str, Any], spp: int = 256, seed: int = 0,
+                      volume: Mapping[str, Any] | None = None, variant: str = "scalar_rgb", *,
+                      rr_depth: int = _NO_ROULETTE, channels: str = "auto"
+                      ) -> tuple[dict[str, NDArray[np.float32]], dict[str, Any]]:
+    """Split the image into the surface reflection and the light that entered the medium (any eta).
+
+    Renders twice with the same seed and ``sampler="ldsampler"`` (``spp`` a power of 4): the
+    object as given (``"full"``), and the same boundary around an opaque, purely absorbing
+    interior (sigma_a = :data:`OPAQUE_SIGMA_A` mm^-1, sigma_s = 0: light that refracts in dies
+    within about a micrometre), which leaves only what the boundary reflects (``"reflection"``;
+    zero on the object for ``eta == 1``). ``"subsurface"`` = full - reflection is the light that
+    entered the medium, all scattering orders (plus the unscattered light transmitted straight
+    through, exp(-sigma_t chord), negligible in dense media). As in
+    :func:`render_scattering_orders`, the low-discrepancy sampler gives the two renders the same
+    random numbers, and a path uses them identically until it first enters the medium (camera
+    ray, Fresnel choice at the boundary, reflected rays); so every reflected path cancels exactly,
+    pixels off the object are exactly 0, and the subtraction adds no noise of its own. For a
+    non-convex object, reflected light that refracts in elsewhere counts as subsurface.
+
+    Returns ``({"reflection", "subsurface", "full"}, info)``, images ``(H, W, 3)`` float32; info is
+    the full render's plus ``"seconds_total"`` for both renders.
+    """
+    args = (mesh, sigma_a, sigma_s, eta, camera, light, spp, seed, volume)
+    kw = dict(variant=variant, rr_depth=rr_depth, sampler="ldsampler", channels=channels)
+    full, info = render_mitsuba(*args, max_depth=-1, **kw)
+    kw["channels"] = info["channels"]  # the same render mode, so the reflected paths are the same
+    surface, i1 = render_mitsuba(mesh, OPAQUE_SIGMA_A, 0.0, eta, camera, light, spp, seed, None, **kw)
+    images = {"reflection": surface, "subsurface": full - surface, "full": full}
+    return images, dict(info, seconds_total=info["seconds"] + i1["seconds"])
 
 
 def single_scattering_share(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None,

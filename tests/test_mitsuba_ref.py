@@ -15,8 +15,10 @@ pytest.importorskip("mitsuba")
 
 from glsldiff.errors import BackendError, InputError  # noqa: E402
 from glsldiff.mesh import box_mesh  # noqa: E402
+from glsldiff.lighting import latlong_directions  # noqa: E402
 from glsldiff.mitsuba_ref import (  # noqa: E402
-    McCamera, _probe_variant, render_mitsuba, render_scattering_orders, single_scattering_share,
+    McCamera, _probe_variant, render_mitsuba, render_scattering_orders, render_subsurface,
+    single_scattering_share,
 )
 
 CONST = {"type": "constant", "radiance": 2.0}
@@ -120,7 +122,8 @@ def test_image_orientation_and_determinism(cam):
 
 
 def test_envmap_orientation():
-    """Lat-long convention: row 0 is +y; columns run -z, +x, +z, -x (u = 0, 1/4, 1/2, 3/4)."""
+    """Lat-long convention: row 0 is +y; columns run -z, +x, +z, -x (u = 0, 1/4, 1/2, 3/4); row
+    centres at theta = pi row / (H - 1) (30 degrees from +y: row 7/6)."""
     h, w = 8, 16
     env = np.ones((h, w, 3))
     env[..., 0] = np.arange(h)[:, None] + 0.5  # R = row centre
@@ -128,12 +131,50 @@ def test_envmap_orientation():
     speck = box_mesh((0.01, 0.01, 0.01), origin=(1000, 1000, 1000))  # out of view
     for view, up, row, col in [((0, 1, 0), (0, 0, 1), 0.5, None), ((0, -1, 0), (0, 0, 1), h - 0.5, None),
                                ((1, 0, 0), (0, 1, 0), h / 2, w / 4), ((0, 0, 1), (0, 1, 0), h / 2, w / 2),
-                               ((-1, 0, 0), (0, 1, 0), h / 2, 3 * w / 4)]:
+                               ((-1, 0, 0), (0, 1, 0), h / 2, 3 * w / 4),
+                               ((0, 3 ** 0.5, -1), (1, 0, 0), 7 / 6 + 0.5, None)]:
         eye = McCamera((0, 0, 0), view, up, 1.0, 1, 1)
         px, _ = render_mitsuba(speck, 0.0, 0.0, 1.0, eye, {"type": "envmap", "image": env}, spp=4)
         assert abs(px[0, 0, 0] - row) < 0.1, (view, px[0, 0])
         if col is not None:
             assert abs(px[0, 0, 1] - col) < 0.1, (view, px[0, 0])
+
+
+def test_envmap_z_up_frame():
+    """frame = "z_up": the glsldiff lat-long convention (glsldiff.lighting.latlong_directions).
+    A map holding 1 + its own pixel-centre direction returns 1 + d for any view direction d (up
+    to bilinear interpolation of sines: about 0.005 at 32 x 64; at the poles, where the map's
+    first and last rows vary with azimuth by sin(pi / 2h) = 0.05, to that)."""
+    h, w = 32, 64
+    env = 1.0 + latlong_directions(h, w)[0]
+    speck = box_mesh((0.01, 0.01, 0.01), origin=(1000, 1000, 1000))  # out of view
+    views = np.vstack([np.eye(3), -np.eye(3), np.random.default_rng(5).normal(size=(8, 3))])
+    for v in views / np.linalg.norm(views, axis=1, keepdims=True):
+        up = (0, 0, 1) if abs(v[2]) < 0.9 else (0, 1, 0)
+        eye = McCamera((0, 0, 0), tuple(v), up, 0.5, 1, 1)
+        px, _ = render_mitsuba(speck, 0.0, 0.0, 1.0, eye, {"type": "envmap", "image": env, "frame": "z_up"}, spp=4)
+        tol = 0.06 if abs(v[2]) > 0.99 else 0.015
+        np.testing.assert_allclose(px[0, 0], 1.0 + v, atol=tol, err_msg=str(v))
+
+
+def test_subsurface_split(cube, cam):
+    """Lossless medium behind a dielectric (eta = 1.3) in a uniform field L = 2 (white furnace):
+    the face seen at normal incidence reflects F0 L and passes (1 - F0) L back out of the medium,
+    F0 = ((eta - 1) / (eta + 1))^2; reflected paths cancel exactly (same random numbers), so the
+    split is exact and pixels off the object are exactly 0 in the subsurface image."""
+    f0 = (0.3 / 2.3) ** 2
+    ims, info = render_subsurface(cube, 0.0, 1.0, 1.3, cam, CONST, spp=256, seed=3)
+    centre = (slice(4, 12), slice(4, 12))
+    np.testing.assert_allclose(ims["reflection"][centre].mean(axis=(0, 1)), 2.0 * f0, rtol=0.1)
+    np.testing.assert_allclose(ims["subsurface"][centre].mean(axis=(0, 1)), 2.0 * (1.0 - f0), rtol=0.002)
+    np.testing.assert_allclose(ims["full"], 2.0, rtol=1e-4)
+    np.testing.assert_allclose(ims["reflection"] + ims["subsurface"], ims["full"], atol=1e-6)
+    assert ims["subsurface"].min() >= 0.0 and np.all(ims["subsurface"][0, 0] == 0.0)
+    assert info["seconds_total"] >= info["seconds"] and info["sampler"] == "ldsampler"
+    # index matched: nothing is reflected; an absorbing medium passes L exp(-sigma_a 10 mm)
+    ims, _ = render_subsurface(cube, 0.1, 0.0, 1.0, cam, CONST, spp=64)
+    assert np.all(ims["reflection"][centre] == 0.0)
+    np.testing.assert_allclose(ims["subsurface"][centre].mean(), 2.0 * np.exp(-1.0), rtol=0.1)
 
 
 GOOD_VOL = {"sigma_a": np.zeros((2, 2, 2, 3)), "sigma_s": np.ones((2, 2, 2, 3)),
@@ -160,7 +201,9 @@ GOOD_VOL = {"sigma_a": np.zeros((2, 2, 2, 3)), "sigma_s": np.ones((2, 2, 2, 3)),
     ({"seed": -1}, "seed"),
     ({"variant": "scalar_spectral"}, "variant"),
     ({"sampler": "sobol"}, "sampler"),
-    ({"sampler": "ldsampler", "spp": 24}, "power of two"),
+    ({"sampler": "ldsampler", "spp": 24}, "power of 4"),
+    ({"sampler": "ldsampler", "spp": 128}, "power of 4"),
+    ({"light": {"type": "envmap", "image": np.ones((4, 8, 3)), "frame": "x_up"}}, "frame"),
     ({"channels": "grey"}, "channels"),
     ({"rr_depth": 0}, "rr_depth"),
     ({"volume": dict(GOOD_VOL, sigma_a=np.zeros((2, 2, 2)))}, "volume['sigma_a']"),
