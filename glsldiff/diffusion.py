@@ -36,6 +36,14 @@ from glsldiff.report import SolveReport, contraction_error_estimate
 logger = logging.getLogger(__name__)
 
 PRECISIONS = ("fp32", "fp16", "paper")
+
+
+def buffer_precision(precision: str) -> str:
+    """The radiance buffers' format (``"fp32"`` or ``"fp16"``) of a solver ``precision``
+    (one of :data:`PRECISIONS`; ``"paper"`` = fp16 buffers, 8-bit material)."""
+    if precision not in PRECISIONS:
+        raise InputError(f"precision={precision!r}; choose one of {PRECISIONS}")
+    return "fp32" if precision == "fp32" else "fp16"
 _VERTEX = np.dtype([("pos", "f4", 2), ("off0", "i4", 2), ("off1", "i4", 2)])
 
 
@@ -98,13 +106,12 @@ class GlslDiffusion:
     def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
                  precision: str = "fp32", *, state: gl.PingPong | None = None, damping: float = 1.0,
                  interior_rhs: bool = False) -> None:
-        if precision not in PRECISIONS:
-            raise InputError(f"precision={precision!r}; choose one of {PRECISIONS}")
+        buffers = buffer_precision(precision)
         if not 0.0 < damping <= 1.0:
             raise InputError(f"damping={damping!r} must be in (0, 1] (1 = plain Jacobi)")
         self.problem = problem
         self.precision = precision
-        self.buffers = "fp32" if precision == "fp32" else "fp16"
+        self.buffers = buffers
         self.material_bits = 8 if precision == "paper" else 32
         self.damping = float(damping)
         self.ctx = ctx if ctx is not None else gl.get_context()

@@ -45,7 +45,7 @@ from glsldiff import gl
 from glsldiff.errors import InputError, SolverError
 from glsldiff.graph import BOUNDARY, INACTIVE
 from glsldiff.hierarchy import Hierarchy
-from glsldiff.diffusion import PRECISIONS
+from glsldiff.diffusion import buffer_precision
 from glsldiff.polydiffusion import PolygridDiffusion
 from glsldiff.polygrid import Polygrid
 from glsldiff.problem import DiffusionProblem
@@ -148,8 +148,7 @@ class MultilevelDiffusion:
         self.hierarchy, self.scheme = hierarchy, scheme
         self.ctx = ctx if ctx is not None else gl.get_context()
         gl.make_current(self.ctx)
-        if precision not in PRECISIONS:
-            raise InputError(f"precision={precision!r}; choose one of {PRECISIONS}")
+        buffers = buffer_precision(precision)
         problems = hierarchy.problems(problem) if scheme != "single" else [problem]
         masks = update_masks(hierarchy, depths) if depths is not None else [None] * len(problems)
         self.masks = masks
@@ -164,7 +163,7 @@ class MultilevelDiffusion:
             shared = None
             if not mg:  # one ping-pong pair for all levels, as large as the largest level's textures
                 size = tuple(max(p.grid.texture_size[i] for p in problems) for i in (0, 1))
-                shared = self._keep(gl.PingPong.create(self.ctx, size, "fp32" if precision == "fp32" else "fp16"))
+                shared = self._keep(gl.PingPong.create(self.ctx, size, buffers))
             for lev, p in enumerate(problems):
                 self.levels.append(PolygridDiffusion(
                     p, self.ctx, precision, update=masks[lev], state=shared,

@@ -409,8 +409,7 @@ class Renderer:
         from glsldiff.lighting import incident_light
 
         pg = self._geo["pg"]
-        lights = [self._light(lt, scene) for lt in scene.lights]
-        E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, lights,
+        E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, self._lights(scene),
                                    scene.material.eta, ctx=self.ctx)
         self._E_t = np.asarray(E_t, dtype=np.float64)
         self._q = source_from_irradiance(self._E_t, scene.material.eta, scene.options.exitant)
@@ -452,6 +451,20 @@ class Renderer:
                                            fov_deg=lt.fov_deg, shadows=lt.shadows)
         return lighting.EnvironmentLight(read_light_image(scene.resolve(lt.path), exr_only=True), lt.scale)
 
+    def _lights(self, scene: Scene) -> list[Any]:
+        """The :mod:`glsldiff.lighting` objects of ``scene.lights``, built (image files read)
+        once per change of the lights and shared by pass 1 and pass 3."""
+        key = _key(scene.lights, str(scene.base_dir))
+        if self._keys.get("light objects") != key:
+            self._light_objects = [self._light(lt, scene) for lt in scene.lights]
+            self._keys["light objects"] = key
+        return self._light_objects
+
+    def _shader_lights(self, scene: Scene) -> list[tuple[LightSpec, Any]]:
+        """(spec, lighting object) of the lights pass 3 shades per light (all but environments)."""
+        return [(lt, obj) for lt, obj in zip(scene.lights, self._lights(scene))
+                if lt.type != "environment"][:MAX_SHADER_LIGHTS]
+
     def _pass3(self, scene: Scene) -> NDArray[np.float32]:
         from glsldiff.lighting import projector_factor, visibility
 
@@ -463,13 +476,12 @@ class Renderer:
         neg = ms < 0.0
         self._clamped = int(np.any(neg, axis=1).sum())
         ms = np.maximum(ms, 0.0)
-        shader_lights = [lt for lt in scene.lights if lt.type != "environment"][:MAX_SHADER_LIGHTS]
+        shader_lights = self._shader_lights(scene)
         vis_key = _key(scene.mesh, scene.polygrid, scene.lights)
         if self._keys.get("vis") != vis_key:
             # per shader light: shadow visibility (V,) and RGB image factor (V, 3), 1 but for projectors
             vis, tint = np.ones((len(v), 4)), np.ones((len(v), 4, 3))
-            for i, lt in enumerate(shader_lights):
-                light = self._light(lt, scene)
+            for i, (lt, light) in enumerate(shader_lights):
                 if lt.shadows:
                     vis[:, i] = visibility(geo["mesh"], v, light, ctx=self.ctx, normals=nrm)
                 if lt.type == "projector":
@@ -487,7 +499,7 @@ class Renderer:
         proj = perspective(scene.camera.fov_deg, w / h, max(1e-3, dist - 2 * radius), dist + 2 * radius)
         mvp = proj @ look_at(eye, target, up)
         vis = self._vis * self._tint.mean(axis=2)   # the shader's visibility is one number per light
-        return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
+        return shade(self.ctx, v, f, nrm, ms, vis, ss, [lt for lt, _ in shader_lights], eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (w, h))
 
     def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:
@@ -504,8 +516,8 @@ class Renderer:
             self._rho, self._keys["rho"] = geo["interp"] @ surface_reflectance(scene, geo["pg"]), rho_key
         key = _key(rho_key, self._keys.get("light"))
         if self._keys.get("diffuse") != key:
-            E, _ = incident_light(geo["mesh"], geo["vertices"], geo["normals"],
-                                  [self._light(lt, scene) for lt in scene.lights], None, ctx=self.ctx)
+            E, _ = incident_light(geo["mesh"], geo["vertices"], geo["normals"], self._lights(scene), None,
+                                  ctx=self.ctx)
             self._diffuse, self._keys["diffuse"] = self._rho * E / math.pi, key
         return self._diffuse
 
@@ -531,7 +543,7 @@ class Renderer:
             sa, ss = material(v[:1])
             medium = (sa[0], ss[0])
         out = np.zeros_like(v)
-        for i, lt in enumerate([x for x in scene.lights if x.type != "environment"][:MAX_SHADER_LIGHTS]):
+        for i, (lt, light) in enumerate(self._shader_lights(scene)):
             if lt.type == "directional":
                 ldir = np.broadcast_to(vec(lt.direction) / np.linalg.norm(lt.direction), v.shape)
                 E = np.broadcast_to(vec(lt.irradiance), v.shape)
@@ -541,7 +553,6 @@ class Renderer:
                 ldir = d / np.sqrt(r2)
                 E = vec(lt.intensity) / r2
                 if lt.type == "spot":
-                    light = self._light(lt, scene)
                     E = E * spot_factor(light, -(ldir @ np.asarray(light.direction)))[:, None]
             E = E * self._vis[:, i:i + 1] * self._tint[:, i]
             out += single_scattering(v, nrm, view, np.ascontiguousarray(ldir), np.ascontiguousarray(E),

@@ -228,6 +228,11 @@ def shell_coordinates(pg: Polygrid, *, depth_from: DepthFrom = "auto",
 
 
 # ---- block lookup ----------------------------------------------------------------------
+def _check_tiling(tiling: Any) -> None:
+    if tiling not in ("wrap", "mirror"):
+        raise InputError(f"tiling={tiling!r}; choose 'wrap' or 'mirror'")
+
+
 def _tile(i: NDArray[np.int64], n: int, tiling: str) -> NDArray[np.int64]:
     """Integer voxel index -> index in ``[0, n)``: periodic, or reflected (period ``2n``)."""
     if tiling == "wrap":
@@ -326,8 +331,7 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
         raise InputError(f"mu_block has {int((mb < 0).sum())} negative values; mu = sigma_a >= 0 mm^-1")
     h = _positive("h_mm", h_mm, "block voxel size, mm")
     scale = _positive("scale", scale, "block magnification on the object")
-    if tiling not in ("wrap", "mirror"):
-        raise InputError(f"tiling={tiling!r}; choose 'wrap' or 'mirror'")
+    _check_tiling(tiling)
     nz, ny, nx = kb.shape[:3]
     voxel = h * scale
     thickness = nz * voxel if thickness_mm is None else _positive("thickness_mm", thickness_mm, "mm")
@@ -381,10 +385,8 @@ def map_surface(pg: Polygrid, image: ArrayLike, period_mm: tuple[float, float],
     if img.ndim != 3 or not np.all(np.isfinite(img)):
         raise InputError(f"a surface map must be a finite (H, W, C) array, got shape {img.shape}")
     px, py = (_positive("period_mm", p, "map extent, mm") for p in period_mm)
-    if tiling not in ("wrap", "mirror"):
-        raise InputError(f"tiling={tiling!r}; choose 'wrap' or 'mirror'")
+    _check_tiling(tiling)
     geo = shell_coordinates(pg, depth_from="nodes")
     b = pg.lattice.boundary
     h, w = img.shape[:2]
     return _trilinear(img[None], geo["u"][b] / (px / w), geo["v"][b] / (py / h), np.zeros(b.size), tiling)
-

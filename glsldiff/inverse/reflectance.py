@@ -22,8 +22,7 @@ subtraction is consistent with the fit) but read out with the renderer's exitant
 ``F_t (phi - q) / (2 pi)``: the latter is negative on lit nodes (wang2008.md section 1),
 which is why front-lit fits mask them, and on a uniformly lit face every node is lit.
 Rendering ``L_ms + rho_d E / pi`` with the same formula then reproduces the uniform image.
-Negative differences (noise, or a fit that
-over-predicts) are clipped to 0 and counted. The map is over the block's captured face,
+Negative differences (noise, or a fit that over-predicts) are clipped to 0 and counted. The map is over the block's captured face,
 ``(ny - 2, nx - 2, 3)`` (the face layout of :mod:`glsldiff.grid`); the renderer tiles it
 over an object's surface like the block volume (:func:`glsldiff.shellmap.map_surface`).
 """
@@ -90,14 +89,14 @@ def diffuse_reflectance(meas: Measurements, kappa: ArrayLike, mu: ArrayLike, con
     m = np.broadcast_to(np.asarray(mu, dtype=np.float64).reshape(shape + (-1,)), shape + (3,))
     model = ForwardModel(meas.grid, stencil, face_mean, meas.eta, meas.C)
     face = meas.observed_face
+    # the fit's q is the transmitted irradiance; the exitant formula has its own source, a
+    # fixed multiple s of it (and the fluence is linear in the source)
+    s = float(source_from_irradiance(np.ones(1), meas.eta, exitant)[0])
     multiple = np.zeros(meas.radiance.shape[1:])
     for c in range(3):
         Q = meas.channel(c)[0][:, condition:condition + 1]
         fac = model.factorize(model.active_values(k[..., c]), model.active_values(m[..., c]))
         phi_b = fac.boundary_phi(fac.solve(Q))[:, 0]
-        # the fit's q is the transmitted irradiance; the exitant formula has its own source,
-        # a fixed multiple of it (and the fluence is linear in the source)
-        s = float(source_from_irradiance(np.ones(1), meas.eta, exitant)[0])
         L = model.ft * exitant_bracket(s * phi_b, s * Q[:, 0], meas.eta, exitant)
         multiple[..., c] = meas.grid.boundary_to_face(face, L)
     measured = meas.radiance[condition]
