@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from glsldiff.calibration.graycode import list_images, read_gray
 from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
 DEFAULT_FLAGS = cv2.CALIB_FIX_K3

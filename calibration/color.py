@@ -33,8 +33,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
 from glsldiff.calibration.hdr import read_hdr
-from glsldiff.errors import InputError
-from glsldiff.io import tonemap
+from glsldiff.core.errors import InputError
+from glsldiff.core.io import tonemap
 
 Array = NDArray[np.float64]
 

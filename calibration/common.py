@@ -14,8 +14,8 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from glsldiff.errors import GlsldiffError, InputError
-from glsldiff.io import atomic_path
+from glsldiff.core.errors import GlsldiffError, InputError
+from glsldiff.core.io import atomic_path
 
 PROG = "glsldiff-calibration"
 

@@ -23,7 +23,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
@@ -56,7 +56,7 @@ def patterns(size: tuple[int, int]) -> list[NDArray[np.uint8]]:
 def write_patterns(folder: str | os.PathLike, size: tuple[int, int]) -> list[Path]:
     """Write the sequence as ``folder/pattern_00.png`` ... (created if needed); returns the paths.
     Each file is written atomically."""
-    from glsldiff.io import atomic_path
+    from glsldiff.core.io import atomic_path
 
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)

@@ -46,8 +46,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.calibration.common import CommandParser, run_command
-from glsldiff.errors import GlsldiffError, InputError
-from glsldiff.io import atomic_path, read_exr, write_exr
+from glsldiff.core.errors import GlsldiffError, InputError
+from glsldiff.core.io import atomic_path, read_exr, write_exr
 
 Array = NDArray[np.float64]
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")

@@ -33,9 +33,9 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from glsldiff.calibration.plan import CapturePlan, face_homography, load_plan
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 from glsldiff.inverse.measurements import Measurements
-from glsldiff.optics import fresnel_transmittance
+from glsldiff.physics.optics import fresnel_transmittance
 
 Array = NDArray[np.float64]
 
@@ -156,7 +156,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m glsldiff.calibration.measure CAPTURE --corners ... -o measurements.npz``"""
     from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
     from glsldiff.calibration.hdr import load_response
-    from glsldiff.inverse.commands import check_writable
+    from glsldiff.core.io import check_output
     from glsldiff.inverse.measurements import save_measurements
 
     p = CommandParser(prog="python -m glsldiff.calibration.measure",
@@ -173,7 +173,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--eta", type=float, default=1.3, help="relative refractive index of the sample")
 
     def run(args: argparse.Namespace) -> int:
-        out = check_writable(args.output)
+        out = check_output(args.output)
         corners = parse_points(args.corners, "--corners")
         K = dist = None
         if args.camera:

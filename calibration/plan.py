@@ -37,7 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.common import atomic_folder
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 SETUPS = {"back": ("z-", "z+"), "front": ("z-", "z-")}
 REFERENCE_CONDITIONS = ("white", "reference_black")  # captured with the white reference in place

@@ -34,7 +34,7 @@ order). ``python -m glsldiff.calibration.projector patterns`` writes the project
      "settings": {"window_px", "shadow_threshold", "bit_threshold",   # 8-bit grey levels
                   "min_fraction", "ransac_px", "flags"}}              # cv2.calibrateCamera flags
 
-Errors a user can cause raise :class:`~glsldiff.errors.InputError` naming the folder or file.
+Errors a user can cause raise :class:`~glsldiff.core.errors.InputError` naming the folder or file.
 """
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ from glsldiff.calibration.camera import (DEFAULT_FLAGS, BoardSpec, Intrinsics, a
 from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
 from glsldiff.calibration.graycode import (Decoded, bit_counts, decode, list_images, read_stack,
                                            sequence_length, write_patterns)
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
 

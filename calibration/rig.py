@@ -35,10 +35,10 @@ from numpy.typing import NDArray
 from glsldiff.calibration.common import atomic_folder
 from glsldiff.calibration.plan import REFERENCE_CONDITIONS, CapturePlan
 from glsldiff.calibration.simcam import SimCamera, SimProjector, intersect_plane, look_at
-from glsldiff.errors import InputError
-from glsldiff.grid import RegularGrid
+from glsldiff.core.errors import InputError
+from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.model import ForwardModel
-from glsldiff.optics import fresnel_transmittance
+from glsldiff.physics.optics import fresnel_transmittance
 
 Array = NDArray[np.float64]
 SCENES = ("sample", "reference")

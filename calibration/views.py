@@ -44,7 +44,7 @@ from glsldiff.calibration.camera import BoardSpec
 from glsldiff.calibration.common import CommandParser, atomic_folder, parse_size, run_command
 from glsldiff.calibration.graycode import patterns
 from glsldiff.calibration.simcam import Pinhole, SimCamera, SimProjector, intersect_plane, look_at
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
 AIM_MM = 550.0  # the projector is aimed at the point this far in front of the camera

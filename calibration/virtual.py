@@ -26,10 +26,11 @@ from glsldiff.calibration.plan import CapturePlan, write_plan
 from glsldiff.calibration.simcam import SimCamera
 from glsldiff.calibration.synth_radiometric import true_inverse_response
 from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homography, run_capture
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
+from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
 from glsldiff.inverse.measurements import save_measurements
 from glsldiff.inverse.synthetic import VOLUMES, bssrdf_error, synthetic_volume
-from glsldiff.io import write_npz
+from glsldiff.core.io import write_npz
 
 
 def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.5, setup: str = "back",
@@ -37,8 +38,6 @@ def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.
         calibrate: bool = False) -> dict[str, object]:
     """Run the virtual acquisition into folder ``out`` and return the report (also written
     to ``out/report.json``)."""
-    from glsldiff.cli import main as glsldiff_main
-
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise InputError(f"output folder {str(out)!r} exists and is not empty")
@@ -70,13 +69,10 @@ def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.
                   pixels_per_node=mrep.node_pixels)
     save_measurements(out / "measurements.npz", meas)
     t0 = time.perf_counter()
-    code = glsldiff_main(["fit", str(out / "measurements.npz"), "-o", str(out / "material.npz"),
-                          "--max-evals", str(max_evals), "--truth", str(out / "truth.npz")])
-    if code != 0:
-        raise InputError("glsldiff fit failed on the virtual measurements")
+    result = fit_measurements(meas, FitOptions(max_evals=max_evals))
+    save_material(out / "material.npz", result)
     report["fit_seconds"] = time.perf_counter() - t0
-    with np.load(out / "material.npz") as d:
-        fitted = (d["kappa"], d["mu"])
+    fitted = (result.kappa, result.mu)
     pairs = dict(sources=(plan.lit_face,), receivers=(plan.observed_face,))
     report["E"] = bssrdf_error(meas.grid, (kappa, mu), fitted, **pairs)
     k_h = np.broadcast_to(np.median(fitted[0].reshape(-1, 3), axis=0), kappa.shape)

@@ -7,7 +7,7 @@ diffusion coefficient kappa in mm.
 """
 from __future__ import annotations
 
-from glsldiff.errors import BackendError, GlsldiffError, InputError, SolverError
+from glsldiff.core.errors import BackendError, GlsldiffError, InputError, SolverError
 
 __version__ = "0.1.0"
 

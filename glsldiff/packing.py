@@ -20,7 +20,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 # Vertex layout of the polygrid passes: texel-space position and six texel offsets.
 VERTEX = np.dtype([("pos", "f4", 2), ("off", "i4", 12)])

@@ -15,8 +15,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import map_coordinates
 from scipy.spatial import cKDTree
 
-from glsldiff.errors import InputError
-from glsldiff.polygrid import Polygrid
+from glsldiff.core.errors import InputError
+from glsldiff.grids.polygrid import Polygrid
 
 
 @dataclass(frozen=True)
@@ -76,7 +76,7 @@ def sample_field(pg: Polygrid, field: Field, name: str = "field") -> NDArray[np.
 
 
 def sample_material(pg: Polygrid, kappa: Field, mu: Field) -> tuple[NDArray, NDArray]:
-    """kappa (mm) and mu (mm^-1) node arrays for :class:`glsldiff.problem.DiffusionProblem`."""
+    """kappa (mm) and mu (mm^-1) node arrays for :class:`glsldiff.system.problem.DiffusionProblem`."""
     return sample_field(pg, kappa, "kappa"), sample_field(pg, mu, "mu")
 
 

@@ -14,7 +14,7 @@ uniform float u_omega;       // Jacobi damping (DAMPED): x <- x + omega (x_jacob
 #ifndef MATERIAL_8BIT
 #define MATERIAL_8BIT 0
 #endif
-// MATERIAL_8BIT: T_kappa / T_mu are RGB8 codes t in [0, 1] (glsldiff.quantize):
+// MATERIAL_8BIT: T_kappa / T_mu are RGB8 codes t in [0, 1] (glsldiff.solve.quantize):
 // kappa = exp(mix(lo, hi, t)), mu = mix(lo, hi, t), ranges per channel.
 uniform vec3 u_kappa_lo;
 uniform vec3 u_kappa_hi;

@@ -1,5 +1,5 @@
 #version 330 core
-// Translucent surface of a node figure (glsldiff.figure): unshared triangle vertices
+// Translucent surface of a node figure (glsldiff.figures): unshared triangle vertices
 // with their face normal, in world space (mm).
 layout(location = 0) in vec3 in_pos;
 layout(location = 1) in vec3 in_normal;

@@ -7,7 +7,7 @@
 // boundary (ROW_BOUNDARY = 1), partner j at distance d (T_w1.r), g = T_q:
 //   STENCIL_PAPER = 1: r = g - [u_b/k_b + 2 C k_b (u_b/k_b - u_j/k_j) / d]
 //   STENCIL_PAPER = 0: r = g - [phi_b + 2 C k_b (phi_b - phi_j) / d]
-// Drawn over the same primitives as the sweep (multigrid, glsldiff.multilevel).
+// Drawn over the same primitives as the sweep (multigrid, glsldiff.solve.multilevel).
 #include "common.glsl"
 uniform sampler2D u_w1;
 uniform sampler2D u_w2;

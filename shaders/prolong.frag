@@ -1,5 +1,5 @@
 #version 330 core
-// Prolongation to a finer polygrid level (glsldiff.hierarchy.Transfer.prolong): each fine node
+// Prolongation to a finer polygrid level (glsldiff.grids.hierarchy.Transfer.prolong): each fine node
 // copies the coarse node in T_source (its parent, or the nearest active coarse node where the
 // parent was removed; x < 0 at removed fine nodes). The unknown kappa*phi (STENCIL_PAPER) is
 // rescaled by kappa_fine / kappa_coarse so that phi is what is copied.

@@ -1,5 +1,5 @@
 #version 330 core
-// Restriction to a coarser polygrid level (glsldiff.hierarchy.Transfer.restrict_kind): each
+// Restriction to a coarser polygrid level (glsldiff.grids.hierarchy.Transfer.restrict_kind): each
 // coarse node takes the mean of the fine values at its children of its own kind (interior
 // from interior, boundary from boundary; removed coarse nodes 0). Children are found by index
 // arithmetic on the packing of figure 6: blocks of n x n texels (one x-y slice of a cube),

@@ -30,7 +30,7 @@ import numpy as np
 import pytest
 
 from glsldiff import gl
-from glsldiff.errors import BackendError
+from glsldiff.core.errors import BackendError
 
 BACKENDS = ("egl", "osmesa")
 

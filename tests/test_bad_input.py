@@ -1,8 +1,8 @@
 """Malformed input and unavailable backends: each raises the specific GlsldiffError subclass with a
 message that names the offending field (and, for backends, says what to install).
 
-Reference: the validation rules documented in glsldiff.grid, glsldiff.problem, glsldiff.material,
-glsldiff.diffusion and glsldiff.gl.
+Reference: the validation rules documented in glsldiff.grids.regular, glsldiff.system.problem, glsldiff.physics.material,
+glsldiff.solve.jacobi and glsldiff.gl.
 """
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 
 from glsldiff import gl
-from glsldiff.diffusion import GlslDiffusion
-from glsldiff.errors import BackendError, GlsldiffError, InputError
-from glsldiff.grid import RegularGrid
-from glsldiff.problem import DiffusionProblem
+from glsldiff.gl import context as glctx
+from glsldiff.solve.jacobi import GlslDiffusion
+from glsldiff.core.errors import BackendError, GlsldiffError, InputError
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.system.problem import DiffusionProblem
 
 G = RegularGrid(6, 5, 4, 0.5)
 S = G.shape  # (nz, ny, nx) = (4, 5, 6)
@@ -122,7 +123,7 @@ def _no_egl(*args, **kwargs):
 
 def test_missing_osmesa_library_is_backend_error(monkeypatch):
     """No libOSMesa: BackendError saying which library is missing and the apt-get line."""
-    monkeypatch.setattr(gl.ctypes, "CDLL", _no_osmesa)
+    monkeypatch.setattr(glctx.ctypes, "CDLL", _no_osmesa)
     with pytest.raises(BackendError, match=r"osmesa: OSMesa library not found .*libOSMesa\.so.*"
                                            r"apt-get install .*libosmesa6") as info:
         gl.create_context("osmesa")
@@ -131,15 +132,15 @@ def test_missing_osmesa_library_is_backend_error(monkeypatch):
 
 def test_missing_egl_is_backend_error(monkeypatch):
     """moderngl/glcontext cannot open EGL: BackendError with the cause and the apt-get line."""
-    monkeypatch.setattr(gl.moderngl, "create_context", _no_egl)
+    monkeypatch.setattr(glctx.moderngl, "create_context", _no_egl)
     with pytest.raises(BackendError, match=r"egl: libEGL\.so: cannot open.*apt-get install .*libegl1"):
         gl.create_context("egl")
 
 
 def test_auto_without_any_backend_lists_both(monkeypatch):
     """auto with neither EGL nor OSMesa: one BackendError listing both failures and the install hint."""
-    monkeypatch.setattr(gl.moderngl, "create_context", _no_egl)
-    monkeypatch.setattr(gl.ctypes, "CDLL", _no_osmesa)
+    monkeypatch.setattr(glctx.moderngl, "create_context", _no_egl)
+    monkeypatch.setattr(glctx.ctypes, "CDLL", _no_osmesa)
     with pytest.raises(BackendError, match=r"no headless OpenGL context could be created \(egl: .*; "
                                            r"osmesa: OSMesa library not found.*apt-get install"):
         gl.create_context("auto")
@@ -157,7 +158,7 @@ class _FakeOSMesa:
 
 def test_osmesa_without_core_profile_is_backend_error(monkeypatch):
     """OSMesaCreateContextAttribs returning NULL is a BackendError with the install hint."""
-    monkeypatch.setattr(gl.ctypes, "CDLL", _FakeOSMesa)
+    monkeypatch.setattr(glctx.ctypes, "CDLL", _FakeOSMesa)
     with pytest.raises(BackendError, match=r"OSMesaCreateContextAttribs failed \(no GL 3\.3 core\).*apt-get install"):
         gl.create_context("osmesa")
 
@@ -172,7 +173,7 @@ def test_old_gl_version_is_backend_error(monkeypatch):
         def release(self):
             released.append(True)
 
-    monkeypatch.setattr(gl.moderngl, "create_context", lambda *a, **k: _OldContext())
+    monkeypatch.setattr(glctx.moderngl, "create_context", lambda *a, **k: _OldContext())
     with pytest.raises(BackendError, match=r"egl: OpenGL 210 < 3\.3.*apt-get install"):
         gl.create_context("egl")
     assert released == [True]

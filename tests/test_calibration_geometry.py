@@ -20,7 +20,7 @@ import pytest
 
 from glsldiff.calibration import camera, graycode, projector, views
 from glsldiff.calibration.camera import BoardSpec
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 CAM, PROJ = (640, 512), (512, 384)
 BOARD = BoardSpec(9, 7, 20.0)

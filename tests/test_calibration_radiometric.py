@@ -17,8 +17,8 @@ import pytest
 
 from glsldiff.calibration import color, hdr
 from glsldiff.calibration import synth_radiometric as sr
-from glsldiff.errors import InputError
-from glsldiff.io import read_exr, write_exr
+from glsldiff.core.errors import InputError
+from glsldiff.core.io import read_exr, write_exr
 
 ERR = "glsldiff-calibration: error: "
 

@@ -11,7 +11,7 @@ from glsldiff.calibration import hdr
 from glsldiff.calibration.measure import measure
 from glsldiff.calibration.plan import CapturePlan, load_plan, write_plan
 from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homography, run_capture
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 from glsldiff.inverse.synthetic import synthetic_measurements, synthetic_volume
 
 

@@ -1,7 +1,7 @@
-"""Tests for glsldiff.diffusion (GlslDiffusion, solve_glsl) on every available GL backend.
+"""Tests for glsldiff.solve.jacobi (GlslDiffusion, solve_glsl) on every available GL backend.
 
-References: numpy Jacobi (glsldiff.reference.jacobi) after the same number of sweeps for the
-operator itself, and the sparse LU solution (glsldiff.reference.DirectSolver) of the same
+References: numpy Jacobi (glsldiff.oracle.solvers.jacobi) after the same number of sweeps for the
+operator itself, and the sparse LU solution (glsldiff.oracle.solvers.DirectSolver) of the same
 discrete system for converged solves; the exitant radiance formula of
 DiffusionProblem.exitant_radiance (Wang et al. 2008, eq. 3).
 Each test runs once per backend (``bctx``: egl, osmesa) and, where relevant, per stencil.
@@ -12,13 +12,16 @@ import moderngl
 import numpy as np
 import pytest
 
-from glsldiff import gl, material
-from glsldiff.diffusion import GlslDiffusion, solve_glsl
-from glsldiff.errors import InputError
-from glsldiff.grid import RegularGrid
-from glsldiff.optics import fresnel_transmittance
-from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.reference import DirectSolver, assemble, jacobi
+from glsldiff import gl
+
+from glsldiff.physics import material
+from glsldiff.solve.jacobi import GlslDiffusion, solve_glsl
+from glsldiff.core.errors import InputError
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.system.problem import DiffusionProblem, relative_l2
+from glsldiff.oracle.assembly import assemble
+from glsldiff.oracle.solvers import DirectSolver, jacobi
 
 STENCILS = [("paper", "arithmetic"), ("conservative", "arithmetic"), ("conservative", "harmonic")]
 STENCIL_IDS = ["paper", "conservative-arith", "conservative-harm"]

@@ -18,12 +18,12 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from glsldiff.diffusion import solve_glsl
-from glsldiff.errors import SolverError
-from glsldiff.grid import RegularGrid
-from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.reference import DirectSolver, assemble, jacobi, jacobi_radius_bound
-
+from glsldiff.solve.jacobi import solve_glsl
+from glsldiff.core.errors import SolverError
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.system.problem import DiffusionProblem, relative_l2
+from glsldiff.oracle.assembly import assemble, jacobi_radius_bound
+from glsldiff.oracle.solvers import DirectSolver, jacobi
 
 def _rho(p: DiffusionProblem) -> float:
     """Spectral radius of the Jacobi matrix, max over channels (Perron root: J >= 0 here)."""

@@ -1,11 +1,11 @@
-"""glsldiff.figure: headless polygrid pictures (translucent mesh + node dots + links)."""
+"""glsldiff.figures: headless polygrid pictures (translucent mesh + node dots + links)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from glsldiff import figure
-from glsldiff.errors import InputError
+from glsldiff import figures as figure
+from glsldiff.core.errors import InputError
 
 trimesh = pytest.importorskip("trimesh")
 

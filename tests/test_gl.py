@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from glsldiff import gl
-from glsldiff.diffusion import grid_primitives
-from glsldiff.errors import BackendError, GlsldiffError
-from glsldiff.grid import BOUNDARY, INTERIOR, RegularGrid
+from glsldiff.solve.jacobi import grid_primitives
+from glsldiff.core.errors import BackendError, GlsldiffError
+from glsldiff.grids.regular import BOUNDARY, INTERIOR, RegularGrid
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -95,10 +95,11 @@ _TWO_CONTEXTS = """
 import logging
 import numpy as np
 from glsldiff import gl, BackendError
-from glsldiff.grid import RegularGrid
-from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.diffusion import solve_glsl
-from glsldiff.reference import solve_direct
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.system.problem import DiffusionProblem, relative_l2
+from glsldiff.solve.jacobi import solve_glsl
+from glsldiff.oracle.solvers import solve_direct
+
 logging.disable(logging.WARNING)
 try:
     a = gl.create_context({a!r})
@@ -165,7 +166,7 @@ def test_shader_include_rules(tmp_path, monkeypatch):
     (tmp_path / "loop1.glsl").write_text('#include "loop2.glsl"\n')
     (tmp_path / "loop2.glsl").write_text('#include "loop1.glsl"\n')
     (tmp_path / "missing.glsl").write_text('#include "nope.glsl"\n')
-    monkeypatch.setattr(gl, "shader_dir", lambda: tmp_path)
+    monkeypatch.setattr(gl.programs, "shader_dir", lambda: tmp_path)
     lines = gl.shader_source("a.glsl", {"X": 2}).splitlines()
     assert [ln for ln in lines if ln.strip()] == [
         "#version 330 core", "#define X 2", "float c;", "float b;", "void main() {}"]
@@ -197,7 +198,7 @@ def test_program_compile_error_is_glsldiff_error(bctx, tmp_path, monkeypatch):
     """A shader that does not compile raises GlsldiffError naming the files."""
     (tmp_path / "v.vert").write_text("#version 330 core\nvoid main() { gl_Position = vec4(0.0); }\n")
     (tmp_path / "bad.frag").write_text("#version 330 core\nout vec4 f;\nvoid main() { f = nonsense; }\n")
-    monkeypatch.setattr(gl, "shader_dir", lambda: tmp_path)
+    monkeypatch.setattr(gl.programs, "shader_dir", lambda: tmp_path)
     with pytest.raises(GlsldiffError, match=r"compiling v.vert/bad.frag failed"):
         gl.program(bctx, "v.vert", "bad.frag")
 

@@ -1,6 +1,6 @@
-"""Tests for glsldiff.grid (RegularGrid) and the texel rectangles of glsldiff.diffusion.grid_primitives.
+"""Tests for glsldiff.grids.regular (RegularGrid) and the texel rectangles of glsldiff.solve.jacobi.grid_primitives.
 
-Reference: the definitions in the glsldiff.grid module docstring (node kinds, face table,
+Reference: the definitions in the glsldiff.grids.regular module docstring (node kinds, face table,
 tiled z-slice packing; Wang et al. 2008 section 5.2, figure 6), re-derived here with loops.
 """
 from __future__ import annotations
@@ -10,9 +10,9 @@ import itertools
 import numpy as np
 import pytest
 
-from glsldiff.diffusion import grid_primitives
-from glsldiff.errors import InputError
-from glsldiff.grid import BOUNDARY, FACES, INACTIVE, INTERIOR, RegularGrid
+from glsldiff.solve.jacobi import grid_primitives
+from glsldiff.core.errors import InputError
+from glsldiff.grids.regular import BOUNDARY, FACES, INACTIVE, INTERIOR, RegularGrid
 
 # (nx, ny, nz): cubic, odd, one-interior-layer, long in one axis, nz > nx, ...
 SHAPES = [(3, 3, 3), (5, 7, 11), (40, 3, 17), (4, 9, 3), (16, 16, 16), (7, 5, 30)]

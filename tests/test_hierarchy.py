@@ -2,9 +2,9 @@
 
 Each GLSL pass is checked against its CPU twin on the same discrete system: prolongation
 against ``Transfer.prolong``, restriction against ``Transfer.restrict_kind``, the residual
-pass against ``(b - A x) / row scale`` of :func:`glsldiff.reference.assemble`, the damped
+pass against ``(b - A x) / row scale`` of :func:`glsldiff.oracle.solvers.assemble`, the damped
 sweep with an interior right-hand side against ``x + omega D^-1 (b - A x)``, the 8-bit
-material against :func:`glsldiff.quantize.decode`. Whole solves are checked against the
+material against :func:`glsldiff.solve.quantize.decode`. Whole solves are checked against the
 direct solve; the adaptive one against its pinned system.
 """
 from __future__ import annotations
@@ -12,17 +12,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff import quantize
-from glsldiff.errors import InputError
-from glsldiff.graph import INACTIVE
-from glsldiff.hierarchy import Hierarchy, coarsen
+from glsldiff.solve import quantize
+from glsldiff.core.errors import InputError
+from glsldiff.grids.graph import INACTIVE
+from glsldiff.grids.hierarchy import Hierarchy, coarsen
 from glsldiff.mesh import torus_mesh
-from glsldiff.multilevel import MultilevelDiffusion
-from glsldiff.polydiffusion import PolygridDiffusion
-from glsldiff.polygrid import box_polygrid, build_polygrid
-from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.reference import assemble, solve_direct
-
+from glsldiff.solve.multilevel import MultilevelDiffusion
+from glsldiff.solve.polyjacobi import PolygridDiffusion
+from glsldiff.grids.polygrid import box_polygrid, build_polygrid
+from glsldiff.system.problem import DiffusionProblem, level_problems, relative_l2
+from glsldiff.oracle.assembly import assemble
+from glsldiff.oracle.solvers import solve_direct
 
 @pytest.fixture(scope="module")
 def torus():
@@ -94,7 +94,7 @@ def test_mapped_hierarchy_levels(torus, hier):
     d_b = hier.depth(1)[cg.lattice.boundary]
     assert np.median(d_b) < 0.5 * cg.lattice.h
     p = _problem(torus)
-    fine, coarse = hier.problems(p)
+    fine, coarse = level_problems(hier, p)
     phi_f, _ = solve_direct(fine)
     phi_c, _ = solve_direct(coarse)
     guess = hier.prolong_phi(phi_c, 1)
@@ -274,7 +274,7 @@ def test_adaptive_drops_unused_blocks(ctx):
 def test_frame_coherence_saves_sweeps(ctx, hier):
     """After a small light move, the previous frame's solution reaches a figure-15 error of
     1e-3 with under half the node updates of a cold hierarchical start."""
-    from glsldiff.bench_convergence import run_scheme
+    from glsldiff.bench.convergence import run_scheme
 
     pg = hier.grids[0]
     p = _problem(pg)

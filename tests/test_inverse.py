@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff.errors import InputError
-from glsldiff.grid import RegularGrid
+from glsldiff.core.errors import InputError
+from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.fit import FitOptions, fit_channel, fit_measurements
 from glsldiff.inverse.measurements import Measurements, load_measurements, save_measurements
 from glsldiff.inverse.model import ForwardModel
@@ -253,7 +253,7 @@ def test_region_patterns_tile_the_face() -> None:
 
 # ---- command line ---------------------------------------------------------------------
 def test_cli_synth_and_fit(tmp_path, capsys) -> None:
-    from glsldiff.cli import main
+    from glsldiff.commands.cli import main
 
     meas = tmp_path / "m.npz"
     assert main(["synth", str(meas), "--size", "10", "10", "5", "--n", "2", "--noise", "0.005"]) == 0
@@ -275,7 +275,7 @@ def test_cli_synth_and_fit(tmp_path, capsys) -> None:
 
 
 def test_cli_fit_fails_before_work_on_unwritable_output(tmp_path, capsys) -> None:
-    from glsldiff.cli import main
+    from glsldiff.commands.cli import main
 
     assert main(["fit", str(tmp_path / "nothing.npz"), "-o", str(tmp_path / "no" / "dir" / "m.npz")]) == 2
     err = capsys.readouterr().err

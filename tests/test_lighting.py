@@ -1,4 +1,4 @@
-"""glsldiff.lighting: pass 1, transmitted irradiance at boundary nodes (Wang et al. 2008 sec. 5).
+"""glsldiff.render.lighting: pass 1, transmitted irradiance at boundary nodes (Wang et al. 2008 sec. 5).
 
 Expected values are computed here independently: Fresnel from its own s/p formula, shadow
 regions from box geometry, hemispherical integrals by trapezoid quadrature, visibility by
@@ -12,9 +12,9 @@ import moderngl
 import numpy as np
 import pytest
 
-from glsldiff import lighting as L
+from glsldiff.render import lighting as L
 from glsldiff import mesh as M
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 
 pytest.importorskip("trimesh")
 pytest.importorskip("pymeshlab")
@@ -24,7 +24,7 @@ ETA = 1.3
 
 # ---- independent references ---------------------------------------------------------------
 def fresnel_t(eta, cos_i):
-    """1 - unpolarised Fresnel reflectance, written out here (not glsldiff.optics)."""
+    """1 - unpolarised Fresnel reflectance, written out here (not glsldiff.physics.optics)."""
     c = np.clip(np.asarray(cos_i, dtype=np.float64), 0.0, 1.0)
     sin_t2 = (1.0 - c * c) / eta**2
     ct = np.sqrt(np.clip(1.0 - sin_t2, 0.0, 1.0))

@@ -1,12 +1,12 @@
-"""Tests for glsldiff.material: coefficients, presets, validation and synthetic volumes."""
+"""Tests for glsldiff.physics.material: coefficients, presets, validation and synthetic volumes."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from glsldiff import material
-from glsldiff.errors import InputError
-from glsldiff.material import (
+from glsldiff.physics import material
+from glsldiff.core.errors import InputError
+from glsldiff.physics.material import (
     PRESETS, Preset, coefficients, marble_volume, optical_properties, preset, random_volume,
     validate_coefficients,
 )

@@ -15,7 +15,7 @@ pytest.importorskip("pymeshlab")
 trimesh = pytest.importorskip("trimesh")
 
 from glsldiff import mesh as M  # noqa: E402
-from glsldiff.errors import InputError  # noqa: E402
+from glsldiff.core.errors import InputError  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests for glsldiff.mitsuba_ref: the Mitsuba 3 volpath reference against exact answers.
+"""Tests for glsldiff.validation.mitsuba: the Mitsuba 3 volpath reference against exact answers.
 
 Exact references: a lossless medium in a uniform radiance field stays at that radiance (white
 furnace); a purely absorbing box transmits exp(-sigma_a t) (Beer-Lambert); the single-scattered
@@ -13,10 +13,10 @@ import pytest
 
 pytest.importorskip("mitsuba")
 
-from glsldiff.errors import BackendError, InputError  # noqa: E402
+from glsldiff.core.errors import BackendError, InputError  # noqa: E402
 from glsldiff.mesh import box_mesh  # noqa: E402
-from glsldiff.lighting import latlong_directions  # noqa: E402
-from glsldiff.mitsuba_ref import (  # noqa: E402
+from glsldiff.render.lighting import latlong_directions  # noqa: E402
+from glsldiff.validation.mitsuba import (  # noqa: E402
     McCamera, _probe_variant, render_mitsuba, render_scattering_orders, render_subsurface,
     single_scattering_share,
 )
@@ -141,7 +141,7 @@ def test_envmap_orientation():
 
 
 def test_envmap_z_up_frame():
-    """frame = "z_up": the glsldiff lat-long convention (glsldiff.lighting.latlong_directions).
+    """frame = "z_up": the glsldiff lat-long convention (glsldiff.render.lighting.latlong_directions).
     A map holding 1 + its own pixel-centre direction returns 1 + d for any view direction d (up
     to bilinear interpolation of sines: about 0.005 at 32 x 64; at the poles, where the map's
     first and last rows vary with azimuth by sin(pi / 2h) = 0.05, to that)."""

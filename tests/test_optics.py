@@ -1,13 +1,13 @@
-"""Tests for glsldiff.optics: Fresnel terms, F_dr, C(eta) and the dipole model."""
+"""Tests for glsldiff.physics.optics: Fresnel terms, F_dr, C(eta) and the dipole model."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy import integrate
 
-from glsldiff import optics
-from glsldiff.errors import InputError
-from glsldiff.optics import (
+from glsldiff.physics import optics
+from glsldiff.core.errors import InputError
+from glsldiff.physics.optics import (
     PAPER_C, boundary_constant, dipole_constants, dipole_rd, dipole_total_reflectance, fdr,
     fdr_integral, eta_for_boundary_constant, fresnel_reflectance, fresnel_transmittance,
 )

@@ -1,4 +1,4 @@
-"""Polycubes from meshes and from explicit cube lists (glsldiff.polycube).
+"""Polycubes from meshes and from explicit cube lists (glsldiff.grids.polycube).
 
 Reference: exact cube counts for boxes, the topology of simple cube sets (cube: genus 0,
 ring: genus 1, hollow block: one cavity), the paper's 253-cube bunny (Wang et al. 2008).
@@ -14,8 +14,8 @@ pytest.importorskip("pymeshlab")
 pytest.importorskip("trimesh")
 
 from glsldiff import mesh as M  # noqa: E402
-from glsldiff import polycube as P  # noqa: E402
-from glsldiff.errors import InputError  # noqa: E402
+from glsldiff.grids import polycube as P  # noqa: E402
+from glsldiff.core.errors import InputError  # noqa: E402
 
 
 def _is_scanline(c: np.ndarray) -> bool:

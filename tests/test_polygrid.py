@@ -8,16 +8,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff.diffusion import solve_glsl
-from glsldiff.errors import InputError
-from glsldiff.graph import BOUNDARY, INACTIVE, INTERIOR
-from glsldiff.grid import RegularGrid
-from glsldiff.lattice import OPPOSITE, STEPS, Lattice
+from glsldiff.solve.jacobi import solve_glsl
+from glsldiff.core.errors import InputError
+from glsldiff.grids.graph import BOUNDARY, INACTIVE, INTERIOR
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.grids.lattice import OPPOSITE, STEPS, Lattice
 from glsldiff.packing import Mosaic, decompose
-from glsldiff.polydiffusion import PolygridDiffusion, polygrid_primitives, solve_polygrid
-from glsldiff.polygrid import Polygrid, box_polygrid, lattice_polygrid, node_weights
-from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.reference import assemble, solve_direct
+from glsldiff.solve.polyjacobi import PolygridDiffusion, polygrid_primitives, solve_polygrid
+from glsldiff.grids.polygrid import Polygrid, box_polygrid, lattice_polygrid, node_weights
+from glsldiff.system.problem import DiffusionProblem, relative_l2
+from glsldiff.oracle.assembly import assemble
+from glsldiff.oracle.solvers import solve_direct
 
 L_SHAPE = [[0, 0, 0], [1, 0, 0], [2, 0, 0], [0, 1, 0], [0, 2, 0], [0, 0, 1]]
 # a ring of 8 cubes around a hole (genus 1), two layers thick

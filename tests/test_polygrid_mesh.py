@@ -5,13 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff.analytic import sphere_fluence
-from glsldiff.cli import main
+from glsldiff.oracle.closed_forms import sphere_fluence
+from glsldiff.commands.cli import main
 from glsldiff.mesh import load_mesh, sphere_mesh
-from glsldiff.polydiffusion import solve_polygrid
-from glsldiff.polygrid import build_polygrid
-from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.reference import solve_direct
+from glsldiff.solve.polyjacobi import solve_polygrid
+from glsldiff.grids.polygrid import build_polygrid
+from glsldiff.system.problem import DiffusionProblem, relative_l2
+from glsldiff.oracle.solvers import solve_direct
+
 from glsldiff.sampling import VolumeField, sample_material, to_vertices
 
 
@@ -118,7 +119,7 @@ def test_to_vertices_reproduces_smooth_fields(sphere_pg):
 
 
 def test_sampling_bad_input(sphere_pg):
-    from glsldiff.errors import InputError
+    from glsldiff.core.errors import InputError
     with pytest.raises(InputError, match="kappa"):
         sample_material(sphere_pg, lambda p: np.ones((len(p), 2)), 0.1)
     with pytest.raises(InputError, match="mu"):
@@ -155,11 +156,11 @@ def test_separate_collapsed_boundary_nodes():
     """Two boundary nodes put on one point (what closest-point projection does next to a
     sharp feature; the 16^3-per-cube bunny had 11 such pairs) are moved to their axis ray
     hits, onto the surface and apart; nodes that cannot be separated give an InputError."""
-    from glsldiff.errors import InputError
-    from glsldiff.lattice import Lattice
-    from glsldiff.mapping import map_to_mesh, separate_collapsed
+    from glsldiff.core.errors import InputError
+    from glsldiff.grids.lattice import Lattice
+    from glsldiff.grids.mapping import map_to_mesh, separate_collapsed
     from glsldiff.mesh import closest_points, mesh_from_arrays
-    from glsldiff.polycube import polycube_from_mesh
+    from glsldiff.grids.polycube import polycube_from_mesh
     from scipy.spatial import cKDTree
 
     mesh = sphere_mesh(10.0, subdivisions=4)
@@ -185,7 +186,7 @@ def test_separate_collapsed_boundary_nodes():
 def test_sphere_study_both_series(tmp_path):
     """``glsldiff bench sphere`` rows: both refinement series, errors, truncation errors per
     row kind (shared-partner boundary rows are the worst), GLSL = direct, CSV and PNG."""
-    from glsldiff.convergence import sphere_study
+    from glsldiff.bench.sphere import sphere_study
 
     rows = sphere_study(ns=(3,), cube_sizes=(5.0,), n_fixed=3, subdivisions=3, glsl=True,
                         out=tmp_path, variance_iterations=0)

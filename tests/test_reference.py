@@ -1,7 +1,7 @@
-"""Tests for the CPU oracle glsldiff.reference (assemble, DirectSolver, solve_direct, jacobi,
-jacobi_radius_bound) and the discrete-problem helpers of glsldiff.problem.
+"""Tests for the CPU oracle glsldiff.oracle.solvers (assemble, DirectSolver, solve_direct, jacobi,
+jacobi_radius_bound) and the discrete-problem helpers of glsldiff.system.problem.
 
-References: the discrete equations in the glsldiff.problem module docstring (Wang et al. 2008,
+References: the discrete equations in the glsldiff.system.problem module docstring (Wang et al. 2008,
 eq. 8), re-assembled here with explicit loops; scipy's dense solver / eigenvalues; pyamg's
 Jacobi relaxation; Jacobi theory (asymptotic residual factor = spectral radius of I - D^-1 A).
 """
@@ -13,13 +13,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from glsldiff import material
-from glsldiff.grid import BOUNDARY, INTERIOR, RegularGrid
-from glsldiff.optics import fresnel_transmittance
-from glsldiff.problem import DiffusionProblem, relative_l2
-from glsldiff.reference import (
-    DirectSolver, assemble, assemble_rhs, jacobi, jacobi_radius_bound, solve_direct,
-)
+from glsldiff.physics import material
+from glsldiff.grids.regular import BOUNDARY, INTERIOR, RegularGrid
+from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.system.problem import DiffusionProblem, relative_l2
+from glsldiff.oracle.assembly import assemble, assemble_rhs, jacobi_radius_bound
+from glsldiff.oracle.solvers import DirectSolver, jacobi, solve_direct
 
 STENCILS = [("paper", "arithmetic"), ("conservative", "arithmetic"), ("conservative", "harmonic")]
 STENCIL_IDS = ["paper", "conservative-arith", "conservative-harm"]
@@ -184,7 +183,7 @@ def test_direct_residual(stencil, face_mean):
 def test_amg_solver_matches_direct(stencil, face_mean):
     """solve_amg (pyamg smoothed aggregation + GMRES, the large-grid reference) equals the LU solve."""
     pytest.importorskip("pyamg")
-    from glsldiff.reference import solve_amg
+    from glsldiff.oracle.solvers import solve_amg
 
     p = _problem(stencil, face_mean, shape=(12, 10, 9))
     phi, rep = solve_amg(p, tol=1e-12)

@@ -5,14 +5,14 @@ import math
 import numpy as np
 import pytest
 
-from glsldiff.errors import InputError
-from glsldiff.grid import RegularGrid
+from glsldiff.core.errors import InputError
+from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.reflectance import diffuse_reflectance
 from glsldiff.inverse.synthetic import synthetic_volume
-from glsldiff.optics import fresnel_transmittance
-from glsldiff.render import exitant_bracket, source_from_irradiance
+from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 
 
 def _uniform_front(rho_true, E, eta=1.3):
@@ -70,8 +70,8 @@ def test_bad_input():
 
 
 def test_command_writes_the_map_the_renderer_reads(tmp_path, capsys):
-    from glsldiff import io
-    from glsldiff.cli import main
+    from glsldiff.core import io
+    from glsldiff.commands.cli import main
     from glsldiff.inverse.measurements import save_measurements
 
     E = np.array([2.0, 1.5, 1.0])

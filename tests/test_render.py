@@ -7,11 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from glsldiff import io
-from glsldiff.errors import InputError
-from glsldiff.optics import boundary_constant, fdr
-from glsldiff.render import Renderer, check_output, exitant_bracket, save, source_from_irradiance
-from glsldiff.scene import CameraSpec, LightSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
+from glsldiff.core import io
+from glsldiff.core.errors import InputError
+from glsldiff.physics.optics import boundary_constant, fdr
+from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
+from glsldiff.render.renderer import Renderer, check_output, save
+from glsldiff.render.scene import CameraSpec, LightSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
 
 pytestmark = pytest.mark.usefixtures("ctx")
 
@@ -92,7 +93,7 @@ def test_output_path_is_checked_before_work_and_files_are_whole(tmp_path, render
 
 
 def test_every_light_kind_single_scattering_and_procedural_materials(tmp_path, renderer):
-    from glsldiff.scene import MaterialSpec, OptionsSpec
+    from glsldiff.render.scene import MaterialSpec, OptionsSpec
 
     env = np.zeros((16, 32, 3), np.float32)
     env[:8] = 0.2                                   # bright upper hemisphere
@@ -115,8 +116,8 @@ def test_every_light_kind_single_scattering_and_procedural_materials(tmp_path, r
 
 
 def test_block_volume_through_a_shell(tmp_path, renderer):
-    from glsldiff.material import coefficients
-    from glsldiff.scene import MaterialSpec
+    from glsldiff.physics.material import coefficients
+    from glsldiff.render.scene import MaterialSpec
 
     sa = np.full((4, 8, 8, 3), 0.01)
     sa[:, :, 4:] = 0.5                               # half the block absorbs strongly
@@ -134,7 +135,7 @@ def test_block_volume_through_a_shell(tmp_path, renderer):
 def test_projector_lights_its_image_side_and_a_new_image_reruns_pass_1_only(tmp_path, renderer):
     from PIL import Image
 
-    from glsldiff.scene import OptionsSpec
+    from glsldiff.render.scene import OptionsSpec
 
     half = np.zeros((16, 32, 3), np.uint8)
     half[:, :16] = 255                                 # white on the projector's left half
@@ -176,7 +177,7 @@ def test_projector_lights_its_image_side_and_a_new_image_reruns_pass_1_only(tmp_
 def test_diffuse_surface_reflectance_adds_rho_E_over_pi_in_pass_3_only(tmp_path, renderer):
     """``[material].reflectance``: the image gains rho/pi * E (Lambertian, incident irradiance
     without Fresnel) and changing only the reflectance re-runs pass 3 alone."""
-    from glsldiff.scene import MaterialSpec
+    from glsldiff.render.scene import MaterialSpec
 
     cam = CameraSpec(position=(0.0, 0.0, 60.0), target=(0.0, 0.0, 0.0))
     base = _scene(camera=cam)
@@ -191,7 +192,7 @@ def test_diffuse_surface_reflectance_adds_rho_E_over_pi_in_pass_3_only(tmp_path,
     np.testing.assert_allclose(added, np.array([0.2, 0.1, 0.0]) / np.pi, rtol=0.03, atol=1e-6)
 
     # a measured map tiles over the block's face: one pixel per voxel (h_mm), here two halves
-    from glsldiff.material import coefficients
+    from glsldiff.physics.material import coefficients
 
     kappa, mu = coefficients(np.full((4, 8, 8, 3), 0.01), np.full((4, 8, 8, 3), 1.0))
     np.savez(tmp_path / "block.npz", kappa=kappa, mu=mu, h_mm=2.5)

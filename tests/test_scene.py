@@ -6,8 +6,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from glsldiff.errors import InputError
-from glsldiff.scene import default_scene, load_scene, parse_scene
+from glsldiff.core.errors import InputError
+from glsldiff.render.scene import default_scene, load_scene, parse_scene
 
 GOOD = """
 [mesh]
@@ -100,7 +100,7 @@ def test_unreadable_environment_map_and_other_errors(tmp_path):
 
 
 def test_relative_paths_resolve_against_the_scene_folder(tmp_path):
-    from glsldiff import io
+    from glsldiff.core import io
 
     io.write_exr(tmp_path / "env.exr", np.ones((8, 16, 3), np.float32))
     s = load_scene(_write(tmp_path, GOOD + '\n[[lights]]\ntype = "environment"\npath = "env.exr"\nscale = 0.5\n'))
@@ -113,8 +113,8 @@ PROJECTOR = '\n[[lights]]\ntype = "projector"\nposition = [0, 0, 60]\ndirection 
 def test_projector_light_parses_and_its_png_is_decoded_from_srgb(tmp_path):
     from PIL import Image
 
-    from glsldiff import io
-    from glsldiff.scene import read_light_image
+    from glsldiff.core import io
+    from glsldiff.render.scene import read_light_image
 
     rgb8 = np.array([[[255, 0, 0], [0, 128, 0]], [[0, 0, 10], [255, 255, 255]]], np.uint8)
     Image.fromarray(rgb8, "RGB").save(tmp_path / "pattern.png")
@@ -176,7 +176,7 @@ def test_bad_reflectance(tmp_path, value, match):
 
 
 def test_reflectance_constant_and_map(tmp_path):
-    from glsldiff import io
+    from glsldiff.core import io
 
     s = load_scene(_write(tmp_path, GOOD.replace('preset = "skin1"', 'preset = "skin1"\nreflectance = 0.04')))
     assert s.material.reflectance == (0.04, 0.04, 0.04)

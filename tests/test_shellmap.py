@@ -1,4 +1,4 @@
-"""Shell mapping of an acquired block onto polygrids (glsldiff.shellmap): depth layering on a
+"""Shell mapping of an acquired block onto polygrids (glsldiff.render.shellmap): depth layering on a
 box and on a mesh sphere, tiling period and face frames on a box, the inner core and its
 blend, the result as a diffusion problem, bad input."""
 from __future__ import annotations
@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff.errors import InputError
-from glsldiff.graph import BOUNDARY, INACTIVE
-from glsldiff.material import coefficients, marble_volume, preset
+from glsldiff.core.errors import InputError
+from glsldiff.grids.graph import BOUNDARY, INACTIVE
+from glsldiff.physics.material import coefficients, marble_volume, preset
 from glsldiff.mesh import sphere_mesh
-from glsldiff.polygrid import box_polygrid, build_polygrid
-from glsldiff.problem import DiffusionProblem
-from glsldiff.lattice import STEPS
-from glsldiff.shellmap import FACE_FRAMES, map_shell, map_surface, shell_coordinates
+from glsldiff.grids.polygrid import box_polygrid, build_polygrid
+from glsldiff.system.problem import DiffusionProblem
+from glsldiff.grids.lattice import STEPS
+from glsldiff.render.shellmap import FACE_FRAMES, map_shell, map_surface, shell_coordinates
 
 RGB_A = np.array([1.0, 2.0, 4.0])
 RGB_S = np.array([1.0, 0.8, 0.6])

@@ -1,4 +1,4 @@
-"""Tests for glsldiff.single: the single-scattering term of the final shading pass.
+"""Tests for glsldiff.physics.single: the single-scattering term of the final shading pass.
 
 References used here, all independent of the code under test: the closed form of the
 single-scattering integral at normal incidence and view, a photon Monte Carlo simulation of
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from glsldiff import single
-from glsldiff.errors import InputError
-from glsldiff.optics import fresnel_reflectance
-from glsldiff.single import henyey_greenstein, single_scattering
+from glsldiff.physics import single
+from glsldiff.core.errors import InputError
+from glsldiff.physics.optics import fresnel_reflectance
+from glsldiff.physics.single import henyey_greenstein, single_scattering
 
 ETA = 1.3
 UP = np.array([0.0, 0.0, 1.0])

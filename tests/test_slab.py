@@ -2,7 +2,7 @@
 
 PDE (Wang et al. 2008, eqs. 1-2) for a homogeneous slab 0 <= z <= T, laterally infinite:
 ``kappa phi'' - mu phi = 0`` with ``phi + 2 C kappa dphi/dn = q`` on both faces (q = 1 on z = 0,
-q = 0 on z = T). Exact solution (glsldiff.analytic.slab_fluence): with s = sqrt(mu/kappa),
+q = 0 on z = T). Exact solution (glsldiff.oracle.closed_forms.slab_fluence): with s = sqrt(mu/kappa),
 ``phi(z) = a cosh(s z) + b sinh(s z)/s``, a and b fixed by the two boundary conditions.
 
 Laterally-uniform trick: the block is W x W x T with W >= 2 T, and each side-face node gets
@@ -15,11 +15,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff.analytic import slab_fluence
-from glsldiff.grid import RegularGrid
-from glsldiff.optics import boundary_constant
-from glsldiff.problem import DiffusionProblem
-from glsldiff.reference import DirectSolver
+from glsldiff.oracle.closed_forms import slab_fluence
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.physics.optics import boundary_constant
+from glsldiff.system.problem import DiffusionProblem
+from glsldiff.oracle.solvers import DirectSolver
 
 KAPPA, MU = 0.3, 1.0  # mm, mm^-1
 C_ROBIN = float(boundary_constant(1.3))  # 2.60

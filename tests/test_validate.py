@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from glsldiff import io
-from glsldiff.errors import InputError
-from glsldiff.lighting import latlong_directions, sh_project
-from glsldiff.validate import CASES, _mc_light, _scene, environment_map, mc_split, rmse, validate
+from glsldiff.core import io
+from glsldiff.core.errors import InputError
+from glsldiff.render.lighting import latlong_directions, sh_project
+from glsldiff.validation.validate import CASES, _mc_light, _scene, environment_map, mc_split, rmse, validate
 
 
 def test_rmse_is_relative_and_masked():

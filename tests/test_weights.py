@@ -1,12 +1,12 @@
-"""Tests of glsldiff.weights: appendix-B Laplacian weights on polygrid stencils and the fallback."""
+"""Tests of glsldiff.grids.weights: appendix-B Laplacian weights on polygrid stencils and the fallback."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import glsldiff.weights as W
-from glsldiff.errors import InputError
-from glsldiff.weights import (
+import glsldiff.grids.weights as W
+from glsldiff.core.errors import InputError
+from glsldiff.grids.weights import (
     NEIGHBOURS,
     WeightStats,
     appendix_b_weights,

@@ -8,7 +8,7 @@ from typing import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.io import atomic_path
+from glsldiff.core.io import atomic_path
 
 
 def depth_slices(path: str | os.PathLike, kappa: NDArray, mu: NDArray, h: float,

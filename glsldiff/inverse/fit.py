@@ -22,13 +22,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
-from glsldiff.errors import InputError, SolverError
-from glsldiff.graph import INTERIOR
+from glsldiff.core.errors import InputError, SolverError
+from glsldiff.grids.graph import INTERIOR
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, minimize
-from glsldiff.io import write_npz
+from glsldiff.core.io import write_npz
 
 Array = NDArray[np.float64]
 

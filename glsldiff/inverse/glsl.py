@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.errors import SolverError
+from glsldiff.core.errors import SolverError
 from glsldiff.inverse.model import Factorized, ForwardModel
-from glsldiff.problem import DiffusionProblem
+from glsldiff.system.problem import DiffusionProblem
 
 Array = NDArray[np.float64]
 
@@ -35,7 +35,7 @@ class GlslForwardModel(ForwardModel):
     _warm: dict = field(default_factory=dict, repr=False)
 
     def factorize(self, kappa: Array, mu: Array) -> "GlslFactorized":
-        from glsldiff.diffusion import GlslDiffusion
+        from glsldiff.solve.jacobi import GlslDiffusion
 
         kappa, mu = np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64)
         t0 = time.perf_counter()

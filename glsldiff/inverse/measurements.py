@@ -9,7 +9,7 @@ For each of ``M`` illumination conditions a measurement holds
 * ``mask`` -- which observed values to use: thick front-lit samples use only nodes that are
   not directly lit, and saturated pixels are dropped.
 
-Face arrays follow :mod:`glsldiff.grid` (``z-`` face: ``(ny-2, nx-2)``, indexed ``[y, x]``).
+Face arrays follow :mod:`glsldiff.grids.regular` (``z-`` face: ``(ny-2, nx-2)``, indexed ``[y, x]``).
 Back-lit thin samples: ``lit_face="z-"``, ``observed_face="z+"``; front-lit thick samples:
 both ``"z-"``.
 
@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.errors import InputError
-from glsldiff.grid import FACES, RegularGrid
-from glsldiff.io import write_npz
+from glsldiff.core.errors import InputError
+from glsldiff.grids.regular import FACES, RegularGrid
+from glsldiff.core.io import write_npz
 
 REQUIRED = ("shape", "h", "lit_face", "observed_face", "incoming", "radiance")
 

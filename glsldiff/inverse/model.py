@@ -1,8 +1,8 @@
 """Single-channel forward model of a block sample and its exact discrete adjoint.
 
 For one RGB channel, material vectors ``kappa`` (mm) and ``mu`` (mm^-1) over the active
-nodes of a :class:`~glsldiff.grid.RegularGrid` (order of ``grid.graph.active``) define the
-system ``A(kappa, mu) x_m = b_m(kappa)`` of :mod:`glsldiff.reference` (either stencil), one
+nodes of a :class:`~glsldiff.grids.regular.RegularGrid` (order of ``grid.graph.active``) define the
+system ``A(kappa, mu) x_m = b_m(kappa)`` of :mod:`glsldiff.oracle.solvers` (either stencil), one
 right-hand side per illumination ``m``. The predicted radiance at boundary node ``b`` is the
 paper's ``L = F_t (phi_b - q_b) / (2 pi)`` (:meth:`DiffusionProblem.exitant_radiance`).
 
@@ -22,11 +22,12 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
-from glsldiff.errors import InputError, SolverError
-from glsldiff.grid import RegularGrid
-from glsldiff.optics import boundary_constant, fresnel_transmittance
-from glsldiff.problem import FACE_MEANS, STENCILS, DiffusionProblem
-from glsldiff.reference import _matrix
+from glsldiff.core.errors import InputError, SolverError
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.physics.exitance import exitance_coefficients
+from glsldiff.physics.optics import boundary_constant, fresnel_transmittance
+from glsldiff.system.problem import FACE_MEANS, STENCILS, DiffusionProblem
+from glsldiff.oracle.assembly import _matrix
 
 Array = NDArray[np.float64]
 
@@ -54,12 +55,12 @@ class ForwardModel:
     grid
         The sample's regular grid (spacing ``grid.h`` in mm).
     stencil, face_mean
-        Interior discretisation (:mod:`glsldiff.problem`).
+        Interior discretisation (:mod:`glsldiff.system.problem`).
     eta
         Relative refractive index: ``F_t(eta, 1)`` scales the radiance and, when ``C`` is
         not given, ``C = boundary_constant(eta)``.
     C
-        Boundary constant; ``glsldiff.optics.PAPER_C`` reproduces the paper's 2.1489.
+        Boundary constant; ``glsldiff.physics.optics.PAPER_C`` reproduces the paper's 2.1489.
     """
 
     grid: RegularGrid
@@ -86,6 +87,8 @@ class ForwardModel:
         self.partner = pos[g.link]                            # (n_b,)
         self.weights, self.scale, self.d = g.weights, g.scale, g.d
         self.ft = float(fresnel_transmittance(self.eta, 1.0))
+        # L = F_t (a phi_b - b q_b): the paper's net-flux convention (glsldiff.physics.exitance)
+        self.exit_a, self.exit_b = exitance_coefficients(self.eta, "paper", self.C)
 
     @property
     def n_boundary(self) -> int:
@@ -168,13 +171,14 @@ class Factorized:
 
     def radiance(self, X: Array, Q: Array) -> Array:
         """Predicted radiance ``F_t (phi_b - q_b) / (2 pi)`` at the boundary nodes, ``(n_b, M)``."""
-        return self.model.ft * (self.boundary_phi(X) - Q) / (2.0 * np.pi)
+        m = self.model
+        return m.ft * (m.exit_a * self.boundary_phi(X) - m.exit_b * Q)
 
     def radiance_sensitivity(self, dL: Array, X: Array) -> tuple[Array, Array]:
         """Chain rule through :meth:`radiance`: given ``dL = df/dL`` ``(n_b, M)``, return
         ``df/dX`` as ``(n, M)`` and the explicit ``df/dkappa`` ``(n,)`` (paper stencil only)."""
         m = self.model
-        c = m.ft / (2.0 * np.pi)
+        c = m.ft * m.exit_a
         G = np.zeros((m.n, dL.shape[1]))
         dk = np.zeros(m.n)
         if m.stencil == "paper":
@@ -243,7 +247,7 @@ class Factorized:
     def radiance_tangent(self, X: Array, dX: Array, dkappa: Array) -> Array:
         """Derivative of :meth:`radiance` for unknown change ``dX`` and kappa change ``dkappa``."""
         m = self.model
-        c = m.ft / (2.0 * np.pi)
+        c = m.ft * m.exit_a
         if m.stencil != "paper":
             return c * dX[m.boundary]
         kb, dkb = self.kappa[m.boundary][:, None], dkappa[m.boundary][:, None]

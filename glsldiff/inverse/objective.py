@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 from glsldiff.inverse.model import ForwardModel, regularizer_matrix
 
 Array = NDArray[np.float64]

@@ -17,7 +17,7 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.errors import InputError, SolverError
+from glsldiff.core.errors import InputError, SolverError
 from glsldiff.inverse.objective import Objective
 
 Array = NDArray[np.float64]

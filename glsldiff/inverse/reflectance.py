@@ -18,13 +18,13 @@ which is the Fresnel-transmitted irradiance, divided by ``F_t`` at normal incide
 
 ``L_ms`` is solved with the inverse fit's forward model (the same discrete system, so the
 subtraction is consistent with the fit) but read out with the renderer's exitant formula
-(:func:`glsldiff.render.exitant_bracket`, default ``"p1"``), not the fit's net-flux
+(:func:`glsldiff.physics.exitance.exitant_bracket`, default ``"p1"``), not the fit's net-flux
 ``F_t (phi - q) / (2 pi)``: the latter is negative on lit nodes (wang2008.md section 1),
 which is why front-lit fits mask them, and on a uniformly lit face every node is lit.
 Rendering ``L_ms + rho_d E / pi`` with the same formula then reproduces the uniform image.
 Negative differences (noise, or a fit that over-predicts) are clipped to 0 and counted. The map is over the block's captured face,
-``(ny - 2, nx - 2, 3)`` (the face layout of :mod:`glsldiff.grid`); the renderer tiles it
-over an object's surface like the block volume (:func:`glsldiff.shellmap.map_surface`).
+``(ny - 2, nx - 2, 3)`` (the face layout of :mod:`glsldiff.grids.regular`); the renderer tiles it
+over an object's surface like the block volume (:func:`glsldiff.render.shellmap.map_surface`).
 """
 from __future__ import annotations
 
@@ -34,10 +34,11 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.errors import InputError
+from glsldiff.core.errors import InputError
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
-from glsldiff.optics import fresnel_transmittance
+from glsldiff.physics.exitance import EXITANT, exitant_bracket, source_from_irradiance
+from glsldiff.physics.optics import fresnel_transmittance
 
 Array = NDArray[np.float64]
 
@@ -68,8 +69,6 @@ def diffuse_reflectance(meas: Measurements, kappa: ArrayLike, mu: ArrayLike, con
     front-lit ``meas`` (the uniformly lit image) and the fitted material ``kappa`` (mm),
     ``mu`` (mm^-1), node volumes ``(nz, ny, nx[, 3])`` of ``meas.grid``; ``irradiance``
     (scalar or RGB) is the uniform light's irradiance (default: from ``q``)."""
-    from glsldiff.render import exitant_bracket, source_from_irradiance
-    from glsldiff.scene import EXITANT
 
     if exitant not in EXITANT:
         raise InputError(f"exitant={exitant!r}; choose one of {EXITANT}")

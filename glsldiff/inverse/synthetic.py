@@ -10,11 +10,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.errors import InputError
-from glsldiff.grid import RegularGrid
+from glsldiff.core.errors import InputError
+from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
-from glsldiff.material import coefficients, marble_volume, preset
+from glsldiff.physics.material import coefficients, marble_volume, preset
 
 Array = NDArray[np.float64]
 VOLUMES = ("layers", "veins", "inclusions", "mixed")
@@ -40,7 +40,7 @@ def synthetic_volume(shape: tuple[int, int, int], kind: str = "mixed", seed: int
     """(kappa mm, mu mm^-1), each ``shape + (3,)``, of a heterogeneous block.
 
     ``layers``: three z-layers (base, 3x absorption with 0.6x scattering, 1.5x scattering);
-    ``veins``: :func:`glsldiff.material.marble_volume`; ``inclusions``: soft balls of
+    ``veins``: :func:`glsldiff.physics.material.marble_volume`; ``inclusions``: soft balls of
     5x absorption and 0.5x scattering at several depths; ``mixed``: veins plus inclusions.
     """
     if kind not in VOLUMES:

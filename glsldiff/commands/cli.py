@@ -1,0 +1,306 @@
+"""The ``glsldiff`` command: ``demo`` (default job), ``bench forward|sphere|fit``, ``polygrid``,
+``synth``, ``fit``, ``info``.
+
+Errors a user can cause are printed as one line without a traceback (exit code 2).
+"""
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from glsldiff.core.errors import GlsldiffError, InputError
+from glsldiff.core.tables import print_table
+
+
+def _add_gl(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--gl", choices=("egl", "osmesa", "auto"),
+                   help="GL backend (default: $GLSLDIFF_GL or egl)")
+
+
+def cmd_demo(args: argparse.Namespace) -> int:
+    from glsldiff import gl
+    from glsldiff.bench import demo
+
+    cfg = demo.DemoConfig(nx=args.size[0], ny=args.size[1], nz=args.size[2], h=args.h,
+                          tol=args.tol, precision=args.precision, out=Path(args.out), seed=args.seed)
+    rows = demo.run(cfg, progress=not args.quiet)
+    print_table(f"Back-lit marble slab {cfg.nx}x{cfg.ny}x{cfg.nz}, h = {cfg.h} mm, "
+                f"{gl.describe(gl.get_context())}", rows)
+    print("error_phi: relative L2 of the GPU fluence vs the scipy direct solve of the same system; "
+          "error_image: same for the front-face radiance image; est_error: the solver's own estimate.")
+    print(f"wrote {cfg.regions ** 2} EXR images, contact_sheet.png and report.csv to {cfg.out}/")
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from glsldiff.render import renderer as render
+    from glsldiff.render.scene import default_scene, load_scene
+
+    out = render.check_output(args.out)   # before any work
+    scene = load_scene(args.scene) if args.scene else default_scene()
+    if args.frames < 1:
+        raise InputError(f"--frames={args.frames} must be >= 1")
+    with render.Renderer() as r:
+        img, rep = r.render(scene)
+        print(f"scene: {scene.source}")
+        print("\n".join(rep.lines()))
+        for k in range(2, args.frames + 1):   # repeat frames: what a frame costs once set up
+            img, again = r.render(scene)
+            ran = [p["pass"] for p in again.passes if p["ran"]]
+            print(f"frame {k}: ran {', '.join(ran)}; frame {again.frame_seconds * 1e3:.1f} ms "
+                  f"= {1.0 / max(again.frame_seconds, 1e-9):.1f} fps-equivalent")
+    exr, png, exposure = render.save(img, out, scene, rep)
+    print(f"wrote {exr} (linear radiance) and {png} (exposure {exposure:.3g}, gamma 2.2)")
+    return 0
+
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from glsldiff.validation.validate import validate
+
+    rows = validate(args.cases, Path(args.out), size=args.size, spp=args.spp)
+    print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
+                "eta != 1: surface reflection removed) and the dipole", rows)
+    print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
+          "image's own relative standard error; times in seconds (diffusion: t1+t2+t3 of a frame).")
+    print(f"wrote validation.csv and validation_<case>.png (diffusion | MC multiple, or subsurface at eta != 1 "
+          f"| MC all, with the reflection at eta != 1) to {args.out}/")
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from glsldiff.bench import forward as bench
+
+    rows = bench.forward(sizes=args.sizes, out=Path(args.out), max_direct_nodes=args.max_direct_nodes,
+                         seconds=args.seconds, precisions=args.precision)
+    print_table("glsldiff bench forward", rows)
+    print(f"wrote forward.csv, forward_curves.csv and forward.png to {args.out}/")
+    return 0
+
+
+def cmd_polygrid(args: argparse.Namespace) -> int:
+    from glsldiff.core import io
+    from glsldiff.mesh import load_mesh
+    from glsldiff.figures import polygrid_figure
+    from glsldiff.grids.polygrid import build_polygrid
+
+    mesh = load_mesh(args.mesh, size_mm=args.size_mm, component=args.component)
+    pg = build_polygrid(mesh, n=args.n, cube_size=args.cube_size,
+                        n_cubes=None if args.cube_size else args.cubes, threshold=args.threshold,
+                        mapping={"variance_iterations": args.variance_iterations},
+                        weights={"fallback": args.fallback})
+    stats = pg.stats()
+    stats["mesh"] = str(args.mesh)
+    stats["polycube_threshold"] = float(pg.polycube.threshold)
+    stats["levels"] = " ".join(f"n={lv}:{cnt}" for lv, cnt in level_counts(pg))
+    print_table(f"polygrid of {args.mesh} ({mesh.extents.max():.3g} mm)",
+                [{"quantity": k, "value": v} for k, v in stats.items()])
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    io.write_csv(out / "polygrid.csv", [{"quantity": k, "value": v} for k, v in stats.items()])
+    if not args.no_png:
+        polygrid_figure(pg, str(out / "polygrid.png"))
+    if args.solve:
+        rows = check_solve(pg, args.tol)
+        print_table("GLSL polygrid vs scipy direct (same discrete system)", rows)
+        io.write_csv(out / "polygrid_solve.csv", rows)
+    print(f"wrote polygrid.csv{'' if args.no_png else ', polygrid.png'}"
+          f"{', polygrid_solve.csv' if args.solve else ''} to {out}/")
+    return 0
+
+
+def level_counts(pg: "object") -> list[tuple[int, int]]:
+    """Active nodes of the lattice at n, n/2, n/4, ... per cube (the hierarchy's levels)."""
+    from glsldiff.grids.lattice import Lattice
+
+    out, n = [], pg.lattice.n  # type: ignore[attr-defined]
+    while n >= 3:
+        lat = Lattice(pg.lattice.cubes, n, pg.lattice.size, pg.lattice.origin)  # type: ignore[attr-defined]
+        out.append((n, lat.n_interior + lat.n_boundary))
+        n //= 2
+    return out
+
+
+def check_solve(pg: "object", tol: float) -> list[dict[str, object]]:
+    """Marble-like material lit on the -x half: GLSL polygrid vs the CPU direct solve."""
+    import numpy as np
+
+    from glsldiff.physics.material import coefficients, preset
+    from glsldiff.solve.polyjacobi import solve_polygrid
+    from glsldiff.system.problem import DiffusionProblem, relative_l2
+    from glsldiff.oracle.solvers import solve_direct
+
+    m = preset("marble")
+    kappa, mu = coefficients(m.sigma_a, m.sigma_s_prime)
+    x = pg.boundary_positions[:, 0]  # type: ignore[attr-defined]
+    q = (x < np.median(x))[:, None] * np.ones(3)
+    p = DiffusionProblem(pg, kappa, mu, q, eta=m.eta)  # type: ignore[arg-type]
+    phi_d, rep_d = solve_direct(p)
+    phi_g, rep_g = solve_polygrid(p, tol=tol)
+    act = pg.active  # type: ignore[attr-defined]
+    return [{"solver": r.method, "nodes": r.nodes, "sweeps": r.sweeps, "residual": r.residual,
+             "seconds": r.seconds, "error_phi": relative_l2(ph[act], phi_d[act]),
+             "error_radiance": relative_l2(r.radiance, rep_d.radiance), "status": r.status}
+            for r, ph in ((rep_d, phi_d), (rep_g, phi_g))]
+
+
+def cmd_bench_sphere(args: argparse.Namespace) -> int:
+    from glsldiff.bench.sphere import sphere_study
+
+    rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
+                        out=Path(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed)
+    print_table(f"polygrid sphere R = {args.radius} mm vs closed form (relative L2 of phi)", rows)
+    print("series n: fixed polycube, more nodes per cube; series cubes: n fixed, smaller cubes. "
+          "err_*_blend: default weights (blend fallback); _axis / _none: the other fallbacks on the same "
+          "nodes; glsl_vs_direct: GPU Jacobi vs the direct (SuperLU, or pyamg above 20k nodes) solve "
+          "of the same system.")
+    print(f"wrote sphere.csv and sphere.png to {args.out}/")
+    return 0
+
+
+def cmd_bench_convergence(args: argparse.Namespace) -> int:
+    from glsldiff.bench.convergence import convergence_bench
+
+    summary, _, extra = convergence_bench(args.models, Path(args.out), target=args.target, hole_n=args.hole_n,
+                                          bunny_n=args.bunny_n, max_sweeps=args.max_sweeps)
+    print_table(f"time to error {args.target:g} (figure 15; error = sum (L-L0)^2 / sum L0^2 over the "
+                "boundary nodes, L0 = direct solve; seconds = GPU time of sweeps and transfer passes)", summary)
+    print_table("adaptive depth search, frame coherence, precision modes", extra)
+    print(f"wrote convergence_summary.csv, convergence_curves.csv, convergence_extra.csv and "
+          f"convergence.png to {args.out}/")
+    return 0
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from glsldiff import gl
+
+    for backend in ("egl", "osmesa"):
+        try:
+            ctx = gl.create_context(backend)
+            print(f"{backend}: {gl.describe(ctx)}; max texture {ctx.info['GL_MAX_TEXTURE_SIZE']}")
+            ctx.release()
+        except GlsldiffError as exc:
+            print(f"{backend}: unavailable ({exc})")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="glsldiff", description=__doc__)
+    sub = parser.add_subparsers(dest="command")
+
+    p = sub.add_parser("demo", help="back-lit marble slab, 4x4 projector regions (default job)")
+    p.add_argument("--size", type=int, nargs=3, default=(64, 64, 12), metavar=("NX", "NY", "NZ"))
+    p.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
+    p.add_argument("--tol", type=float, default=5e-7, help="Jacobi residual tolerance")
+    p.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="glsldiff-out")
+    p.add_argument("--quiet", action="store_true")
+    _add_gl(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("render", help="render a TOML scene (default: the bunny in veined marble) to OpenEXR + PNG")
+    p.add_argument("scene", nargs="?", help="scene file (TOML, see glsldiff.render.scene); none = the built-in default")
+    p.add_argument("-o", "--out", default="render.exr", help="output .exr (a tone-mapped .png goes beside it)")
+    p.add_argument("--frames", type=int, default=1, help="render the scene this many times (frame 2+ reuse passes)")
+    _add_gl(p)
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("validate", help="render validation scenes with diffusion and with Mitsuba 3 "
+                                        "(pip install glsldiff[validation]); relative RMSE and times")
+    p.add_argument("--cases", nargs="+", default=["slab", "sphere", "sphere-albedo0.9", "sphere-veins",
+                                                  "sphere-constant", "sphere-eta1.3-constant", "sphere-sky",
+                                                  "sphere-eta1.3-sky"],
+                   help="validation cases (glsldiff.validation.validate.CASES)")
+    p.add_argument("--size", type=int, default=64, help="image side, pixels")
+    p.add_argument("--spp", type=int, default=256, help="Monte Carlo samples per pixel (a power of two >= 8: "
+                   "split into 2-4 renders of 4^k samples, all Mitsuba's low-discrepancy sampler takes)")
+    p.add_argument("--out", default="bench-out/validation")
+    _add_gl(p)
+    p.set_defaults(func=cmd_validate)
+
+    p = sub.add_parser("bench", help="benchmarks")
+    bsub = p.add_subparsers(dest="bench", required=True)
+    b = bsub.add_parser("forward", help="GLSL Jacobi vs numpy Jacobi vs scipy direct / pyamg, 1e4..1e6 nodes")
+    b.add_argument("--sizes", nargs="+", default=["32x32x10", "80x80x16", "200x200x25"],
+                   help="grids as NXxNYxNZ")
+    b.add_argument("--seconds", type=float, default=20.0, help="time budget per iterative run")
+    b.add_argument("--max-direct-nodes", type=int, default=200_000,
+                   help="largest grid for the scipy direct (SuperLU) solve; above it the "
+                        "pyamg solution is the reference")
+    b.add_argument("--precision", nargs="+", default=["fp32", "fp16"], choices=("fp32", "fp16"))
+    b.add_argument("--out", default="bench-out")
+    _add_gl(b)
+    b.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("polygrid", help="build a polygrid from a closed mesh and print its statistics")
+    p.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF) or a built-in sample: bunny, cow, bone")
+    p.add_argument("--n", type=int, default=16, help="nodes per cube edge (paper: 16 for the bunny)")
+    p.add_argument("--cubes", type=int, default=253, help="target number of cubes (paper's bunny: 253)")
+    p.add_argument("--cube-size", type=float, default=None, help="cube edge in mm (overrides --cubes)")
+    p.add_argument("--size-mm", type=float, default=100.0, help="scale the mesh to this longest extent, mm")
+    p.add_argument("--threshold", type=float, default=0.5, help="inside-volume fraction a cube needs")
+    p.add_argument("--component", choices=("error", "largest"), default="error",
+                   help="meshes with several components: refuse, or keep the largest")
+    p.add_argument("--fallback", choices=("blend", "axis", "none"), default="blend",
+                   help="treatment of nodes with negative or ill-conditioned appendix-B weights")
+    p.add_argument("--variance-iterations", type=int, default=100,
+                   help="L-BFGS iterations of the link-length variance minimisation")
+    p.add_argument("--solve", action="store_true", help="also solve a lit marble problem: GLSL vs scipy")
+    p.add_argument("--tol", type=float, default=5e-7, help="Jacobi residual tolerance for --solve")
+    p.add_argument("--no-png", action="store_true", help="skip the figure")
+    p.add_argument("--out", default="polygrid-out")
+    _add_gl(p)
+    p.set_defaults(func=cmd_polygrid)
+
+    b = bsub.add_parser("sphere", help="polygrid sphere vs the closed form, grid refinement")
+    b.add_argument("--n", type=int, nargs="+", default=[4, 6, 8, 12], help="nodes per cube edge")
+    b.add_argument("--radius", type=float, default=10.0, help="sphere radius, mm")
+    b.add_argument("--cube-size", type=float, default=5.0, help="polycube cube edge of series n, mm")
+    b.add_argument("--cube-sizes", type=float, nargs="*", default=[5.0, 2.5, 1.667, 1.25],
+                   help="cube edges of series cubes (n fixed), mm")
+    b.add_argument("--n-fixed", type=int, default=4, help="nodes per cube edge of series cubes")
+    b.add_argument("--no-glsl", action="store_true", help="skip the GLSL solve (direct solves only)")
+    b.add_argument("--out", default="bench-out")
+    _add_gl(b)
+    b.set_defaults(func=cmd_bench_sphere)
+
+    b = bsub.add_parser("convergence", help="figure 15: single, hierarchical, adaptive, multigrid vs scipy, "
+                                             "error against work and time")
+    b.add_argument("--models", nargs="+", default=["hole", "bunny"], choices=("hole", "bunny"))
+    b.add_argument("--target", type=float, default=0.005, help="figure-15 error to reach")
+    b.add_argument("--hole-n", type=int, default=12, help="nodes per cube edge of the hole model (paper: 12)")
+    b.add_argument("--bunny-n", type=int, default=8,
+                   help="nodes per cube edge of the bunny (paper: 16; 8 keeps the CPU-only run short)")
+    b.add_argument("--max-sweeps", type=int, default=20000, help="sweep budget per solve")
+    b.add_argument("--out", default="bench-out")
+    _add_gl(b)
+    b.set_defaults(func=cmd_bench_convergence)
+
+    from glsldiff.commands.inverse import add_parsers
+    add_parsers(sub, bsub)
+
+    p = sub.add_parser("info", help="report the available GL backends and renderers")
+    p.set_defaults(func=cmd_info)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if not getattr(args, "command", None):
+        args = build_parser().parse_args(["demo", *(argv or [])])
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if getattr(args, "gl", None):
+        os.environ["GLSLDIFF_GL"] = args.gl
+    try:
+        return args.func(args)
+    except GlsldiffError as exc:
+        print(f"glsldiff: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

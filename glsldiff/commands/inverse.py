@@ -1,0 +1,194 @@
+"""``glsldiff synth`` and ``glsldiff fit``: synthetic measurements and the inverse fit."""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from glsldiff.core.tables import print_table
+from glsldiff.core.errors import InputError
+from glsldiff.core.io import check_output
+
+
+def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("synth", help="render synthetic measurements of a heterogeneous block (npz)")
+    p.add_argument("out", help="measurements file to write (.npz); the true material goes to OUT_truth.npz")
+    p.add_argument("--size", type=int, nargs=3, default=(32, 32, 10), metavar=("NX", "NY", "NZ"))
+    p.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
+    p.add_argument("--n", type=int, default=4, help="n x n projector regions")
+    p.add_argument("--setup", choices=("back", "front"), default="back")
+    p.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed")
+    p.add_argument("--noise", type=float, default=0.01, help="relative shot noise at the bright end")
+    p.add_argument("--saturation", type=float, default=None, help="clip radiance at this value")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_synth)
+
+    p = sub.add_parser("fit", help="fit kappa and mu to measurements by inverse diffusion")
+    p.add_argument("measurements", help=".npz measurements (see glsldiff.inverse.measurements)")
+    p.add_argument("-o", "--out", default="material.npz", help="fitted material (.npz)")
+    p.add_argument("--method", choices=("lbfgs", "tnewton", "var2", "cg"), default="lbfgs",
+                   help="optimiser (cg = the paper's Table I)")
+    p.add_argument("--lam", type=float, default=1e-5, help="kappa-gradient regularisation weight")
+    p.add_argument("--stencil", choices=("conservative", "paper"), default="conservative")
+    p.add_argument("--backend", choices=("cpu", "glsl"), default="cpu",
+                   help="forward/adjoint solves: one SuperLU factor (cpu) or GLSL Jacobi (glsl)")
+    p.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for --backend glsl")
+    p.add_argument("--max-evals", type=int, default=200, help="evaluations per channel")
+    p.add_argument("--max-seconds", type=float, default=math.inf, help="time budget per channel")
+    p.add_argument("--kappa0", type=float, default=0.3, help="initial kappa of the homogeneous fit, mm")
+    p.add_argument("--mu0", type=float, default=0.01, help="initial mu of the homogeneous fit, 1/mm")
+    p.add_argument("--truth", default=None, help="true material (.npz) to report the figure-11 error E")
+    p.add_argument("--no-png", action="store_true", help="skip the depth-slice pictures")
+    p.set_defaults(func=cmd_fit)
+
+    p = sub.add_parser("reflectance", help="measured diffuse surface reflectance (paper sec. 6.1): a uniformly "
+                                          "lit front image minus the fitted material's multiple scattering")
+    p.add_argument("measurements", help="front-lit .npz measurements holding the uniformly lit condition")
+    p.add_argument("material", help="fitted material .npz (glsldiff fit -o)")
+    p.add_argument("--condition", type=int, default=0, help="index of the uniformly lit condition")
+    p.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
+                   help="irradiance of the uniform light (1 or 3 values, camera units x sr); "
+                        "default: the condition's q / F_t at normal incidence")
+    p.add_argument("-o", "--out", default="reflectance.exr", help="albedo map (.exr), [material].reflectance")
+    p.set_defaults(func=cmd_reflectance)
+
+    b = bsub.add_parser("fit", help="inverse diffusion: figure 11 (E vs measurements, vs iterations), "
+                                    "figure 13 (lambda), CPU vs GLSL forward solves")
+    b.add_argument("--size", type=int, nargs=3, default=(32, 32, 8), metavar=("NX", "NY", "NZ"))
+    b.add_argument("--h", type=float, default=0.5)
+    b.add_argument("--n", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6], help="n for n x n measurements")
+    b.add_argument("--methods", nargs="+", default=["lbfgs", "cg"], choices=("lbfgs", "tnewton", "var2", "cg"))
+    b.add_argument("--lams", type=float, nargs="+", default=[1e-4, 1e-5, 1e-6])
+    b.add_argument("--max-evals", type=int, default=150)
+    b.add_argument("--noise", type=float, default=0.01)
+    b.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed")
+    b.add_argument("--skip", nargs="*", default=[], choices=("measurements", "lambda", "backends"),
+                   help="parts of the benchmark to leave out")
+    b.add_argument("--out", default="bench-out")
+    b.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for the GLSL path")
+    b.set_defaults(func=cmd_bench_fit)
+
+
+def cmd_synth(args: argparse.Namespace) -> int:
+    from glsldiff.inverse.measurements import save_measurements
+    from glsldiff.inverse.synthetic import synthetic_measurements, synthetic_volume
+    from glsldiff.core.io import write_npz
+
+    out = check_output(args.out)
+    truth = check_output(out.with_name(out.stem + "_truth.npz"))
+    nx, ny, nz = args.size
+    kappa, mu = synthetic_volume((nz, ny, nx), args.volume, seed=args.seed)
+    meas = synthetic_measurements(kappa, mu, args.h, args.n, args.setup, noise=args.noise,
+                                  saturation=args.saturation, seed=args.seed + 1)
+    save_measurements(out, meas)
+    write_npz(truth, kappa=kappa, mu=mu, h=args.h)
+    print(f"wrote {meas.M} {args.setup}-lit measurements of a {nx}x{ny}x{nz} {args.volume} block "
+          f"(h = {args.h} mm) to {out} and the true material to {truth}")
+    return 0
+
+
+def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -> tuple[np.ndarray, np.ndarray]:
+    """kappa, mu of a material ``.npz`` on the measurements' grid ``shape``."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{what} {path!r} does not exist")
+    with np.load(p) as d:
+        if "kappa" not in d.files or "mu" not in d.files:
+            raise InputError(f"{what} {path!r} lacks kappa/mu")
+        k, m = d["kappa"], d["mu"]
+    if k.shape[:3] != tuple(shape) or m.shape != k.shape:
+        raise InputError(f"{what} volumes have shape {k.shape}, the measurements' grid is {tuple(shape)}")
+    return k, m
+
+
+def cmd_fit(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from glsldiff.inverse.figures import depth_slices
+    from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
+    from glsldiff.inverse.measurements import load_measurements
+    from glsldiff.inverse.synthetic import bssrdf_error
+    from glsldiff.core.io import write_csv
+
+    out = check_output(args.out)
+    options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,
+                         mu0=args.mu0, max_evals=args.max_evals, max_seconds=args.max_seconds,
+                         backend=args.backend)
+    meas = load_measurements(args.measurements)
+    truth = _load_truth(args.truth, meas.shape) if args.truth else None
+    rows: list[dict[str, object]] = []
+    channels = 1 if meas.grey() else 3
+    bar = tqdm(total=channels * args.max_evals, desc="fit", unit="eval", dynamic_ncols=True)
+
+    def progress(c: int, rec: object) -> None:
+        bar.update(1)
+        bar.set_postfix(channel=c, f=f"{rec.value:.3e}", data=f"{rec.data:.3e}")
+        if not math.isnan(rec.grad_norm):  # an iteration (gradient evaluation), not a line-search point
+            bar.write(f"channel {c} eval {rec.evaluation:4d}  {rec.seconds:7.1f} s  f {rec.value:.4e}  "
+                      f"data {rec.data:.4e}  |grad| {rec.grad_norm:.3e}")
+            rows.append(dict(channel=c, evaluation=rec.evaluation, seconds=rec.seconds, f=rec.value,
+                             data=rec.data, grad_norm=rec.grad_norm))
+
+    result = fit_measurements(meas, options, progress)
+    bar.close()
+    save_material(out, result)
+    write_csv(out.with_name(out.stem + "_trace.csv"), rows)
+    table = []
+    for c, f in enumerate(result.channels):
+        table.append(dict(channel="RGB"[c], kappa_h=f.homogeneous[0], mu_h=f.homogeneous[1],
+                          hom_evals=len(f.homogeneous_trace.records), evals=len(f.trace.records),
+                          data=f.data, status=f.trace.status, seconds=f.trace.seconds))
+    E = None
+    if truth is not None:
+        E = bssrdf_error(meas.grid, truth, (result.kappa, result.mu), sources=(meas.lit_face,),
+                         receivers=(meas.observed_face,), stencil=options.stencil, eta=meas.eta)
+    print_table(f"inverse diffusion, {meas.M} measurements, {meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} "
+                f"nodes, method {options.method}, lambda {options.lam:g}, {options.backend} solves", table)
+    for note in result.notes:
+        print(note)
+    if E is not None:
+        print(f"figure-11 error E vs the true material ({meas.lit_face} -> {meas.observed_face} pairs): {E:.5f}")
+    if not all(f.converged for f in result.channels):
+        print("NOT converged (f >= 1e-4 of sum L^2 when the budget ran out); the best material found is saved")
+    if not args.no_png:
+        png = out.with_name(out.stem + "_slices.png")
+        depth_slices(png, result.kappa, result.mu, meas.h, truth=truth)
+        print(f"wrote {png}")
+    print(f"wrote {out} and {out.with_name(out.stem + '_trace.csv')} in {result.seconds:.1f} s")
+    return 0
+
+
+def cmd_reflectance(args: argparse.Namespace) -> int:
+    from glsldiff.inverse.measurements import load_measurements
+    from glsldiff.inverse.reflectance import diffuse_reflectance
+    from glsldiff.core.io import write_exr
+
+    out = check_output(args.out)
+    if out.suffix.lower() != ".exr":
+        raise InputError(f"output {str(out)!r} must be an .exr file")
+    if args.irradiance is not None and len(args.irradiance) not in (1, 3):
+        raise InputError(f"--irradiance takes 1 or 3 values, got {len(args.irradiance)}")
+    meas = load_measurements(args.measurements)
+    k, m = _load_truth(args.material, meas.shape, "material file")
+    with np.load(args.material) as d:
+        stencil = str(d["stencil"]) if "stencil" in d.files else "conservative"
+        face_mean = str(d["face_mean"]) if "face_mean" in d.files else "arithmetic"
+    r = diffuse_reflectance(meas, k, m, args.condition, args.irradiance, stencil, face_mean)
+    write_exr(out, r.rho.astype(np.float32), {"glsldiff": "diffuse surface reflectance, one pixel per block "
+                                                          f"node of face {meas.observed_face}"})
+    print(r.summary())
+    print(f"wrote {out} ({r.rho.shape[1]}x{r.rho.shape[0]}); use it as [material].reflectance with the "
+          "block volume")
+    return 0
+
+
+def cmd_bench_fit(args: argparse.Namespace) -> int:
+    from glsldiff.inverse import bench
+
+    if args.gl:
+        os.environ["GLSLDIFF_GL"] = args.gl
+    bench.run(args)
+    return 0

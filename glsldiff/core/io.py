@@ -1,0 +1,150 @@
+"""Image and table files: OpenEXR (HDR, linear), PNG (tone-mapped), CSV. Writes are atomic.
+
+Every writer goes to a temporary file in the destination folder and renames it into
+place, so an interrupted run never leaves a truncated file under the final name.
+"""
+from __future__ import annotations
+
+import csv
+import os
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator, Mapping, Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.core.errors import GlsldiffError, InputError
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; rename it to ``path`` on success."""
+    dest = Path(path)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=suffix or dest.suffix, dir=dest.parent)
+    os.close(fd)
+    try:
+        yield Path(tmp)
+        os.replace(tmp, dest)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def _rgb(image: ArrayLike, name: str) -> NDArray[np.float32]:
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 2:
+        img = np.repeat(img[..., None], 3, axis=2)
+    if img.ndim != 3 or img.shape[2] != 3 or img.size == 0:
+        raise InputError(f"{name}: expected an (h, w, 3) or (h, w) image, got shape {np.shape(image)}")
+    if not np.all(np.isfinite(img)):
+        raise InputError(f"{name}: image has {int((~np.isfinite(img)).sum())} non-finite values; not written")
+    return img
+
+
+def write_exr(path: str | os.PathLike, image: ArrayLike,
+              attributes: Mapping[str, str] | None = None, half: bool = False) -> Path:
+    """Write a linear RGB image (row 0 = top) as ZIP-compressed OpenEXR: float32 pixels, or
+    16-bit half floats with ``half=True`` (values beyond the half range, 65504, are refused)."""
+    import OpenEXR
+
+    img = np.ascontiguousarray(_rgb(image, str(path)))
+    if half:
+        if np.abs(img).max() > np.finfo(np.float16).max:
+            raise InputError(f"{path}: values up to {np.abs(img).max():.4g} exceed the half-float range "
+                             f"(65504); write float32 instead or rescale")
+        img = img.astype(np.float16)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    header.update({k: str(v) for k, v in (attributes or {}).items()})
+    with atomic_path(path) as tmp, OpenEXR.File(header, {"RGB": img}) as f:
+        f.write(str(tmp))
+    return Path(path)
+
+
+def read_exr(path: str | os.PathLike) -> NDArray[np.float32]:
+    """Read the RGB channels of an OpenEXR file as ``(h, w, 3)`` float32."""
+    import OpenEXR
+
+    if not Path(path).is_file():
+        raise GlsldiffError(f"{path}: no such EXR file")
+    with OpenEXR.File(str(path)) as f:
+        ch = f.channels()
+        if "RGB" in ch:
+            return np.asarray(ch["RGB"].pixels, dtype=np.float32)
+        try:
+            return np.stack([np.asarray(ch[c].pixels, dtype=np.float32) for c in "RGB"], axis=-1)
+        except KeyError as exc:
+            raise GlsldiffError(f"{path}: no R, G, B channels (has {sorted(ch)})") from exc
+
+
+def tonemap(image: ArrayLike, exposure: float, gamma: float = 2.2) -> NDArray[np.uint8]:
+    """``clip(exposure * L, 0, 1) ** (1 / gamma)`` as 8-bit sRGB-like values."""
+    img = np.clip(np.asarray(image, dtype=np.float64) * exposure, 0.0, 1.0) ** (1.0 / gamma)
+    return np.round(img * 255.0).astype(np.uint8)
+
+
+def write_png(path: str | os.PathLike, image8: NDArray[np.uint8]) -> Path:
+    """Write an 8-bit RGB image (row 0 = top) as PNG."""
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(image8), "RGB").save(tmp, format="PNG")
+    return Path(path)
+
+
+def contact_sheet(images: Sequence[ArrayLike], columns: int, exposure: float,
+                  pad: int = 2, gamma: float = 2.2, scale: int = 1) -> NDArray[np.uint8]:
+    """Tile equally sized HDR images into one tone-mapped 8-bit sheet (shared exposure),
+    each enlarged ``scale`` times by pixel replication."""
+    tiles = [np.repeat(np.repeat(tonemap(_rgb(im, "contact sheet tile"), exposure, gamma), scale, 0), scale, 1)
+             for im in images]
+    h, w = tiles[0].shape[:2]
+    rows = -(-len(tiles) // columns)
+    sheet = np.full((rows * (h + pad) + pad, columns * (w + pad) + pad, 3), 32, np.uint8)
+    for i, t in enumerate(tiles):
+        r, c = divmod(i, columns)
+        sheet[pad + r * (h + pad):pad + r * (h + pad) + h, pad + c * (w + pad):pad + c * (w + pad) + w] = t
+    return sheet
+
+
+def write_npz(path: str | os.PathLike, **arrays: object) -> Path:
+    """Write arrays to a compressed ``.npz`` file atomically (no half-written file on failure)."""
+    with atomic_path(path, ".npz") as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
+    return Path(path)
+
+
+def write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, object]]) -> Path:
+    """Write dict rows as CSV; the columns are the union of the keys in first-seen order
+    (a row without a key leaves its cell empty)."""
+    if not rows:
+        raise InputError(f"{path}: no rows to write")
+    fields = list(dict.fromkeys(k for row in rows for k in row))
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
+        writer.writeheader()
+        writer.writerows(rows)
+    return Path(path)
+
+
+def check_output(path: str | os.PathLike, suffixes: Sequence[str] = (), note: str = "") -> Path:
+    """Refuse an output path that cannot be written, before any work is done.
+
+    The folder must exist and be writable, the path must not be a folder, an existing file
+    must be writable, and when ``suffixes`` are given the name must end in one of them
+    (``note`` says why, e.g. what is written beside it).
+    """
+    p = Path(path)
+    if suffixes and p.suffix.lower() not in suffixes:
+        why = f" ({note})" if note else ""
+        raise InputError(f"output {str(p)!r}: must end in {' or '.join(suffixes)}{why}")
+    parent = p.parent if str(p.parent) else Path(".")
+    if p.is_dir():
+        raise InputError(f"output {str(p)!r} is a folder; give a file name")
+    if not parent.is_dir():
+        raise InputError(f"output {str(p)!r}: folder {str(parent)!r} does not exist")
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise InputError(f"output {str(p)!r}: not writable")
+    return p

@@ -1,0 +1,5 @@
+"""Grids: the node graphs a diffusion equation is discretised on (CPU only, never GL).
+
+The regular block grid (acquisition samples), and the polygrid of Wang et al. 2008 section 5.1:
+polycube, lattice, mapping into the mesh, Laplacian weights, and the multiresolution hierarchy.
+"""

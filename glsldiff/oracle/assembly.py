@@ -1,0 +1,165 @@
+"""CPU oracle: the identical discrete system assembled with scipy.sparse.
+
+:func:`assemble` builds, for all three channels at once, the block-diagonal system
+``A x = b`` whose rows are exactly the relaxation formulas the GLSL shaders apply
+(see :mod:`glsldiff.system.problem`): Jacobi is ``x <- x + D^-1 (b - A x)`` with
+``D = diag(A)``. The solvers of :mod:`glsldiff.oracle.solvers` work on it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import NDArray
+
+from glsldiff.system.problem import DiffusionProblem
+from glsldiff.system.report import channel_ratio
+
+
+@dataclass
+class LinearSystem:
+    """``A x = b`` over the active nodes, channel-major (``x[c * n + i]``).
+
+    Attributes
+    ----------
+    A
+        ``(3n, 3n)`` CSR matrix, block diagonal over channels.
+    b
+        ``(3n,)`` right-hand side.
+    diag
+        ``(3n,)`` diagonal of ``A`` (the Jacobi divisor).
+    active
+        ``(n,)`` flat indices (into the ``(nz, ny, nx)`` volume) of the unknowns.
+    norm_ref
+        ``(3n,)`` vector whose per-channel norm divides the residual (default ``D^-1 b``);
+        a system with rows pinned to fixed values keeps the unpinned system's here, so
+        that its residual means the same as the full system's.
+    """
+
+    A: sp.csr_matrix
+    b: NDArray[np.float64]
+    diag: NDArray[np.float64]
+    active: NDArray[np.int64]
+    norm_ref: NDArray[np.float64] | None = None
+
+    @property
+    def n(self) -> int:
+        return self.active.size
+
+    def to_volume(self, x: NDArray, shape: tuple[int, int, int]) -> NDArray[np.float64]:
+        """Channel-major unknown vector -> ``shape + (3,)`` volume, 0 at inactive nodes."""
+        out = np.zeros((int(np.prod(shape)), 3))
+        out[self.active] = x.reshape(3, self.n).T
+        return out.reshape(shape + (3,))
+
+    def from_volume(self, vol: NDArray) -> NDArray[np.float64]:
+        """``(nz, ny, nx, 3)`` volume -> channel-major unknown vector."""
+        return np.asarray(vol, dtype=np.float64).reshape(-1, 3)[self.active].T.reshape(-1)
+
+    def block(self, c: int) -> tuple[sp.csr_matrix, NDArray[np.float64]]:
+        """Matrix and right-hand side of channel ``c`` alone."""
+        sl = slice(c * self.n, (c + 1) * self.n)
+        return self.A[sl, sl], self.b[sl]
+
+    def jacobi_step(self, x: NDArray) -> NDArray[np.float64]:
+        """The Jacobi increment ``D^-1 (b - A x)``."""
+        return (self.b - self.A @ x) / self.diag
+
+    def residual(self, x: NDArray, step: NDArray | None = None) -> float:
+        """Jacobi-scaled relative residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``
+        (``step`` = :meth:`jacobi_step` of ``x`` when already computed)."""
+        r = self.jacobi_step(x) if step is None else step
+        ref = self.b / self.diag if self.norm_ref is None else self.norm_ref
+        return channel_ratio(r.reshape(3, self.n), ref.reshape(3, self.n))
+
+    def pinned(self, rows: NDArray[np.bool_], x: NDArray) -> "LinearSystem":
+        """The same system with the unknowns where ``rows`` (``(n,)``, all channels) is true
+        held at their values in ``x`` (rows ``diag_i x_i = diag_i x_fixed_i``): what a
+        relaxation that never updates those nodes converges to."""
+        fixed = np.tile(np.asarray(rows, dtype=bool), 3)
+        keep = sp.diags((~fixed).astype(np.float64))
+        A = (keep @ self.A + sp.diags(np.where(fixed, self.diag, 0.0))).tocsr()
+        b = np.where(fixed, self.diag * x, self.b)
+        return LinearSystem(A, b, self.diag, self.active, self.b / self.diag)
+
+
+def jacobi_radius_bound(system: LinearSystem) -> float:
+    """Lower bound on the spectral radius of the Jacobi matrix ``J = I - D^-1 A``.
+
+    ``J`` is non-negative, so ``rho(J) >= sqrt(J_ij J_ji)`` for every linked pair.
+    A value >= 1 means Jacobi cannot converge and ``A`` is not an M-matrix (its
+    solution may be negative): this happens with the paper's stencil where a
+    boundary node's kappa exceeds its interior partner's by a large factor.
+    """
+    off = (system.A - sp.diags(system.diag)).tocsr()
+    J = sp.diags(1.0 / system.diag) @ abs(off)
+    pair = J.multiply(J.T)
+    return float(np.sqrt(pair.max())) if pair.nnz else 0.0
+
+
+def diverged_message(problem: DiffusionProblem, method: str, sweeps: int) -> str:
+    """Explanation for a diverging iteration, with the spectral-radius bound."""
+    bound = jacobi_radius_bound(assemble(problem))
+    hint = (" The paper's stencil loses diagonal dominance where kappa jumps at the boundary; "
+            "use stencil='conservative' or a smoother kappa." if problem.stencil == "paper" else "")
+    return (f"{method} diverged after {sweeps} sweeps: the Jacobi matrix has spectral radius "
+            f">= {bound:.3f} (bound from linked node pairs).{hint}")
+
+
+def _matrix(problem: DiffusionProblem, c: int) -> tuple[sp.csr_matrix, NDArray]:
+    """Matrix and its diagonal for channel ``c`` (rows of :mod:`glsldiff.grids.graph`).
+
+    Interior row ``i`` (times the row scale ``s_i``; ``w_j`` the scaled weights):
+    paper ``(sum_j w_j + s_i mu_i/kappa_i) u_i - sum_j w_j u_j``, conservative
+    ``(sum_j w_j k_ij + s_i mu_i) phi_i - sum_j w_j k_ij phi_j``. Boundary row ``b``
+    (times ``d_b``, and ``kappa_b`` for the paper's unknown): ``phi_b + 2 C kappa_b
+    (phi_b - phi_j) / d_b = q_b``.
+    """
+    g = problem.graph
+    k = problem.kappa.reshape(-1, 3)[:, c]
+    m = problem.mu.reshape(-1, 3)[:, c]
+    C = float(problem.C)
+    active = g.active
+    pos = np.full(g.size, -1, dtype=np.int64)
+    pos[active] = np.arange(active.size)
+
+    interior, nb = g.interior, g.neighbours
+    if problem.stencil == "paper":
+        w = g.weights
+    else:
+        ki, kj = k[interior, None], k[nb]
+        face = 0.5 * (ki + kj) if problem.face_mean == "arithmetic" else 2.0 * ki * kj / (ki + kj)
+        w = g.weights * face
+    diag = np.zeros(g.size)
+    diag[interior] = w.sum(axis=1) + g.scale * (m[interior] / k[interior] if problem.stencil == "paper"
+                                                else m[interior])
+    boundary, j = g.boundary, g.link
+    kb = k[boundary]
+    diag[boundary] = g.d + 2.0 * C * kb
+    off_b = 2.0 * C * kb * kb / k[j] if problem.stencil == "paper" else 2.0 * C * kb
+
+    r = np.concatenate([np.repeat(interior, 6), boundary, active])
+    cc = np.concatenate([nb.ravel(), j, active])
+    v = np.concatenate([-w.ravel(), -off_b, diag[active]])
+    A = sp.csr_matrix((v, (pos[r], pos[cc])), shape=(active.size, active.size))
+    return A, diag[active]
+
+
+def assemble(problem: DiffusionProblem) -> LinearSystem:
+    """The discrete system of ``problem`` for all three channels (block diagonal)."""
+    blocks = [_matrix(problem, c) for c in range(3)]
+    active = problem.graph.active
+    return LinearSystem(sp.block_diag([A for A, _ in blocks], format="csr"), assemble_rhs(problem),
+                        np.concatenate([d for _, d in blocks]), active)
+
+
+def assemble_rhs(problem: DiffusionProblem) -> NDArray[np.float64]:
+    """Right-hand side ``b`` (channel-major over the active nodes): ``d_b kappa_b q_b``
+    (paper) or ``d_b q_b`` (conservative) at boundary nodes, 0 at interior nodes."""
+    g = problem.graph
+    q = problem.q.reshape(-1, 3)
+    b = np.zeros((g.size, 3))
+    kb = problem.kappa.reshape(-1, 3)[g.boundary] if problem.stencil == "paper" else 1.0
+    b[g.boundary] = g.d[:, None] * kb * q[g.boundary]
+    return b[g.active].T.reshape(-1)

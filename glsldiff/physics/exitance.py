@@ -1,0 +1,65 @@
+"""Exitance and source conventions: the one home of the formulas that turn light into the
+diffusion's boundary source ``q`` and the fluence ``phi`` back into exitant radiance.
+
+Notation: ``phi`` fluence, ``E_t`` irradiance transmitted through the boundary,
+``C = (1 + Fdr) / (1 - Fdr)`` (:func:`glsldiff.physics.optics.boundary_constant`); the
+solver's boundary condition is ``phi + 2 C kappa dphi/dn = q``. The multiple-scattering
+radiance leaving a boundary point towards ``w_o`` is ``L = F_t(eta, n.w_o) B`` with the
+view-independent bracket ``B = a phi - b q`` (:func:`exitance_coefficients`).
+
+Conventions (``EXITANT``):
+
+* ``"p1"``: Marshak source ``q = 4 E_t / (1 - Fdr)`` and the P1 radiance along the normal,
+  refracted out: ``B = [phi + 3 E.n] / (4 pi eta^2)`` with ``E.n = -kappa dphi/dn =
+  (phi - q) / (2 C)``. In ``../shared/notes/wang2008.md`` this was 0.97-1.02x of Monte Carlo
+  on a slab's unlit face.
+* ``"arbree"``: same source, TransCut eq. 3 (Arbree et al.): ``B = [(1 + 1/C) phi - q / C] /
+  (4 pi)``, i.e. ``1/pi`` times the outgoing partial current ``J+``.
+* ``"paper"``: ``q = E_t``, ``B = (phi - q) / (2 pi)``, the net flux of Wang et al. eq. 3
+  (negative where light enters: meaningful on unlit surfaces only).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.core.errors import InputError
+from glsldiff.physics.optics import boundary_constant, fdr
+
+__all__ = ["EXITANT", "exitance_coefficients", "exitant_bracket", "source_from_irradiance"]
+
+EXITANT = ("p1", "arbree", "paper")
+
+
+def _check(convention: str) -> None:
+    if convention not in EXITANT:
+        raise InputError(f"exitant convention {convention!r}; choose one of {', '.join(EXITANT)}")
+
+
+def exitance_coefficients(eta: float, convention: str, C: float | None = None) -> tuple[float, float]:
+    """``(a, b)`` of the bracket ``B = a phi - b q`` (sr^-1); ``C`` defaults to
+    ``boundary_constant(eta)`` (the ``paper`` bracket does not depend on it)."""
+    _check(convention)
+    if convention == "paper":
+        return 1.0 / (2.0 * math.pi), 1.0 / (2.0 * math.pi)
+    C = float(boundary_constant(eta)) if C is None else float(C)
+    if convention == "p1":
+        s = 4.0 * math.pi * eta * eta
+        return (1.0 + 1.5 / C) / s, 1.5 / (C * s)
+    return (1.0 + 1.0 / C) / (4.0 * math.pi), 1.0 / (C * 4.0 * math.pi)
+
+
+def exitant_bracket(phi_b: ArrayLike, q_b: ArrayLike, eta: float, convention: str,
+                    C: float | None = None) -> NDArray[np.float64]:
+    """The view-independent factor ``B`` of ``L = F_t(eta, n.w_o) B`` per boundary node."""
+    a, b = exitance_coefficients(eta, convention, C)
+    return a * np.asarray(phi_b, dtype=np.float64) - b * np.asarray(q_b, dtype=np.float64)
+
+
+def source_from_irradiance(E_t: ArrayLike, eta: float, convention: str) -> NDArray[np.float64]:
+    """The solver's boundary source ``q`` for transmitted irradiance ``E_t``."""
+    _check(convention)
+    E = np.array(E_t, dtype=np.float64)
+    return E if convention == "paper" else 4.0 * E / (1.0 - float(fdr(eta)))

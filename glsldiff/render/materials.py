@@ -1,0 +1,148 @@
+"""Per-node material of a scene: kappa (mm) and mu (mm^-1) at every polygrid node.
+
+* homogeneous: a preset or ``sigma_a`` / ``sigma_s_prime``;
+* procedural, evaluated over the nodes' bounding box (unit coordinates ``u`` in [0, 1]^3):
+  ``veins`` (:func:`glsldiff.physics.material.marble_volume` on a 64^3 lattice, trilinear),
+  ``layers`` (bands of the base and the second material along +y, 8 per object height,
+  bent by smooth noise), ``inclusions`` (spheres of the second material, 5 % of the
+  volume, radii 3-8 % of the object size, seeded);
+* a block volume file (``.npz`` with ``kappa``, ``mu`` of shape ``(nz, ny, nx, 3)`` and
+  ``h_mm``), mapped through a shell layer (:func:`glsldiff.render.shellmap.map_shell`).
+
+Blending happens on the optical coefficients (sigma_a, sigma_s'), then kappa and mu are
+derived, so every node stays physical.
+
+:func:`surface_reflectance` gives the optional diffuse surface albedo at the boundary
+nodes: a constant, or a measured map over the block's face tiled like the volume
+(:func:`glsldiff.render.shellmap.map_surface`).
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import map_coordinates
+
+from glsldiff.core.errors import InputError
+from glsldiff.physics.material import Preset, coefficients, marble_volume, preset
+from glsldiff.render.scene import MaterialSpec, Scene
+
+
+def _pair(spec: MaterialSpec) -> tuple[NDArray, NDArray]:
+    """(sigma_a, sigma_s') of the base material, mm^-1."""
+    if spec.sigma_a is not None:
+        return np.asarray(spec.sigma_a, float), np.asarray(spec.sigma_s_prime, float)
+    p = preset(spec.preset or "marble")
+    return np.asarray(p.sigma_a, float), np.asarray(p.sigma_s_prime, float)
+
+
+def _second(spec: MaterialSpec, base: tuple[NDArray, NDArray]) -> tuple[NDArray, NDArray]:
+    if spec.vein is not None:
+        p = preset(spec.vein)
+        return np.asarray(p.sigma_a, float), np.asarray(p.sigma_s_prime, float)
+    return base[0] * 20.0, base[1] * 0.5   # darker, more absorbing (as marble_volume's default vein)
+
+
+def _unit(positions: NDArray) -> NDArray[np.float64]:
+    lo, hi = positions.min(axis=0), positions.max(axis=0)
+    return (positions - lo) / np.maximum(hi - lo, 1e-9)
+
+
+def _noise(u: NDArray, seed: int, cells: int = 6) -> NDArray[np.float64]:
+    g = np.random.default_rng(seed).uniform(-1.0, 1.0, (cells + 1,) * 3)
+    return map_coordinates(g, (u * cells).T[::-1], order=3, mode="nearest")
+
+
+@lru_cache(maxsize=4)
+def _vein_lattice(cells: int, seed: int, sigma_a: tuple, sigma_s_prime: tuple, eta: float,
+                  base_name: str | None, vein_name: str | None) -> tuple[NDArray, NDArray]:
+    """The veins lattice, built once per material (single scattering samples the material
+    many times per frame)."""
+    base = preset(base_name) if base_name else Preset("custom", np.array(sigma_s_prime), np.array(sigma_a), eta)
+    return marble_volume((cells,) * 3, seed=seed, base=base, vein=preset(vein_name) if vein_name else None)
+
+
+def blend_weight(kind: str, positions: NDArray, seed: int) -> NDArray[np.float64]:
+    """Weight ``t`` in [0, 1] of the second material at each position (``(N, 3)`` mm)."""
+    u = _unit(positions)
+    if kind == "layers":
+        s = np.sin(2.0 * np.pi * (8.0 * u[:, 1] + 0.8 * _noise(u, seed)))
+        return 0.5 + 0.5 * np.tanh(3.0 * s)
+    if kind == "inclusions":
+        rng = np.random.default_rng(seed)
+        t = np.zeros(len(u))
+        vol, k = 0.0, 0
+        while vol < 0.05 and k < 400:
+            c, r = rng.uniform(0.1, 0.9, 3), rng.uniform(0.03, 0.08)
+            t = np.maximum(t, np.clip((r - np.linalg.norm(u - c, axis=1)) / (0.2 * r), 0.0, 1.0))
+            vol += 4.0 / 3.0 * np.pi * r ** 3
+            k += 1
+        return t
+    raise InputError(f"unknown procedural volume {kind!r}")
+
+
+def _block(scene: Scene) -> tuple[NDArray, NDArray, float]:
+    """kappa, mu and h_mm of the scene's block volume file."""
+    path = scene.resolve(scene.material.volume)
+    try:
+        with np.load(path) as z:
+            return np.asarray(z["kappa"], float), np.asarray(z["mu"], float), float(z["h_mm"])
+    except (OSError, KeyError, ValueError) as exc:
+        raise InputError(f"{scene.source}: [material].volume: {str(path)!r} is not an npz with kappa, mu "
+                         f"and h_mm ({exc})") from exc
+
+
+def surface_reflectance(scene: Scene, polygrid: Any) -> NDArray[np.float64] | None:
+    """``(n_boundary, 3)`` diffuse surface albedo at the boundary nodes, or ``None`` without
+    ``[material].reflectance``. A map has one pixel per block voxel (``h_mm``) in x-y, e.g.
+    the face nodes of :func:`glsldiff.inverse.reflectance.diffuse_reflectance`, and is tiled
+    like the volume; values are clipped to [0, 1]."""
+    r = scene.material.reflectance
+    if r is None:
+        return None
+    nb = len(polygrid.boundary_positions)
+    if not isinstance(r, str):
+        return np.tile(np.asarray(r, dtype=np.float64), (nb, 1))
+    from glsldiff.core.io import read_exr
+    from glsldiff.render.shellmap import map_surface
+
+    _, _, h = _block(scene)
+    img = np.asarray(read_exr(scene.resolve(r)), np.float64)[..., :3]
+    rho = map_surface(polygrid, img, (img.shape[1] * h, img.shape[0] * h))
+    return np.clip(rho, 0.0, 1.0)
+
+
+def node_material(scene: Scene, positions: NDArray, polygrid: Any = None) -> tuple[NDArray, NDArray, dict]:
+    """``(N, 3)`` kappa (mm) and mu (mm^-1) at ``positions`` (mm), and a small info dict."""
+    spec = scene.material
+    base = _pair(spec)
+    n = len(positions)
+    if spec.volume is not None:
+        from glsldiff.render.shellmap import map_shell
+
+        path = scene.resolve(spec.volume)
+        kb, mb, h = _block(scene)
+        core: Any = spec.core if spec.core == "mean" else preset(spec.core)
+        kappa, mu, info = map_shell(polygrid, kb, mb, h, core=core, thickness_mm=spec.shell_mm)
+        return kappa.reshape(-1, 3), mu.reshape(-1, 3), {"material": f"volume {path.name} via shell", **info}
+    if spec.procedural is None:
+        kappa, mu = coefficients(base[0], base[1])
+        return (np.broadcast_to(kappa, (n, 3)).copy(), np.broadcast_to(mu, (n, 3)).copy(),
+                {"material": spec.preset or "coefficients"})
+    if spec.procedural == "veins":
+        cells = 64
+        kv, mv = _vein_lattice(cells, spec.seed, tuple(base[0]), tuple(base[1]), spec.eta,
+                               spec.preset if spec.sigma_a is None else None, spec.vein)
+        coords = (_unit(positions) * (cells - 1)).T[::-1]   # (z, y, x) lattice order
+        kappa = np.stack([map_coordinates(kv[..., c], coords, order=1, mode="nearest") for c in range(3)], -1)
+        mu = np.stack([map_coordinates(mv[..., c], coords, order=1, mode="nearest") for c in range(3)], -1)
+        return kappa, mu, {"material": f"veins over {spec.preset or 'marble'}"}
+    t = blend_weight(spec.procedural, positions, spec.seed)[:, None]
+    other = _second(spec, base)
+    sa = (1 - t) * base[0] + t * other[0]
+    ss = (1 - t) * base[1] + t * other[1]
+    kappa, mu = coefficients(sa, ss)
+    return np.asarray(kappa), np.asarray(mu), {"material": f"{spec.procedural}, second material share "
+                                                           f"{float(t.mean()):.2f}"}

@@ -1,0 +1,470 @@
+"""Scenes for ``glsldiff render``: a TOML file, validated field by field.
+
+Every length is in mm and every coefficient in mm^-1. A scene file has the tables below;
+all are optional except ``[mesh]`` (the built-in default scene, :func:`default_scene`,
+fills every field). Unknown tables or keys are errors (a misspelt key would otherwise be
+silently ignored).
+
+.. code-block:: toml
+
+    [mesh]
+    source = "bunny"          # a sample name (bunny, cow, bone, airplane), "sphere", or a mesh file
+    size_mm = 100.0           # longest bounding-box extent after scaling
+
+    [polygrid]
+    n = 8                     # nodes per cube edge
+    cubes = 253               # polycube target cube count
+    levels = 3                # hierarchy levels (1 = single resolution)
+
+    [material]                # exactly one of: preset / sigma_a + sigma_s_prime / volume / procedural
+    preset = "marble"
+    eta = 1.3
+    procedural = "veins"      # veins | layers | inclusions (base = preset, second = "vein")
+    vein = "skin1"            # the second material of a procedural volume (default: darker base)
+    seed = 0
+    volume = "block.npz"      # kappa, mu (nz, ny, nx, 3) and h_mm; mapped through a shell layer
+    core = "mean"             # inner core below the shell: a preset name or "mean"
+    shell_mm = 4.0            # shell thickness (default: the block's depth)
+    reflectance = 0.03        # optional diffuse surface albedo added in pass 3 (scalar or RGB), or
+                              # "rho.exr": a measured map over the block's face, tiled like the volume
+                              # (glsldiff.inverse.reflectance)
+
+    [[lights]]                # directional | point | spot | projector | environment
+    type = "directional"
+    direction = [0.3, 1.0, 0.6]   # towards the light
+    irradiance = [1.0, 1.0, 1.0]
+    shadows = true
+
+    [[lights]]                # a pinhole projector casting an image
+    type = "projector"
+    position = [0, 0, 200]
+    direction = [0, 0, -1]    # optical axis, into the scene
+    image = "pattern.png"     # OpenEXR (linear) or 8-bit PNG/JPEG (sRGB); row 0 towards up
+    up = [0, 1, 0]            # default [0, 1, 0]
+    fov_deg = 30.0            # vertical full field of view
+    intensity = [1e4, 1e4, 1e4]   # radiant intensity of a white pixel
+
+    [camera]
+    position = [0, 40, 250]
+    target = [0, 0, 0]
+    up = [0, 1, 0]
+    fov_deg = 30.0            # vertical field of view
+
+    [output]
+    width = 512
+    height = 512
+    exposure = "auto"         # or a number (linear scale before gamma 2.2)
+
+    [specular]                # isotropic Ward BRDF
+    rho_s = 0.04
+    alpha = 0.2
+
+    [options]
+    scheme = "hierarchical"   # single | hierarchical | multigrid
+    tol = 1e-4
+    precision = "fp32"        # fp32 | fp16 | paper
+    exitant = "p1"            # p1 (P1 radiance, Marshak source) | arbree (TransCut eq. 3) | paper (net flux)
+    single_scattering = false
+"""
+from __future__ import annotations
+
+import math
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.core.errors import InputError
+from glsldiff.physics.exitance import EXITANT
+from glsldiff.physics.material import preset as lookup_preset
+
+PROCEDURAL = ("veins", "layers", "inclusions")
+LIGHT_TYPES = ("directional", "point", "spot", "projector", "environment")
+SCHEMES = ("single", "hierarchical", "multigrid")
+
+
+@dataclass(frozen=True)
+class MeshSpec:
+    source: str = "bunny"
+    size_mm: float = 100.0
+
+
+@dataclass(frozen=True)
+class PolygridSpec:
+    n: int = 8
+    cubes: int = 253
+    levels: int = 3
+
+
+@dataclass(frozen=True)
+class MaterialSpec:
+    preset: str | None = "marble"
+    sigma_a: tuple[float, float, float] | None = None
+    sigma_s_prime: tuple[float, float, float] | None = None
+    eta: float = 1.3
+    procedural: str | None = None
+    vein: str | None = None
+    seed: int = 0
+    volume: str | None = None
+    core: str = "mean"
+    shell_mm: float | None = None
+    reflectance: tuple[float, float, float] | str | None = None   # diffuse surface albedo, or a map (EXR)
+
+
+@dataclass(frozen=True)
+class LightSpec:
+    type: str
+    direction: tuple[float, float, float] | None = None
+    position: tuple[float, float, float] | None = None
+    irradiance: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    intensity: tuple[float, float, float] = (1.0e4, 1.0e4, 1.0e4)
+    cone_deg: float = 30.0
+    falloff_deg: float = 25.0
+    path: str | None = None
+    scale: float = 1.0
+    shadows: bool = True
+    image: str | None = None                            # projector image file
+    up: tuple[float, float, float] | None = None        # projector up; None: (0, 1, 0)
+    fov_deg: float = 30.0                               # projector vertical field of view
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    position: tuple[float, float, float] | None = None   # None: framed automatically
+    target: tuple[float, float, float] | None = None
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_deg: float = 30.0
+
+
+@dataclass(frozen=True)
+class OutputSpec:
+    width: int = 512
+    height: int = 512
+    exposure: float | str = "auto"
+
+
+@dataclass(frozen=True)
+class SpecularSpec:
+    rho_s: float = 0.04
+    alpha: float = 0.2
+
+
+@dataclass(frozen=True)
+class OptionsSpec:
+    scheme: str = "hierarchical"
+    tol: float = 1e-4
+    precision: str = "fp32"
+    exitant: str = "p1"
+    single_scattering: bool = False
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A validated scene (module docstring); ``source`` names the file for messages."""
+
+    mesh: MeshSpec = MeshSpec()
+    polygrid: PolygridSpec = PolygridSpec()
+    material: MaterialSpec = MaterialSpec()
+    lights: tuple[LightSpec, ...] = ()
+    camera: CameraSpec = CameraSpec()
+    output: OutputSpec = OutputSpec()
+    specular: SpecularSpec = SpecularSpec()
+    options: OptionsSpec = OptionsSpec()
+    source: str = "<built-in>"
+    base_dir: Path = field(default=Path("."), compare=False)
+
+    def resolve(self, path: str) -> Path:
+        """A path from the scene file, relative to the file's directory."""
+        return _resolve(self.base_dir, path)
+
+
+def _resolve(base_dir: Path, path: str) -> Path:
+    p = Path(path).expanduser()
+    return p if p.is_absolute() else base_dir / p
+
+
+def read_light_image(path: str | Path, exr_only: bool = False) -> NDArray[np.float64]:
+    """``(H, W, 3)`` linear RGB of a light's image file: OpenEXR as stored, or an 8-bit PNG or
+    JPEG (any file OpenCV decodes) converted BGR -> RGB and sRGB-decoded to [0, 1].
+    ``exr_only``: read every file as OpenEXR. Raises on a file that cannot be decoded."""
+    p = Path(path)
+    if exr_only or p.suffix.lower() == ".exr":
+        from glsldiff.core.io import read_exr
+        return np.asarray(read_exr(p), dtype=np.float64)
+    import cv2
+
+    bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"{p}: OpenCV cannot read it as an 8-bit PNG or JPEG")
+    c = bgr[..., ::-1].astype(np.float64) / 255.0
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def default_scene() -> Scene:
+    """The built-in scene: the pymeshlab bunny (100 mm) in veined marble under a
+    directional light from the upper left front, camera framed automatically."""
+    return Scene(material=MaterialSpec(preset="marble", procedural="veins"),
+                 lights=(LightSpec("directional", direction=(-0.4, 0.7, 0.6), irradiance=(1.0, 1.0, 1.0)),))
+
+
+# ---------------------------------------------------------------- validation helpers
+class _Table:
+    """One TOML table: typed getters that name ``[table].key`` in every error."""
+
+    def __init__(self, src: str, name: str, data: Any, allowed: set[str]) -> None:
+        self.src, self.name = src, name
+        if not isinstance(data, dict):
+            self.fail("", f"must be a table, got {type(data).__name__}")
+        unknown = sorted(set(data) - allowed)
+        if unknown:
+            self.fail(unknown[0], f"unknown key; valid keys: {', '.join(sorted(allowed))}")
+        self.data = data
+
+    def fail(self, key: str, msg: str) -> None:
+        where = f"[{self.name}].{key}" if key else f"[{self.name}]"
+        raise InputError(f"{self.src}: {where}: {msg}")
+
+    def has(self, key: str) -> bool:
+        return key in self.data
+
+    def number(self, key: str, default: Any, lo: float | None = None, lo_open: bool = False,
+               hi: float | None = None) -> Any:
+        v = self.data.get(key, default)
+        if v is None or key not in self.data:
+            return default
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            self.fail(key, f"must be a finite number, got {v!r}")
+        if lo is not None and (v <= lo if lo_open else v < lo):
+            self.fail(key, f"must be {'>' if lo_open else '>='} {lo}, got {v}")
+        if hi is not None and v > hi:
+            self.fail(key, f"must be <= {hi}, got {v}")
+        return float(v)
+
+    def integer(self, key: str, default: int, lo: int) -> int:
+        v = self.data.get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            self.fail(key, f"must be an integer, got {v!r}")
+        if v < lo:
+            self.fail(key, f"must be >= {lo}, got {v}")
+        return int(v)
+
+    def string(self, key: str, default: Any, choices: tuple[str, ...] | None = None) -> Any:
+        v = self.data.get(key, default)
+        if key not in self.data:
+            return default
+        if not isinstance(v, str) or not v:
+            self.fail(key, f"must be a non-empty string, got {v!r}")
+        if choices is not None and v not in choices:
+            self.fail(key, f"{v!r} is not one of {', '.join(choices)}")
+        return v
+
+    def preset_name(self, key: str, name: str | None) -> None:
+        """Fail unless ``name`` (if given) is a known material preset."""
+        if name is not None:
+            try:
+                lookup_preset(name)
+            except InputError as exc:
+                self.fail(key, str(exc))
+
+    def boolean(self, key: str, default: bool) -> bool:
+        v = self.data.get(key, default)
+        if not isinstance(v, bool):
+            self.fail(key, f"must be true or false, got {v!r}")
+        return v
+
+    def vec3(self, key: str, default: Any, nonneg: bool = False, nonzero: bool = False) -> Any:
+        if key not in self.data:
+            return default
+        v = self.data[key]
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            v = [v, v, v]
+        if (not isinstance(v, list) or len(v) != 3
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+            self.fail(key, f"must be 3 finite numbers, got {v!r}")
+        a = tuple(float(x) for x in v)
+        if nonneg and min(a) < 0:
+            self.fail(key, f"must not be negative, got {list(a)}")
+        if nonzero and not any(a):
+            self.fail(key, "must not be the zero vector")
+        return a
+
+
+def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
+    kinds = [k for k in ("sigma_a", "volume") if t.has(k)]
+    if t.has("procedural") and "volume" in kinds:
+        t.fail("procedural", "give either a procedural volume or a volume file, not both")
+    if t.has("sigma_a") != t.has("sigma_s_prime"):
+        t.fail("sigma_a" if not t.has("sigma_a") else "sigma_s_prime", "sigma_a and sigma_s_prime go together")
+    if t.has("preset") and t.has("sigma_a"):
+        t.fail("preset", "give either a preset or sigma_a/sigma_s_prime, not both")
+    name = t.string("preset", None if kinds else "marble")
+    t.preset_name("preset", name)
+    sa = t.vec3("sigma_a", None, nonneg=True)
+    ss = t.vec3("sigma_s_prime", None, nonneg=True)
+    if ss is not None and min(sa[i] + ss[i] for i in range(3)) <= 0:
+        t.fail("sigma_s_prime", "sigma_a + sigma_s_prime must be > 0 in every channel")
+    vein = t.string("vein", None)
+    t.preset_name("vein", vein)
+    core = t.string("core", "mean")
+    t.preset_name("core", None if core == "mean" else core)
+    volume = t.string("volume", None)
+    if volume is not None:
+        p = _resolve(scene_dir, volume)
+        if not p.is_file():
+            t.fail("volume", f"file {str(p)!r} does not exist")
+    reflectance: Any = None
+    if isinstance(t.data.get("reflectance"), str):
+        if volume is None:
+            t.fail("reflectance", "a reflectance map tiles like the block volume: give [material].volume too, "
+                                  "or a constant albedo")
+        reflectance = _image_file(t, "reflectance", scene_dir, "reflectance map", exr_only=True)
+    else:
+        reflectance = t.vec3("reflectance", None, nonneg=True)
+        if reflectance is not None and max(reflectance) > 1.0:
+            t.fail("reflectance", f"a diffuse albedo must be in [0, 1], got {list(reflectance)}")
+    return MaterialSpec(preset=name, sigma_a=sa, sigma_s_prime=ss, eta=t.number("eta", 1.3, 0.0, lo_open=True),
+                        procedural=t.string("procedural", None, PROCEDURAL), vein=vein,
+                        seed=t.integer("seed", 0, 0), volume=volume, core=core,
+                        shell_mm=t.number("shell_mm", None, 0.0, lo_open=True), reflectance=reflectance)
+
+
+def _image_file(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool) -> str | None:
+    """``[table].key``, an image file (relative to the scene file), read once to check
+    that it exists, decodes (:func:`read_light_image`) and has finite pixels >= 0."""
+    path = t.string(key, None)
+    if path is None:
+        return None
+    p = _resolve(scene_dir, path)
+    if not p.is_file():
+        t.fail(key, f"{what} {str(p)!r} does not exist")
+    kind = "OpenEXR" if exr_only else "OpenEXR, PNG or JPEG"
+    try:
+        img = read_light_image(p, exr_only)
+    except Exception as exc:  # OpenEXR raises plain exceptions on corrupt files
+        t.fail(key, f"{what} {str(p)!r} is not a readable {kind} file ({' '.join(str(exc).split())})")
+    if not np.all(np.isfinite(img)) or img.min() < 0:
+        t.fail(key, f"{what} {str(p)!r} has negative or non-finite pixels")
+    return path
+
+
+def _light(t: _Table, scene_dir: Path) -> LightSpec:
+    kind = t.data.get("type")
+    if kind not in LIGHT_TYPES:
+        t.fail("type", f"{kind!r} is not one of {', '.join(LIGHT_TYPES)}")
+    need = {"directional": ("direction",), "point": ("position",), "spot": ("position", "direction"),
+            "projector": ("position", "direction", "image"), "environment": ("path",)}[kind]
+    for k in need:
+        if not t.has(k):
+            t.fail(k, f"a {kind} light needs {k}")
+    cone = t.number("cone_deg", 30.0, 0.0, lo_open=True, hi=90.0)
+    falloff = t.number("falloff_deg", min(25.0, cone), 0.0)
+    if falloff > cone:
+        t.fail("falloff_deg", f"must be <= cone_deg ({cone}), got {falloff}")
+    fov = t.number("fov_deg", 30.0, 0.0, lo_open=True)
+    if fov >= 180.0:
+        t.fail("fov_deg", f"must be < 180, got {fov}")
+    direction = t.vec3("direction", None, nonzero=True)
+    up = t.vec3("up", None, nonzero=True)
+    if kind == "projector":
+        u = up if up is not None else (0.0, 1.0, 0.0)
+        a, b = vec(direction), vec(u)
+        if np.linalg.norm(np.cross(a, b)) < 1e-6 * np.linalg.norm(a) * np.linalg.norm(b):
+            t.fail("up", f"{list(u)}{'' if up else ' (the default)'} is parallel to direction "
+                         f"{list(direction)}; give an up vector across the optical axis")
+    return LightSpec(kind, direction=direction, position=t.vec3("position", None),
+                     irradiance=t.vec3("irradiance", (1.0, 1.0, 1.0), nonneg=True),
+                     intensity=t.vec3("intensity", (1.0e4, 1.0e4, 1.0e4), nonneg=True),
+                     cone_deg=cone, falloff_deg=falloff,
+                     path=_image_file(t, "path", scene_dir, "environment map", exr_only=True),
+                     scale=t.number("scale", 1.0, 0.0), shadows=t.boolean("shadows", True),
+                     image=_image_file(t, "image", scene_dir, "projector image", exr_only=False),
+                     up=up, fov_deg=fov)
+
+
+_TABLES = {"mesh": MeshSpec, "polygrid": PolygridSpec, "material": MaterialSpec, "lights": LightSpec,
+           "camera": CameraSpec, "output": OutputSpec, "specular": SpecularSpec, "options": OptionsSpec}
+
+
+def _keys(cls: type) -> set[str]:
+    return {f.name for f in fields(cls)}
+
+
+def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Path(".")) -> Scene:
+    """A :class:`Scene` from parsed TOML (a dict); every error names ``[table].key``."""
+    unknown = sorted(set(data) - set(_TABLES))
+    if unknown:
+        raise InputError(f"{src}: unknown table [{unknown[0]}]; valid tables: {', '.join(_TABLES)}")
+    if "mesh" not in data:
+        raise InputError(f"{src}: [mesh]: missing; a scene needs [mesh] source = \"bunny\" or a mesh file path")
+    m = _Table(src, "mesh", data["mesh"], _keys(MeshSpec))
+    if not m.has("source"):
+        m.fail("source", "missing; give a sample name (bunny, cow, bone, airplane, sphere) or a mesh file path")
+    source = m.string("source", "bunny")
+    from glsldiff.mesh import SAMPLE_MESHES
+    if source not in SAMPLE_MESHES and source != "sphere":
+        p = _resolve(base_dir, source)
+        if not p.is_file():
+            m.fail("source", f"mesh file {str(p)!r} does not exist (sample names: "
+                             f"{', '.join(SAMPLE_MESHES)}, sphere)")
+    mesh = MeshSpec(source, m.number("size_mm", 100.0, 0.0, lo_open=True))
+
+    g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
+    n = g.integer("n", 8, 2)
+    if n % 2:
+        g.fail("n", f"must be even (the hierarchy halves it), got {n}")
+    poly = PolygridSpec(n, g.integer("cubes", 253, 1), g.integer("levels", 3, 1))
+    if poly.levels > 1 and n >> (poly.levels - 1) < 2:
+        g.fail("levels", f"{poly.levels} levels need n >= {2 ** poly.levels}, got n = {n}")
+
+    material = _material(_Table(src, "material", data.get("material", {}), _keys(MaterialSpec)), base_dir)
+    raw = data.get("lights", [])
+    if not isinstance(raw, list):
+        raise InputError(f"{src}: [[lights]]: must be an array of tables ([[lights]]), got {type(raw).__name__}")
+    lights = tuple(_light(_Table(src, f"lights.{i}", d, _keys(LightSpec)), base_dir) for i, d in enumerate(raw))
+    if not lights:
+        raise InputError(f"{src}: [[lights]]: the scene has no light; add a [[lights]] table")
+
+    c = _Table(src, "camera", data.get("camera", {}), _keys(CameraSpec))
+    camera = CameraSpec(c.vec3("position", None), c.vec3("target", None), c.vec3("up", (0.0, 1.0, 0.0), nonzero=True),
+                        c.number("fov_deg", 30.0, 0.0, lo_open=True, hi=170.0))
+    if camera.position is not None and camera.target is not None and camera.position == camera.target:
+        c.fail("position", "must differ from target")
+    o = _Table(src, "output", data.get("output", {}), _keys(OutputSpec))
+    exposure = o.data.get("exposure", "auto")
+    if exposure != "auto":
+        exposure = o.number("exposure", 1.0, 0.0, lo_open=True)
+    output = OutputSpec(o.integer("width", 512, 1), o.integer("height", 512, 1), exposure)
+    if max(output.width, output.height) > 8192:
+        o.fail("width", f"image sides are limited to 8192 pixels, got {output.width}x{output.height}")
+    s = _Table(src, "specular", data.get("specular", {}), _keys(SpecularSpec))
+    specular = SpecularSpec(s.number("rho_s", 0.04, 0.0, hi=1.0), s.number("alpha", 0.2, 0.0, lo_open=True, hi=1.0))
+    t = _Table(src, "options", data.get("options", {}), _keys(OptionsSpec))
+    options = OptionsSpec(t.string("scheme", "hierarchical", SCHEMES), t.number("tol", 1e-4, 0.0, lo_open=True, hi=0.1),
+                          t.string("precision", "fp32", ("fp32", "fp16", "paper")),
+                          t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False))
+    if options.scheme != "single" and poly.levels == 1:
+        options = replace(options, scheme="single")
+    return Scene(mesh, poly, material, lights, camera, output, specular, options, src, base_dir)
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a TOML scene file."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"scene file {str(p)!r} does not exist")
+    try:
+        data = tomllib.loads(p.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{p}: not valid TOML ({exc})") from exc
+    return parse_scene(data, str(p), p.parent)
+
+
+def vec(a: Any) -> NDArray[np.float64]:
+    """A scene 3-tuple as an array."""
+    return np.asarray(a, dtype=np.float64)

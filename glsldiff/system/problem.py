@@ -1,0 +1,182 @@
+"""A validated forward-diffusion problem on a regular grid, shared by every solver.
+
+The continuous problem (Wang et al. 2008, eqs. 1-2), with outward normal n::
+
+    div(kappa grad phi) - mu phi = 0          in V
+    phi + 2 C kappa dphi/dn      = q          on A
+
+is discretised on a :class:`~glsldiff.grids.regular.RegularGrid` (eq. 8) in one of two forms:
+
+``stencil="paper"`` (faithful to eq. 8, after Stam 1995)
+    unknown ``u = kappa phi``; interior row ``sum_j u_j - (6 + h^2 mu_i/kappa_i) u_i = 0``.
+    This discretises ``Laplacian(kappa phi)``, which equals ``div(kappa grad phi)``
+    only where kappa is constant.
+``stencil="conservative"``
+    unknown ``phi``; interior row ``sum_j k_ij (phi_j - phi_i) - h^2 mu_i phi_i = 0``
+    with the face coefficient ``k_ij`` the arithmetic (default) or harmonic mean of
+    ``kappa_i`` and ``kappa_j``: a flux-conservative discretisation of ``div(kappa grad phi)``.
+
+Both use the boundary row ``phi_b + 2 C kappa_b (phi_b - phi_j) / d = q_b`` with
+``d = h`` and ``j`` the interior partner of boundary node ``b``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Literal, Mapping
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.core.errors import InputError
+from glsldiff.grids.graph import NodeGraph
+from glsldiff.grids.hierarchy import Hierarchy
+from glsldiff.grids.polygrid import Polygrid
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.physics.exitance import exitant_bracket
+from glsldiff.physics.material import validate_coefficients
+from glsldiff.physics.optics import boundary_constant, fresnel_transmittance
+
+
+Stencil = Literal["paper", "conservative"]
+FaceMean = Literal["arithmetic", "harmonic"]
+STENCILS = ("paper", "conservative")
+FACE_MEANS = ("arithmetic", "harmonic")
+
+
+def _as_volume(name: str, values: ArrayLike, shape: tuple[int, ...]) -> NDArray[np.float64]:
+    """A scalar, an RGB triple or a per-node array as a ``shape + (3,)`` volume."""
+    arr = np.asarray(values, dtype=np.float64)
+    if arr.ndim == 0 or arr.shape == (3,):
+        return np.broadcast_to(arr, shape + (3,))
+    if arr.shape == shape:
+        return np.broadcast_to(arr[..., None], shape + (3,))
+    if arr.shape == shape + (3,):
+        return arr
+    raise InputError(f"{name} has shape {arr.shape}; the grid needs a scalar, (3,), {shape} or {shape + (3,)}")
+
+
+@dataclass
+class DiffusionProblem:
+    """Grid, material, boundary source and discretisation choices, validated.
+
+    Parameters
+    ----------
+    grid
+        The regular grid (spacing ``grid.h`` in mm).
+    kappa, mu
+        Diffusion coefficient (mm) and absorption (mm^-1) per node: shape
+        ``(nz, ny, nx)`` or ``(nz, ny, nx, 3)``, or scalars / ``(3,)`` for homogeneous.
+    q
+        Boundary source (see ``grid.source_volume``: face arrays on a regular grid,
+        per-boundary-node values on a polygrid); defaults to zero.
+    eta
+        Relative refractive index (used for ``F_t`` in the exitant radiance and, when
+        ``C`` is not given, ``C = boundary_constant(eta)``).
+    C
+        Boundary constant ``(1 + Fdr)/(1 - Fdr)``; pass ``glsldiff.physics.optics.PAPER_C``
+        to reproduce the paper's 2.1489.
+    stencil, face_mean
+        Interior discretisation (module docstring).
+    """
+
+    grid: "RegularGrid | Polygrid"
+    kappa: ArrayLike
+    mu: ArrayLike
+    q: ArrayLike | Mapping[str, ArrayLike] | None = None
+    eta: float = 1.3
+    C: float | None = None
+    stencil: Stencil = "paper"
+    face_mean: FaceMean = "arithmetic"
+
+    def __post_init__(self) -> None:
+        if not hasattr(self.grid, "source_volume"):
+            raise InputError(f"grid must be a RegularGrid or a Polygrid, got {type(self.grid).__name__}")
+        shape = self.grid.shape
+        kappa = _as_volume("kappa", self.kappa, shape)
+        mu = _as_volume("mu", self.mu, shape)
+        if not isinstance(self.grid, RegularGrid):
+            # removed polygrid nodes hold placeholders so that packed textures stay finite
+            dead = ~self.grid.active
+            kappa, mu = kappa.copy(), mu.copy()
+            kappa[dead], mu[dead] = 1.0, 0.0
+        self.kappa, self.mu = validate_coefficients(kappa, mu)
+        self.q = self.grid.source_volume(self.q)
+        if not np.isfinite(self.eta) or self.eta <= 0:
+            raise InputError(f"eta={self.eta!r} must be a finite relative index > 0")
+        if self.C is None:
+            self.C = float(boundary_constant(self.eta))
+        if not np.isfinite(self.C) or self.C <= 0:
+            raise InputError(f"C={self.C!r} must be finite and > 0")
+        if self.stencil not in STENCILS:
+            raise InputError(f"stencil={self.stencil!r}; choose one of {STENCILS}")
+        if self.face_mean not in FACE_MEANS:
+            raise InputError(f"face_mean={self.face_mean!r}; choose one of {FACE_MEANS}")
+
+    # ---- derived quantities ------------------------------------------------------
+    @property
+    def graph(self) -> "NodeGraph":
+        """Node connectivity of the discretisation (:mod:`glsldiff.grids.graph`)."""
+        return self.grid.graph
+
+    @property
+    def node_shape(self) -> tuple[int, ...]:
+        """Shape of the node arrays (``(nz, ny, nx)`` or a polygrid's ``(cubes, n, n, n)``)."""
+        return tuple(self.grid.shape)
+
+    @property
+    def unknown(self) -> str:
+        """What a solver iterates on: ``"kappa*phi"`` (paper) or ``"phi"``."""
+        return "kappa*phi" if self.stencil == "paper" else "phi"
+
+    def to_phi(self, x: NDArray) -> NDArray:
+        """Convert the iterated unknown (volume) to fluence phi."""
+        return x / self.kappa if self.stencil == "paper" else x
+
+    def from_phi(self, phi: NDArray) -> NDArray:
+        """Convert fluence phi (volume) to the iterated unknown."""
+        return phi * self.kappa if self.stencil == "paper" else phi
+
+    def with_q(self, q: ArrayLike | Mapping[str, ArrayLike]) -> "DiffusionProblem":
+        """Same grid, material and options, new boundary source."""
+        return replace(self, q=q)
+
+    def exitant_radiance(self, phi: NDArray, cos_o: float = 1.0) -> dict[str, NDArray] | NDArray:
+        """Multiple-scattering radiance leaving each face (regular grid: dict of face
+        arrays) or each boundary node (polygrid: ``(n_boundary, 3)``), per channel.
+
+        Paper eq. 3 with the boundary condition: ``L = F_t(eta, cos_o) (phi - q) / (2 pi)``,
+        equal to ``-(C/pi) F_t kappa dphi/dn``. This is the *net* flux: it is negative
+        where light enters (phi < q), so use it on unlit faces (the paper's setup);
+        ``cos_o`` is the cosine of the viewing direction (1 = along the normal).
+        """
+        ft = float(fresnel_transmittance(self.eta, cos_o))
+        L = ft * exitant_bracket(phi, self.q, self.eta, "paper")
+        return self.grid.boundary_values(L)
+
+
+def relative_l2(x: ArrayLike, ref: ArrayLike, mask: NDArray[np.bool_] | None = None) -> float:
+    """``||x - ref||_2 / ||ref||_2`` over all (masked) nodes and channels; 0 if both vanish."""
+    x, ref = np.asarray(x, dtype=np.float64), np.asarray(ref, dtype=np.float64)
+    if mask is not None:
+        x, ref = x[mask], ref[mask]
+    den = float(np.linalg.norm(ref))
+    num = float(np.linalg.norm(x - ref))
+    if den == 0.0:
+        return 0.0 if num == 0.0 else float("inf")
+    return num / den
+
+
+def level_problems(hierarchy: Hierarchy, problem: DiffusionProblem) -> list[DiffusionProblem]:
+    """``problem`` (on the hierarchy's finest polygrid) and its restriction to every coarser
+    level: kappa, mu averaged over existing children, q over boundary children."""
+    if problem.grid is not hierarchy.grids[0]:
+        raise InputError("the problem is not on this hierarchy's finest polygrid")
+    out = [problem]
+    for t, g in zip(hierarchy.transfers, hierarchy.grids[1:]):
+        p = out[-1]
+        kappa = (t.restrict_all @ p.kappa.reshape(-1, 3)).reshape(g.shape + (3,))
+        mu = (t.restrict_all @ p.mu.reshape(-1, 3)).reshape(g.shape + (3,))
+        q = (t.restrict_kind @ p.q.reshape(-1, 3))[g.lattice.boundary]
+        out.append(DiffusionProblem(g, kappa, mu, q, eta=p.eta, C=p.C, stencil=p.stencil,
+                                    face_mean=p.face_mean))
+    return out

@@ -1,0 +1,305 @@
+"""``glsldiff validate``: the diffusion renderer against Monte Carlo (Mitsuba 3) and the dipole.
+
+Each case is rendered twice with the same mesh, camera, light and material: by
+:class:`glsldiff.render.renderer.Renderer` (multiple scattering only: no specular, no single
+scattering) and by Mitsuba 3's ``volpath`` (:mod:`glsldiff.validation.mitsuba`).
+
+Lights: a directional light (irradiance 1 on a surface facing it), or an environment
+(:data:`ENVIRONMENTS`, radiance about 1): the same lat-long map (:func:`environment_map`) is
+written as OpenEXR for the renderer (``LightSpec("environment")``: order-2 spherical harmonics,
+Fresnel transmission folded in, per-node visibility) and handed to Mitsuba's ``envmap`` in
+the renderer's z-up convention (``frame = "z_up"``, tested against
+:func:`glsldiff.render.lighting.latlong_directions`); the uniform one goes to Mitsuba as a
+``constant`` emitter.
+
+Boundary: ``eta = 1`` is index matched (Mitsuba ``null`` BSDF); the Monte Carlo image is then
+split into scattering orders (:func:`~glsldiff.validation.mitsuba.render_scattering_orders`) and its
+*multiple-scattering* part is compared too. ``eta != 1`` is a smooth dielectric; it needs an
+environment light (a delta light cannot be reached through a delta BSDF by next-event
+estimation). There ``max_depth`` also counts refractions and internal reflections, so orders
+cannot be split; instead :func:`~glsldiff.validation.mitsuba.render_subsurface` renders the same
+boundary around an opaque absorbing interior (reflection only) with the same random numbers and
+subtracts, which removes the specular surface reflection exactly (the renderer's Ward specular
+is off, rho_s = 0). Every case is compared with the *subsurface* image, all scattering orders:
+single + multiple for eta = 1, full - reflection for eta != 1 (same thing up to the unscattered
+light transmitted straight through, exp(-20) here).
+
+Error: relative RMSE ``sqrt(mean (L - L_mc)^2 / mean L_mc^2)`` over the pixels inside the
+object in both images, one pixel away from the silhouette (anti-aliased edge pixels differ by
+construction); also the ratio of the means (a global scale error), the Monte Carlo noise
+level of the subsurface image (standard error of the mean image, from two half-sample
+renders), and the share of the Monte Carlo image on the object that the surface reflects.
+
+The slab case also reports the face-centre radiance against the dipole's total diffuse
+reflectance (``L = rho_dipole E / pi``; the slab is 20 transport mean free paths thick, so the
+semi-infinite dipole applies).
+"""
+from __future__ import annotations
+
+import math
+import tempfile
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import binary_erosion
+
+from glsldiff.core.errors import InputError
+from glsldiff.render.scene import CameraSpec, LightSpec, MaterialSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
+
+#: Environment lights a case may name (:func:`environment_map`).
+ENVIRONMENTS = ("constant", "sky")
+
+
+@dataclass(frozen=True)
+class Case:
+    """One validation scene: lengths in mm, coefficients in mm^-1 (grey)."""
+
+    name: str
+    mesh: str                       # "sphere" or "slab" or a sample name
+    size_mm: float
+    sigma_a: float
+    sigma_s: float                  # sigma_s' (isotropic phase in Mitsuba)
+    light: tuple[float, float, float] | str   # towards a directional light, or a name in ENVIRONMENTS
+    camera_dir: tuple[float, float, float]
+    procedural: str | None = None
+    n: int = 8
+    cubes: int = 64
+    eta: float = 1.0                # relative index of refraction of the boundary
+
+    def __post_init__(self) -> None:
+        if isinstance(self.light, str) and self.light not in ENVIRONMENTS:
+            raise InputError(f"case {self.name}: light {self.light!r} is not an environment "
+                             f"({', '.join(ENVIRONMENTS)}) or a direction")
+        if self.eta != 1.0 and not isinstance(self.light, str):
+            raise InputError(f"case {self.name}: eta = {self.eta} needs an environment light (a directional "
+                             "light cannot reach a dielectric interior by next-event estimation)")
+
+
+_SPHERE = Case("sphere", "sphere", 20.0, 0.005, 1.0, (1.0, 0.3, 0.6), (0.0, 0.0, 1.0))
+#: Camera directions of the environment cases: the sky's zenith (+z) at the image's left.
+_ENV_VIEW = {"constant": (0.0, 0.0, 1.0), "sky": (1.0, 0.0, 0.0)}
+CASES = {c.name: c for c in (
+    Case("slab", "slab", 60.0, 0.005, 1.0, (0.0, 0.0, 1.0), (0.0, 0.35, 1.0), n=8, cubes=36),
+    _SPHERE,
+    replace(_SPHERE, name="sphere-albedo0.9", sigma_a=0.11),
+    replace(_SPHERE, name="sphere-veins", procedural="veins"),
+    Case("bunny-veins", "bunny", 60.0, 0.005, 1.0, (-0.4, 0.7, 0.6), (0.0, 0.2, 1.0), procedural="veins", n=4,
+         cubes=120),
+    *(replace(_SPHERE, name=f"sphere{'-eta1.3' if eta != 1.0 else ''}-{env}", light=env, eta=eta,
+              camera_dir=_ENV_VIEW[env]) for eta in (1.0, 1.3) for env in ENVIRONMENTS),
+)}
+
+
+def environment_map(name: str, height: int = 64, width: int = 128) -> NDArray[np.float64]:
+    """Lat-long radiance map ``(height, width, 3)`` of environment ``name`` in the convention of
+    :class:`glsldiff.render.lighting.EnvironmentLight` (row 0 is the zenith +z).
+
+    ``"constant"``: 1 everywhere. ``"sky"``: ``0.05 + a (1 + z)^2 + b (1 + y)`` for the unit
+    direction (x, y, z), a = (0.20, 0.22, 0.25) and b = (0.15, 0.12, 0.08) per RGB channel: a
+    bluish upper hemisphere (about 1.1 at the zenith) over a dim lower one (0.05 to 0.35), with
+    a warm gradient towards +y. A quadratic polynomial of the direction, so it is exactly band
+    limited to spherical-harmonic order 2: the renderer's projection loses nothing, and what
+    differs from Monte Carlo is the diffusion model (and the map's pixel sampling), not the
+    light's band limit.
+    """
+    from glsldiff.render.lighting import latlong_directions
+
+    if name not in ENVIRONMENTS:
+        raise InputError(f"unknown environment {name!r}; valid: {', '.join(ENVIRONMENTS)}")
+    if name == "constant":
+        return np.ones((height, width, 3))
+    d, _ = latlong_directions(height, width)
+    y, z = d[..., 1:2], d[..., 2:3]
+    return 0.05 + np.array([0.20, 0.22, 0.25]) * (1.0 + z) ** 2 + np.array([0.15, 0.12, 0.08]) * (1.0 + y)
+
+
+def _light_spec(case: Case, env_path: Path | None) -> LightSpec:
+    if isinstance(case.light, str):
+        return LightSpec("environment", path=str(env_path), scale=1.0)
+    return LightSpec("directional", direction=case.light, irradiance=(1.0, 1.0, 1.0), shadows=True)
+
+
+def _mc_light(case: Case) -> dict[str, Any]:
+    """The case's light for :func:`glsldiff.validation.mitsuba.render_mitsuba`."""
+    if case.light == "constant":
+        return {"type": "constant", "radiance": 1.0}
+    if isinstance(case.light, str):
+        return {"type": "envmap", "image": environment_map(case.light), "frame": "z_up"}
+    return {"type": "directional", "direction": case.light, "irradiance": (1.0, 1.0, 1.0)}
+
+
+def _scene(case: Case, mesh_path: str | None, size: int, env_path: Path | None = None) -> Scene:
+    return Scene(mesh=MeshSpec(mesh_path or case.mesh, case.size_mm),
+                 polygrid=PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1)),
+                 material=MaterialSpec(preset=None, sigma_a=(case.sigma_a,) * 3, sigma_s_prime=(case.sigma_s,) * 3,
+                                       eta=case.eta, procedural=case.procedural),
+                 lights=(_light_spec(case, env_path),),
+                 camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2))
+
+
+def rmse(ours: NDArray, ref: NDArray, mask: NDArray) -> float:
+    """Relative RMSE over ``mask``."""
+    a, b = ours[mask], ref[mask]
+    return float(math.sqrt(np.mean((a - b) ** 2) / np.mean(b ** 2)))
+
+
+def _standard_error(parts: Sequence[NDArray], mask: NDArray) -> float:
+    """Relative standard error over ``mask`` of the mean of independent renders ``parts``:
+    ``sqrt(mean s^2 / m / mean L^2)``, s^2 the per-pixel sample variance of the m renders and L
+    their mean (for two renders, half the relative RMS difference)."""
+    stack = np.stack([p[mask] for p in parts])
+    m = len(parts)
+    return float(math.sqrt(np.mean(stack.var(axis=0, ddof=1)) / m / np.mean(stack.mean(axis=0) ** 2)))
+
+
+def _slab_file(folder: Path, size: float) -> str:
+    from glsldiff.mesh import box_mesh
+
+    m = box_mesh((size, size, size / 3.0), origin=(-size / 2, -size / 2, -size / 3.0))
+    import trimesh
+
+    path = folder / "slab.ply"
+    trimesh.Trimesh(m.vertices, m.faces, process=False).export(path)
+    return str(path)
+
+
+def _volume(scene: Scene, pg: Any, cells: int = 48) -> dict[str, Any]:
+    """The scene's procedural material on a regular grid spanning the nodes' bounding box
+    (the same unit box :mod:`glsldiff.render.materials` evaluates it in), for Mitsuba."""
+    from glsldiff.render.materials import node_material
+
+    lo, hi = pg.positions.min(axis=0), pg.positions.max(axis=0)
+    axes = [np.linspace(lo[i], hi[i], cells) for i in range(3)]
+    z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
+    pts = np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
+    kappa, mu, _ = node_material(scene, pts, pg)
+    sa = mu.reshape(cells, cells, cells, 3)
+    ss = np.maximum(1.0 / (3.0 * kappa) - mu, 0.0).reshape(cells, cells, cells, 3)
+    h = (hi - lo) / (cells - 1)
+    return {"sigma_a": sa, "sigma_s": ss, "bbox_min": lo - h / 2, "bbox_max": hi + h / 2}
+
+
+def _mc_render(case: Case, mesh: Any, cam: Any, spp: int, seed: int,
+               volume: dict[str, Any] | None) -> tuple[dict[str, NDArray], float]:
+    """Mitsuba images of one case: ``"subsurface"`` (all scattering orders) and ``"full"``;
+    with eta = 1 also the scattering orders ``"single"`` and ``"multiple"``, else
+    ``"reflection"`` (module docstring); and the seconds taken."""
+    from glsldiff.validation.mitsuba import render_scattering_orders, render_subsurface
+
+    sa, ss = (None, None) if volume else ((case.sigma_a,) * 3, (case.sigma_s,) * 3)
+    args = (mesh, sa, ss, case.eta, cam, _mc_light(case), spp, seed, volume)
+    if case.eta != 1.0:
+        images, info = render_subsurface(*args)
+    else:
+        images, info = render_scattering_orders(*args)
+        images["subsurface"] = images["single"] + images["multiple"]
+    return images, info["seconds_total"]
+
+
+def mc_split(spp: int) -> tuple[int, int]:
+    """``spp`` samples per pixel as (renders, samples each): Mitsuba's low-discrepancy sampler
+    needs a power of 4 per render (it silently rounds other counts up), and at least two
+    renders with different seeds are needed for the noise estimate; so ``spp`` must be a power
+    of two >= 8 (256 = 4 x 64, 512 = 2 x 256)."""
+    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 8 or spp & (spp - 1):
+        raise InputError(f"spp = {spp!r} must be a power of two >= 8 (Monte Carlo renders of 4^k samples "
+                         "per pixel, at least two of them)")
+    each = 4 ** ((spp.bit_length() - 2) // 2)   # the largest power of 4 <= spp / 2
+    return spp // each, each
+
+
+def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
+             folder: Path | None = None) -> tuple[dict[str, Any], dict[str, NDArray]]:
+    """One case: (row of numbers, images {"diffusion", "mc_subsurface", "mc_full"} and, with
+    eta = 1, "mc_multiple"). An environment map is written to ``folder`` (default: a temporary
+    folder) as ``validation_<case>_environment.exr``."""
+    from glsldiff.core import io
+    from glsldiff.validation.mitsuba import McCamera
+    from glsldiff.physics.optics import dipole_total_reflectance
+    from glsldiff.render.renderer import Renderer, frame_camera
+
+    env = isinstance(case.light, str)
+    with tempfile.TemporaryDirectory() as tmp:
+        mesh_path = _slab_file(Path(tmp), case.size_mm) if case.mesh == "slab" else None
+        env_path = (Path(folder or tmp) / f"validation_{case.name}_environment.exr") if env else None
+        if env_path is not None:
+            env_path.parent.mkdir(parents=True, exist_ok=True)
+            io.write_exr(env_path, environment_map(case.light))
+        scene = _scene(case, mesh_path, size, env_path)
+        d = np.asarray(case.camera_dir, float)
+        with Renderer() as r:
+            _, rep1 = r.render(scene)             # set-up, passes 1-3 (camera framed automatically)
+            eye, target, up = frame_camera(scene, r.mesh.vertices)
+            dist = float(np.linalg.norm(eye - target))
+            eye = target + dist * d / np.linalg.norm(d)
+            scene = replace(scene, camera=CameraSpec(tuple(eye), tuple(target), tuple(up), scene.camera.fov_deg))
+            ours, rep = r.render(scene)           # the compared view: pass 3 only
+            rep.seconds.update({k: rep1.seconds[k] for k in ("t1", "t2") if k in rep1.seconds})
+            rep.solver = rep1.solver
+            ours_s = rep.frame_seconds
+            pg, mesh = r.polygrid, r.mesh
+            volume = _volume(scene, pg) if case.procedural else None
+    cam = McCamera(tuple(eye), tuple(target), tuple(up), scene.camera.fov_deg, size, size)
+    renders, each = mc_split(spp)
+    parts, seconds = zip(*(_mc_render(case, mesh, cam, each, seed + k, volume) for k in range(renders)))
+    mc = {k: np.mean([p[k] for p in parts], axis=0) for k in parts[0]}
+    sub = mc["subsurface"]
+    unsplit = np.full_like(sub, np.nan)   # eta != 1: no scattering orders, their numbers are NaN
+    multiple, single = mc.get("multiple", unsplit), mc.get("single", unsplit)
+    inside = binary_erosion((ours.sum(axis=2) > 0) & (sub.sum(axis=2) > 0), iterations=1)
+    if inside.sum() < 16:
+        raise InputError(f"case {case.name}: the object covers too few pixels ({int(inside.sum())}) to compare")
+    sub_sum = max(float(sub[inside].sum()), 1e-30)
+    row: dict[str, Any] = {
+        "case": case.name, "light": case.light if env else "directional", "eta": case.eta,
+        "albedo": case.sigma_s / (case.sigma_s + case.sigma_a), "material": case.procedural or "homogeneous",
+        "nodes": rep.nodes, "pixels": int(inside.sum()),
+        "rmse_vs_mc_multiple": rmse(ours, multiple, inside),
+        "rmse_vs_mc_all_scattering": rmse(ours, sub, inside),
+        "mean_ratio": float(ours[inside].mean() / multiple[inside].mean()),
+        "mean_ratio_all_scattering": float(ours[inside].mean() / sub[inside].mean()),
+        "mc_noise": _standard_error([p["subsurface"] for p in parts], inside),
+        "single_share": float(single[inside].sum()) / sub_sum,
+        "surface_share": 1.0 - sub_sum / max(float(mc["full"][inside].sum()), 1e-30),
+        "diffusion_s": ours_s, "t1_t2_t3_ms": "/".join(f"{rep.seconds.get(k, 0) * 1e3:.0f}" for k in ("t1", "t2", "t3")),
+        "mc_s": sum(seconds), "spp": renders * each, "solver_residual": rep.solver.residual if rep.solver else math.nan,
+    }
+    if case.mesh == "slab" and not env:
+        c = size // 2
+        patch = (slice(c - 2, c + 3), slice(c - 2, c + 3))
+        rho = float(np.asarray(dipole_total_reflectance(case.sigma_a, case.sigma_s, case.eta)))
+        row["centre_diffusion"] = float(ours[patch].mean())
+        row["centre_mc_multiple"] = float(multiple[patch].mean())
+        row["centre_dipole"] = rho * 1.0 * abs(case.light[2]) / np.linalg.norm(case.light) / math.pi
+    images = {"diffusion": ours, "mc_subsurface": sub, "mc_full": mc["full"]}
+    if "multiple" in mc:
+        images["mc_multiple"] = multiple
+    return row, images
+
+
+def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256) -> list[dict[str, Any]]:
+    """Run ``cases``; write validation.csv, and per case a PNG (diffusion | MC multiple scattering
+    (eta = 1) or MC subsurface, all orders (eta != 1) | MC full image, surface reflection and
+    background included), the images as EXR and the environment map (if any)."""
+    from glsldiff.core import io
+
+    unknown = [c for c in cases if c not in CASES]
+    if unknown:
+        raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}")
+    mc_split(spp)                           # a bad sample count fails before any rendering
+    out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for name in cases:
+        row, imgs = run_case(CASES[name], size, spp, folder=out)
+        rows.append(row)
+        middle = imgs.get("mc_multiple", imgs["mc_subsurface"])
+        expo = 0.8 / max(float(np.percentile(imgs["mc_subsurface"], 99)), 1e-12)
+        sheet = io.contact_sheet([imgs["diffusion"], middle, imgs["mc_full"]], 3, expo, scale=2)
+        io.write_png(out / f"validation_{name}.png", sheet)
+        for key, img in imgs.items():
+            io.write_exr(out / f"validation_{name}_{key}.exr", img)
+        io.write_csv(out / "validation.csv", rows)
+    return rows
