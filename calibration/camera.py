@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 
 from glsldiff.calibration.graycode import list_images, read_gray
 from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
+from glsldiff.core.checks import choice, real
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
@@ -61,12 +62,10 @@ class BoardSpec:
     dictionary: str = "DICT_5X5_100"
 
     def __post_init__(self) -> None:
-        if self.kind not in BOARD_KINDS:
-            raise InputError(f"board kind {self.kind!r}; choose one of {BOARD_KINDS}")
+        choice(self.kind, "board kind", BOARD_KINDS)
         if self.cols < 2 or self.rows < 2:
             raise InputError(f"board {self.cols}x{self.rows}: at least 2x2 inner corners are needed")
-        if not self.square > 0:
-            raise InputError(f"board square size {self.square} mm must be > 0")
+        real(self.square, "board square size (mm)", 0.0, lo_open=True)
         if self.kind == "charuco":
             if self.marker is None or not 0 < self.marker < self.square:
                 raise InputError(f"ChArUco marker size {self.marker} mm must be in (0, square={self.square})")

@@ -24,8 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+from glsldiff.core.io import LDR_SUFFIXES, atomic_path
 
 
 def bit_counts(size: tuple[int, int]) -> tuple[int, int]:
@@ -56,7 +55,6 @@ def patterns(size: tuple[int, int]) -> list[NDArray[np.uint8]]:
 def write_patterns(folder: str | os.PathLike, size: tuple[int, int]) -> list[Path]:
     """Write the sequence as ``folder/pattern_00.png`` ... (created if needed); returns the paths.
     Each file is written atomically."""
-    from glsldiff.core.io import atomic_path
 
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
@@ -118,11 +116,11 @@ def decode(images: NDArray, size: tuple[int, int], shadow_threshold: float = 20.
 
 
 def list_images(folder: str | os.PathLike) -> list[Path]:
-    """Image files of ``folder`` (png, jpg, tif, bmp), sorted by name."""
+    """Image files of ``folder`` (:data:`~glsldiff.core.io.LDR_SUFFIXES`: png, jpg, tif, ...), sorted by name."""
     d = Path(folder)
     if not d.is_dir():
         raise InputError(f"{d}: not a folder")
-    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix.lower() in LDR_SUFFIXES)
 
 
 def read_gray(path: str | os.PathLike) -> NDArray[np.float32]:

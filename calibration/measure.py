@@ -22,6 +22,7 @@ node's value is the mean over its cell (box filter of one node spacing) sampled 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,9 +33,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from glsldiff.calibration import hdr as hdrlib
+from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
 from glsldiff.calibration.plan import CapturePlan, face_homography, load_plan
+from glsldiff.core.checks import real
 from glsldiff.core.errors import InputError
-from glsldiff.inverse.measurements import Measurements
+from glsldiff.core.io import check_output
+from glsldiff.inverse.measurements import Measurements, save_measurements
 from glsldiff.physics.optics import fresnel_transmittance
 
 Array = NDArray[np.float64]
@@ -95,12 +100,9 @@ def measure(capture: str | os.PathLike, corners_px: Array, response: Array | Non
     """Measurements from a capture folder written by :func:`glsldiff.calibration.rig.run_capture`
     (see the module docstring). ``response``: ``(256, 3)`` camera response; recovered from the
     captured brackets when not given."""
-    from glsldiff.calibration import hdr as hdrlib
-
     folder = Path(capture)
     plan = load_plan(folder)
-    if not (np.isfinite(reference_albedo) and 0 < reference_albedo <= 1):
-        raise InputError(f"reference_albedo={reference_albedo!r} must be in (0, 1]")
+    real(reference_albedo, "reference_albedo", 0.0, 1.0, lo_open=True)
     brackets = {c.name: hdrlib.load_bracket(folder / c.name) for c in plan.conditions}
     if response is None:
         response = hdrlib.calibrate_response(list(brackets.values()))
@@ -141,8 +143,6 @@ def measure(capture: str | os.PathLike, corners_px: Array, response: Array | Non
 
 
 def _json_field(path: str, keys: tuple[str, ...], what: str) -> list:
-    import json
-
     try:
         data = json.loads(Path(path).read_text())
         for k in keys:
@@ -154,11 +154,6 @@ def _json_field(path: str, keys: tuple[str, ...], what: str) -> list:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m glsldiff.calibration.measure CAPTURE --corners ... -o measurements.npz``"""
-    from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
-    from glsldiff.calibration.hdr import load_response
-    from glsldiff.core.io import check_output
-    from glsldiff.inverse.measurements import save_measurements
-
     p = CommandParser(prog="python -m glsldiff.calibration.measure",
                       description="Measurements for `glsldiff fit` from a capture folder (plan.json + one "
                                   "exposure bracket per condition).")
@@ -179,7 +174,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.camera:
             K = np.array(_json_field(args.camera, ("K",), "camera matrix K"), dtype=np.float64)
             dist = np.array(_json_field(args.camera, ("dist",), "distortion"), dtype=np.float64)
-        response = load_response(args.response) if args.response else None
+        response = hdrlib.load_response(args.response) if args.response else None
         gains = (np.array(_json_field(args.white_balance, ("gains",), "white-balance gains"))
                  if args.white_balance else None)
         meas, rep = measure(args.capture, corners, response, K, dist, gains, args.albedo, args.eta)

@@ -36,10 +36,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.calibration.common import atomic_folder
+from glsldiff.calibration.common import CommandParser, atomic_folder, parse_points, parse_size, run_command
+from glsldiff.core.checks import choice, integer, real
 from glsldiff.core.errors import InputError
+from glsldiff.inverse.measurements import SETUPS, face_regions
 
-SETUPS = {"back": ("z-", "z+"), "front": ("z-", "z-")}
 REFERENCE_CONDITIONS = ("white", "reference_black")  # captured with the white reference in place
 PAPER_EXPOSURES = (1 / 30, 1 / 15, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0, 8.0)  # s: the paper's 1/30 .. 8 s, one stop apart
 
@@ -76,13 +77,9 @@ class CapturePlan:
         self.shape = tuple(int(s) for s in self.shape)  # type: ignore[assignment]
         if len(self.shape) != 3 or min(self.shape) < 3:
             raise InputError(f"shape={self.shape}: the sample grid needs (nz, ny, nx), each >= 3 nodes")
-        if not (np.isfinite(self.h) and self.h > 0):
-            raise InputError(f"h={self.h!r} mm must be finite and > 0")
-        if self.setup not in SETUPS:
-            raise InputError(f"setup={self.setup!r}; choose one of {tuple(SETUPS)}")
-        fy, fx = self.face_shape
-        if not (isinstance(self.n, (int, np.integer)) and 1 <= self.n <= min(fy, fx)):
-            raise InputError(f"n={self.n!r} regions per side must be in [1, {min(fy, fx)}]")
+        self.h = real(self.h, "h (node spacing, mm)", 0.0, lo_open=True)
+        choice(self.setup, "setup", tuple(SETUPS))
+        integer(self.n, "n (regions per side)", 1, min(self.face_shape))
         if self.setup == "front" and self.n < 2:
             raise InputError("a front-lit plan needs n >= 2: with one region every observed node is lit")
         ex = tuple(float(e) for e in self.exposures)
@@ -120,15 +117,8 @@ class CapturePlan:
         raise InputError(f"the plan has no condition {name!r}")
 
     def _default_conditions(self) -> list[Condition]:
-        fy, fx = self.face_shape
-        ys = np.array_split(np.arange(fy), self.n)
-        xs = np.array_split(np.arange(fx), self.n)
-        out = []
-        for i, yr in enumerate(ys):
-            for j, xr in enumerate(xs):
-                k = i * self.n + j
-                out.append(Condition(f"region_{k:02d}", f"region_{k:02d}.png",
-                                     (int(yr[0]), int(yr[-1]) + 1), (int(xr[0]), int(xr[-1]) + 1)))
+        out = [Condition(f"region_{k:02d}", f"region_{k:02d}.png", (rows.start, rows.stop), (cols.start, cols.stop))
+               for k, (rows, cols) in enumerate(face_regions(self.face_shape, self.n))]
         return out + [Condition("black", "black.png"), Condition("white", "white.png"),
                       Condition("reference_black", "reference_black.png")]
 
@@ -221,8 +211,6 @@ def load_plan(folder_or_file: str | os.PathLike) -> CapturePlan:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m glsldiff.calibration.plan OUT --shape NZ NY NX --h MM ...``"""
-    from glsldiff.calibration.common import CommandParser, parse_points, parse_size, run_command
-
     p = CommandParser(prog="python -m glsldiff.calibration.plan",
                       description="Write a capture plan: projector images (n x n regions lit one at a "
                                   "time, black, white, reference_black) and plan.json.")

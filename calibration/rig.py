@@ -31,10 +31,13 @@ from typing import Protocol
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+from tqdm import tqdm
 
 from glsldiff.calibration.common import atomic_folder
 from glsldiff.calibration.plan import REFERENCE_CONDITIONS, CapturePlan
-from glsldiff.calibration.simcam import SimCamera, SimProjector, intersect_plane, look_at
+from glsldiff.calibration.simcam import SimCamera, SimProjector, intersect_plane
+from glsldiff.core.camera import opencv_pose
+from glsldiff.core.checks import choice
 from glsldiff.core.errors import InputError
 from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.model import ForwardModel
@@ -67,7 +70,6 @@ def run_capture(plan: CapturePlan, projector: ProjectorDriver, camera: CameraDri
         raise InputError(f"projector size {projector.size} differs from the plan's {plan.projector_size}")
     conds = plan.conditions
     if progress:
-        from tqdm import tqdm
         conds = tqdm(conds, desc="capture", unit="condition")
     with atomic_folder(out) as tmp:
         for cond in conds:
@@ -144,8 +146,7 @@ class VirtualRig:
 
     # ---- driver protocol ----------------------------------------------------------------
     def set_scene(self, scene: str) -> None:
-        if scene not in SCENES:
-            raise InputError(f"scene={scene!r}; choose one of {SCENES}")
+        choice(scene, "scene", SCENES)
         self.scene = scene
 
     def show(self, image: NDArray[np.uint8]) -> None:
@@ -248,16 +249,16 @@ def default_devices(plan: CapturePlan, camera_size: tuple[int, int] = (640, 512)
     f = pixels_per_node / h * 300.0  # camera 300 mm from the face
     K = np.array([[f, 0, (camera_size[0] - 1) / 2], [0, f, (camera_size[1] - 1) / 2], [0, 0, 1.0]])
     if plan.observed_face == "z+":
-        R, t = look_at(centre + [0, 0, D + 300.0], centre + [0, 0, D], up=(0, -1, 0))
+        R, t = opencv_pose(centre + [0, 0, D + 300.0], centre + [0, 0, D], up=(0, -1, 0))
     else:
         ang = np.radians(15.0)
         eye = centre + 300.0 * np.array([np.sin(ang), 0.0, -np.cos(ang)])
-        R, t = look_at(eye, centre, up=(0, -1, 0))
+        R, t = opencv_pose(eye, centre, up=(0, -1, 0))
     cam = SimCamera(K, camera_size, R, t, dist=np.array([-0.05, 0.01, 0, 0, 0]), gain=50.0, vignetting=0.1)
     pw, ph = plan.projector_size
     fp = 0.9 * min(pw / W, ph / H) * 500.0  # the face fills ~90 % of the frame from 500 mm
     Kp = np.array([[fp, 0, (pw - 1) / 2], [0, fp, (ph - 1) / 2], [0, 0, 1.0]])
-    Rp, tp = look_at(centre - [0, 0, 500.0], centre, up=(0, -1, 0))
+    Rp, tp = opencv_pose(centre - [0, 0, 500.0], centre, up=(0, -1, 0))
     proj = SimProjector(Kp, (pw, ph), Rp, tp, black=0.01)
     return cam, proj
 

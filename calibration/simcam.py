@@ -1,6 +1,7 @@
 """Simulated camera and projector: the data source of the virtual rig and the tests.
 
-Conventions (OpenCV's): world points ``X`` (mm) map to camera coordinates ``R X + t``; pixel
+Conventions (OpenCV's): world points ``X`` (mm) map to camera coordinates ``R X + t``
+(a pose aimed at a point: :func:`glsldiff.core.camera.opencv_pose`); pixel
 ``(u, v)`` has ``u`` along image columns, ``v`` along rows, origin at the top-left pixel
 centre. Images are ``(rows, cols)`` or ``(rows, cols, 3)`` arrays.
 
@@ -18,18 +19,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 Array = NDArray[np.float64]
-
-
-def look_at(eye: Array, target: Array, up: Array = (0.0, -1.0, 0.0)) -> tuple[Array, Array]:
-    """``(R, t)`` of a camera at ``eye`` looking at ``target`` (image rows follow ``-up``)."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(-np.asarray(up), z)  # OpenCV: x right, y down, z forward
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return R, -R @ eye
 
 
 @dataclass

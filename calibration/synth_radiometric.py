@@ -19,6 +19,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from PIL import ExifTags, Image
+from PIL.TiffImagePlugin import IFDRational
 
 from glsldiff.calibration.color import COLORCHECKER_ALBEDO
 from glsldiff.calibration.simcam import SimCamera, SimProjector
@@ -90,9 +92,6 @@ def write_bracket(folder: str | os.PathLike, images: Sequence[NDArray[np.uint8]]
                   sidecar: str = "json") -> Path:
     """Write ``img_XX.png`` and the exposure times as ``exposures.json`` (``"json"``),
     ``exposures.csv`` (``"csv"``) or EXIF ``ExposureTime`` in each PNG (``"exif"``)."""
-    from PIL import ExifTags, Image
-    from PIL.TiffImagePlugin import IFDRational
-
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     names = [f"img_{k:02d}.png" for k in range(len(images))]

@@ -43,7 +43,8 @@ from numpy.typing import NDArray
 from glsldiff.calibration.camera import BoardSpec
 from glsldiff.calibration.common import CommandParser, atomic_folder, parse_size, run_command
 from glsldiff.calibration.graycode import patterns
-from glsldiff.calibration.simcam import Pinhole, SimCamera, SimProjector, intersect_plane, look_at
+from glsldiff.calibration.simcam import Pinhole, SimCamera, SimProjector, intersect_plane
+from glsldiff.core.camera import opencv_pose
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
@@ -64,7 +65,7 @@ def default_devices(camera_size: tuple[int, int] = (1280, 1024), projector_size:
     pw, ph = projector_size
     Kp = np.array([[1.37 * pw, 0, (pw - 1) / 2], [0, 1.37 * pw, 0.6 * (ph - 1)], [0, 0, 1]])
     eye = np.array([baseline, 0.0, 0.0])
-    Rp, tp = look_at(eye, np.array([0.0, 0.0, AIM_MM]), up=(0.0, -1.0, 0.0))
+    Rp, tp = opencv_pose(eye, np.array([0.0, 0.0, AIM_MM]), up=(0.0, -1.0, 0.0))
     proj = SimProjector(Kp, (pw, ph), Rp, tp, dist=np.array([0.03, 0.0, 0.0, 0.0, 0.0]), black=0.01)
     return cam, proj
 

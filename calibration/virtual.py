@@ -20,16 +20,21 @@ from typing import Sequence
 import numpy as np
 
 from glsldiff.calibration import hdr
+from glsldiff.calibration.camera import BoardSpec, calibrate_camera
 from glsldiff.calibration.common import CommandParser, run_command, save_json
 from glsldiff.calibration.measure import measure
 from glsldiff.calibration.plan import CapturePlan, write_plan
+from glsldiff.calibration.projector import DecodeSettings, calibrate_folder
 from glsldiff.calibration.simcam import SimCamera
 from glsldiff.calibration.synth_radiometric import true_inverse_response
 from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homography, run_capture
+from glsldiff.calibration.views import (SyntheticRig, board_poses, synthetic_rig, write_camera_dataset,
+                                        write_projector_dataset)
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
 from glsldiff.inverse.measurements import save_measurements
-from glsldiff.inverse.synthetic import VOLUMES, bssrdf_error, synthetic_volume
+from glsldiff.inverse.synthetic import bssrdf_error
+from glsldiff.physics.procedural import SYNTHETIC_KINDS, synthetic_volume
 from glsldiff.core.io import write_npz
 
 
@@ -88,11 +93,6 @@ def _calibrate(cam: SimCamera, out: Path) -> tuple[np.ndarray, np.ndarray, dict[
     camera + projector + stereo calibration on a virtual Gray-code dataset (4 poses, 640x512
     camera, 512x384 projector). The rig's projector frames a face of a few mm, too small for
     a printed board, so its region placement uses its known geometry instead."""
-    from glsldiff.calibration.camera import BoardSpec, calibrate_camera
-    from glsldiff.calibration.projector import DecodeSettings, calibrate_folder
-    from glsldiff.calibration.views import (SyntheticRig, board_poses, synthetic_rig, write_camera_dataset,
-                                            write_projector_dataset)
-
     t0 = time.perf_counter()
     board = BoardSpec(9, 7, 3.0)
     dist0 = float(np.linalg.norm(cam.center))  # camera to the sample's corner, mm
@@ -122,7 +122,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
     parser.add_argument("--setup", choices=("back", "front"), default="back")
     parser.add_argument("--n", type=int, default=4, help="n x n projector regions")
-    parser.add_argument("--volume", choices=VOLUMES, default="mixed")
+    parser.add_argument("--volume", choices=SYNTHETIC_KINDS, default="mixed")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--max-evals", type=int, default=60)
     parser.add_argument("--calibrate", action="store_true", help="also calibrate camera and projector")

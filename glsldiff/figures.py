@@ -15,6 +15,9 @@ enable flags are restored before returning.
 
 Units: positions in mm (any consistent unit works), sizes in output pixels, colours linear
 RGB in [0, 1].
+
+(Over 400 lines: one public drawing function with the checks of its many inputs and its
+orbit camera; the matrix math itself is :mod:`glsldiff.core.camera`.)
 """
 from __future__ import annotations
 
@@ -30,8 +33,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff import gl
-
 from glsldiff.core import io
+from glsldiff.core.camera import projection, view_matrix
+from glsldiff.core.checks import finite_array
 from glsldiff.core.errors import InputError
 from glsldiff.grids.polygrid import Polygrid
 
@@ -94,21 +98,6 @@ class Camera:
 
 
 # ---- validation -------------------------------------------------------------------
-def _finite_array(a: ArrayLike, name: str, shape_tail: tuple[int, ...]) -> NDArray[np.float64]:
-    try:
-        arr = np.asarray(a, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: not a numeric array ({exc})") from exc
-    if arr.ndim == 1 and arr.size == 0:
-        arr = arr.reshape((0,) + shape_tail)
-    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail:
-        want = "(n, " + ", ".join(map(str, shape_tail)) + ")"
-        raise InputError(f"{name}: expected shape {want}, got {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise InputError(f"{name}: {int((~np.isfinite(arr)).sum())} non-finite values")
-    return arr
-
-
 def _colour(c: Any, name: str) -> Colour:
     try:
         rgb = np.asarray(c, dtype=np.float64)
@@ -120,7 +109,7 @@ def _colour(c: Any, name: str) -> Colour:
 
 
 def _mesh(vertices: ArrayLike, faces: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    v = _finite_array(vertices, "vertices", (3,))
+    v = finite_array(vertices, "vertices", (3,))
     try:
         f_raw = np.asarray(faces)
     except (TypeError, ValueError) as exc:
@@ -150,7 +139,7 @@ def _point_sets(points: Sequence[Any], name: str, tail: tuple[int, ...]
     for i, item in enumerate(points):
         if not isinstance(item, (tuple, list)) or len(item) not in (2, 3):
             raise InputError(f"{name}[{i}]: expected (array, rgb) or (array, rgb, clipped)")
-        xyz = _finite_array(item[0], f"{name}[{i}] positions", tail)
+        xyz = finite_array(item[0], f"{name}[{i}] positions", tail)
         rgb = _colour(item[1], f"{name}[{i}]")
         clipped = bool(item[2]) if len(item) == 3 else True
         out.append((xyz, rgb, clipped))
@@ -216,7 +205,7 @@ def camera(vertices: ArrayLike, view: View = View(), size: tuple[int, int] = (90
     extra
         ``(N, 3)`` further points (dots, line ends) kept between the near and far planes.
     """
-    v = _finite_array(vertices, "vertices", (3,))
+    v = finite_array(vertices, "vertices", (3,))
     w, h = _size(size)
     for name in ("azimuth_deg", "elevation_deg", "fov_deg"):
         if not math.isfinite(getattr(view, name)):
@@ -259,29 +248,11 @@ def camera(vertices: ArrayLike, view: View = View(), size: tuple[int, int] = (90
     near = max(float(depth.min()) - pad, 1e-3 * dist)
     far = max(float(depth.max()) + pad, near * 1.001)
 
-    view_m = np.eye(4)
-    view_m[0, :3], view_m[1, :3], view_m[2, :3] = right, cam_up, back
-    view_m[:3, 3] = -view_m[:3, :3] @ eye
-    proj = np.zeros((4, 4))
-    proj[0, 0], proj[1, 1] = 1.0 / tan_x, 1.0 / tan_y
-    proj[2, 2] = -(far + near) / (far - near)
-    proj[2, 3] = -2.0 * far * near / (far - near)
-    proj[3, 2] = -1.0
-    return Camera(eye, centre, view_m, proj, (w, h), radius)
+    return Camera(eye, centre, view_matrix(eye, right, cam_up, back),
+                  projection(1.0 / tan_x, 1.0 / tan_y, near, far), (w, h), radius)
 
 
 # ---- rendering --------------------------------------------------------------------
-def _mat(m: NDArray[np.float64]) -> bytes:
-    """A row-major numpy 4x4 as the column-major bytes GLSL expects."""
-    return np.ascontiguousarray(m.T, dtype="f4").tobytes()
-
-
-def _set(prog: moderngl.Program, name: str, value: Any) -> None:
-    """Set a uniform if the linker kept it (unused uniforms are optimised away)."""
-    if name in prog:
-        prog[name].value = value
-
-
 def render_nodes(vertices: ArrayLike, faces: ArrayLike,
                  points: Sequence[tuple[ArrayLike, Colour] | tuple[ArrayLike, Colour, bool]],
                  size: tuple[int, int] = (900, 900), view: View = View(), mesh_alpha: float = 0.35,
@@ -400,71 +371,46 @@ def render_nodes(vertices: ArrayLike, faces: ArrayLike,
     point_px = min(point_size_px * ss, max_point)
 
     fw, fh = w * ss, h * ss
-    bound = gl_ctx.fbo if gl_ctx.fbo is not None else gl_ctx.detect_framebuffer(0)
-    objects: list[Any] = []
-    scope = None
-    try:
-        colour = gl_ctx.renderbuffer((fw, fh), components=4)
-        objects.append(colour)
-        depth = gl_ctx.depth_renderbuffer((fw, fh))
-        objects.append(depth)
-        fbo = gl_ctx.framebuffer(color_attachments=[colour], depth_attachment=depth)
-        objects.append(fbo)  # released (in reverse) before its renderbuffers
+    with gl.Resources() as res, gl.keep_framebuffer(gl_ctx):   # ours released after the caller's is bound
+        colour = res.add(gl_ctx.renderbuffer((fw, fh), components=4))
+        depth = res.add(gl_ctx.depth_renderbuffer((fw, fh)))
+        fbo = res.add(gl_ctx.framebuffer(color_attachments=[colour], depth_attachment=depth))
         # scope: restores the caller's enable flags on exit (moderngl has no getter for them)
-        scope = gl_ctx.scope(fbo, enable_only=moderngl.DEPTH_TEST | moderngl.PROGRAM_POINT_SIZE)
+        scope = res.add(gl_ctx.scope(fbo, enable_only=moderngl.DEPTH_TEST | moderngl.PROGRAM_POINT_SIZE))
         with scope:
             fbo.use()
             fbo.depth_mask = True
             fbo.clear(*bg, 1.0, depth=1.0)
             gl_ctx.depth_func = "<"
-            mvp = _mat(cam.mvp)
-            eye = tuple(float(e) for e in cam.eye)
-            plane_bytes = np.zeros((MAX_CLIP_PLANES, 4), dtype="f4")
-            plane_bytes[:len(planes)] = planes
-            bias = _POINT_BIAS * cam.radius
+            plane_rows = np.zeros((MAX_CLIP_PLANES, 4))
+            plane_rows[:len(planes)] = planes
+            common = {"u_mvp": cam.mvp, "u_eye": tuple(float(e) for e in cam.eye),
+                      "u_bias": _POINT_BIAS * cam.radius, "u_nplanes": len(planes),
+                      "u_planes": [tuple(float(x) for x in row) for row in plane_rows]}
 
             def draw(prog: moderngl.Program, data: NDArray, layout: str, attrs: tuple[str, ...],
                      mode: int) -> None:
-                buf = gl_ctx.buffer(np.ascontiguousarray(data, dtype="f4").tobytes())
-                objects.append(buf)
-                vao = gl_ctx.vertex_array(prog, [(buf, layout, *attrs)])
-                objects.append(vao)
-                vao.render(mode)
-
-            def common(prog: moderngl.Program) -> None:
-                prog["u_mvp"].write(mvp)
-                _set(prog, "u_eye", eye)
-                _set(prog, "u_bias", bias)
-                _set(prog, "u_nplanes", len(planes))
-                if "u_planes" in prog:
-                    prog["u_planes"].write(plane_bytes.tobytes())
+                buf = res.add(gl_ctx.buffer(np.ascontiguousarray(data, dtype="f4").tobytes()))
+                res.add(gl_ctx.vertex_array(prog, [(buf, layout, *attrs)])).render(mode)
 
             if dot_data is not None:
-                prog = gl.program(gl_ctx, "figure_points.vert", "figure_points.frag", _DEFINES)
-                objects.append(prog)
-                common(prog)
-                prog["u_size"].value = float(point_px)
+                prog = res.add(gl.program(gl_ctx, "figure_points.vert", "figure_points.frag", _DEFINES))
+                gl.set_uniforms(prog, {**common, "u_size": float(point_px)})
                 draw(prog, dot_data, "3f 3f 1f", ("in_pos", "in_color", "in_clip"), moderngl.POINTS)
             if line_data is not None:
-                prog = gl.program(gl_ctx, "figure_points.vert", "figure_points.frag",
-                                  {**_DEFINES, "LINES": 1})
-                objects.append(prog)
-                common(prog)
-                prog["u_viewport"].value = (float(fw), float(fh))
-                prog["u_width"].value = float(line_width_px * ss)
+                prog = res.add(gl.program(gl_ctx, "figure_points.vert", "figure_points.frag",
+                                          {**_DEFINES, "LINES": 1}))
+                gl.set_uniforms(prog, {**common, "u_viewport": (float(fw), float(fh)),
+                                       "u_width": float(line_width_px * ss)})
                 draw(prog, line_data, "3f 3f 1f 3f 1f",
                      ("in_pos", "in_color", "in_clip", "in_other", "in_side"), moderngl.TRIANGLES)
             if mesh_alpha > 0.0:
-                prog = gl.program(gl_ctx, "figure_mesh.vert", "figure_mesh.frag", _DEFINES)
-                objects.append(prog)
-                common(prog)
+                prog = res.add(gl.program(gl_ctx, "figure_mesh.vert", "figure_mesh.frag", _DEFINES))
                 light = _normalized(-0.35 * cam.view[0, :3] + 0.55 * cam.view[1, :3]
                                     + 1.0 * cam.view[2, :3])
-                prog["u_light"].value = tuple(float(x) for x in light)
-                prog["u_color"].value = albedo
-                prog["u_alpha"].value = float(mesh_alpha)
-                prog["u_ambient"].value = _AMBIENT
-                _set(prog, "u_clip", int(bool(clip_mesh) and len(planes) > 0))
+                gl.set_uniforms(prog, {**common, "u_light": tuple(float(x) for x in light), "u_color": albedo,
+                                       "u_alpha": float(mesh_alpha), "u_ambient": _AMBIENT,
+                                       "u_clip": int(bool(clip_mesh) and len(planes) > 0)})
                 gl_ctx.enable(moderngl.BLEND)
                 gl_ctx.blend_func = moderngl.DEFAULT_BLENDING
                 fbo.depth_mask = False
@@ -472,12 +418,6 @@ def render_nodes(vertices: ArrayLike, faces: ArrayLike,
                      moderngl.TRIANGLES)
                 fbo.depth_mask = True
             raw = fbo.read(components=3, alignment=1)
-    finally:
-        bound.use()  # the caller's framebuffer (and viewport), never ours
-        if scope is not None:
-            scope.release()
-        for obj in reversed(objects):
-            obj.release()
     img = np.frombuffer(raw, dtype=np.uint8).reshape(fh, fw, 3)[::-1]
     if ss > 1:
         img = img.reshape(h, ss, w, ss, 3).mean(axis=(1, 3))

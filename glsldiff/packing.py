@@ -163,6 +163,19 @@ class Primitives:
         return int(((self.rects[:, 2] - self.rects[:, 0]) * (self.rects[:, 3] - self.rects[:, 1])).sum())
 
 
+def _row_keys(rows: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``(m,)`` dense integer key per row of ``rows`` (``(m, c)`` ints), equal for equal rows
+    and ordered like the rows (lexicographically); one 1D unique per column, which is much
+    faster than ``np.unique(axis=0)`` on 1e6 rows."""
+    key = np.zeros(rows.shape[0], dtype=np.int64)
+    for col in rows.T:
+        lo = col.min()
+        span = int(col.max() - lo) + 1
+        _, key = np.unique(key * span + (col - lo), return_inverse=True)
+        key = key.ravel()
+    return key
+
+
 def decompose(texels: NDArray[np.int64], offsets: NDArray[np.int64]) -> Primitives:
     """Cut a set of texels into rectangles of equal offsets.
 
@@ -181,8 +194,7 @@ def decompose(texels: NDArray[np.int64], offsets: NDArray[np.int64]) -> Primitiv
     k = offsets.shape[1]
     if m == 0:
         return Primitives(np.zeros((0, 4), np.int64), np.zeros((0, 6, 2), np.int64))
-    _, key = np.unique(offsets.reshape(m, -1), axis=0, return_inverse=True)
-    key = key.ravel()
+    key = _row_keys(offsets.reshape(m, -1))
     # horizontal runs: sort by (y, x), break where y, key or x-continuity changes
     order = np.lexsort((texels[:, 0], texels[:, 1]))
     x, y, kk = texels[order, 0], texels[order, 1], key[order]

@@ -1,5 +1,5 @@
 #version 330 core
-// Front- and back-face depth of a closed mesh seen from a light (glsldiff.render.lighting).
+// Front- and back-face depth of a closed mesh seen from a light (glsldiff.render.shadows).
 // Channel r: nearest light-facing surface, channel g: nearest surface facing away; written
 // with glBlendEquation(GL_MIN) into an RG32F target cleared to LIGHT_FAR, so no depth buffer
 // is needed. The caller compares against the midpoint (r + g) / 2 (Woo's midpoint shadow map).

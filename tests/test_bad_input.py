@@ -93,10 +93,10 @@ def test_unknown_precision_is_input_error(ctx):
 
 @pytest.mark.parametrize("kwargs, match", [
     (dict(check_every=0), r"check_every must be >= 1"),
-    (dict(max_sweeps=-1), r"max_sweeps >= 0"),
+    (dict(maxiter=-1), r"maxiter >= 0"),
 ])
 def test_bad_solve_options_are_input_errors(ctx, kwargs, match):
-    """solve(check_every=0) / solve(max_sweeps=-1) are InputErrors."""
+    """solve(check_every=0) / solve(maxiter=-1) are InputErrors."""
     p = DiffusionProblem(G, 0.3, 0.1, {"z-": 1.0})
     with GlslDiffusion(p, ctx) as solver:
         with pytest.raises(InputError, match=match):

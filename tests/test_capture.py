@@ -12,7 +12,8 @@ from glsldiff.calibration.measure import measure
 from glsldiff.calibration.plan import CapturePlan, load_plan, write_plan
 from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homography, run_capture
 from glsldiff.core.errors import InputError
-from glsldiff.inverse.synthetic import synthetic_measurements, synthetic_volume
+from glsldiff.inverse.synthetic import synthetic_measurements
+from glsldiff.physics.procedural import synthetic_volume
 
 
 def _rig(setup: str = "back", n: int = 2, shape=(6, 14, 14)) -> tuple[VirtualRig, CapturePlan]:

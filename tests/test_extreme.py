@@ -39,8 +39,8 @@ def _rho(p: DiffusionProblem) -> float:
 def _factor(rep) -> float:
     """Average residual reduction per sweep from the initial guess (sweep 0) to the smallest
     residual, (r_best / r_0)^(1 / sweeps): a stalled tail at the fp32 floor is left out."""
-    best = min(range(len(rep.residuals)), key=lambda i: rep.residuals[i][1])
-    (n0, r0), (n1, r1) = rep.residuals[0], rep.residuals[best]
+    best = min(range(len(rep.history)), key=lambda i: rep.history[i][1])
+    (n0, r0), (n1, r1) = rep.history[0], rep.history[best]
     return (r1 / r0) ** (1.0 / (n1 - n0))
 
 
@@ -66,7 +66,7 @@ def test_pure_scattering_converges_slowly(ctx, stencil):
     ref, _ = DirectSolver(p).solve()
     rho = _rho(p)
     phi_np, rep_np = jacobi(p, tol=1e-9, maxiter=20000, check_every=10)
-    phi_gl, rep_gl = solve_glsl(p, ctx, tol=1e-7, max_sweeps=20000)
+    phi_gl, rep_gl = solve_glsl(p, ctx, tol=1e-7, maxiter=20000)
     f_np, f_gl = _factor(rep_np), _factor(rep_gl)
     err_np, err_gl = relative_l2(phi_np, ref), relative_l2(phi_gl, ref)
     print(f"mu=0 {stencil}: rho(J)={rho:.5f}; numpy {rep_np.sweeps} sweeps, factor {f_np:.5f}, "
@@ -76,10 +76,10 @@ def test_pure_scattering_converges_slowly(ctx, stencil):
     for rep, f in ((rep_np, f_np), (rep_gl, f_gl)):
         assert rep.sweeps > 500
         assert 0.95 < f < 1.0 and f <= rho + 3e-3
-    tail = (rep_np.residuals[-1][1] / rep_np.residuals[-11][1]) ** (1 / 100)
+    tail = (rep_np.history[-1][1] / rep_np.history[-11][1]) ** (1 / 100)
     assert abs(tail - rho) < 2e-3
     # GLSL: the true residual of the fp32 iterate, above the floor (1e-5 .. 1e-2), falls at rho
-    mid = [(n, r) for n, r in rep_gl.residuals if 1e-5 < r < 1e-2]
+    mid = [(n, r) for n, r in rep_gl.history if 1e-5 < r < 1e-2]
     (n0, r0), (n1, r1) = mid[0], mid[-1]
     assert n1 - n0 >= 200 and abs((r1 / r0) ** (1 / (n1 - n0)) - rho) < 2e-3
     assert err_np < 1e-7 and err_gl < 1e-4
@@ -104,7 +104,7 @@ def test_extreme_absorption_converges_fast(ctx, stencil, mu):
           f"GLSL {rep_gl.sweeps} sweeps err {relative_l2(phi_gl, ref):.1e}")
     assert rep_np.converged and rep_np.sweeps <= 20
     assert rep_gl.converged and rep_gl.status == "converged"
-    assert [n for n, _ in rep_gl.residuals] == [0, 50] and rep_gl.residuals[0] == (0, 1.0)
+    assert [n for n, _ in rep_gl.history] == [0, 50] and rep_gl.history[0] == (0, 1.0)
     assert relative_l2(phi_np, ref) < 1e-12 and relative_l2(phi_gl, ref) < 1e-5
     assert _ok(ref) and _ok(phi_np) and _ok(phi_gl)
     assert ref[g.shape[0] // 2, g.shape[1] // 2, g.shape[2] // 2].max() < 1e-6  # deep inside: dark
@@ -131,7 +131,7 @@ def test_checkerboard_1e4_conservative(ctx, face_mean):
     p = DiffusionProblem(g, _checkerboard(g), 0.5, {"z-": 1.0}, stencil="conservative", face_mean=face_mean)
     ref, _ = DirectSolver(p).solve()
     phi_np, rep_np = jacobi(p, tol=1e-10, maxiter=50000)
-    phi_gl, rep_gl = solve_glsl(p, ctx, tol=1e-8, max_sweeps=50000)
+    phi_gl, rep_gl = solve_glsl(p, ctx, tol=1e-8, maxiter=50000)
     print(f"checkerboard conservative/{face_mean}: numpy {rep_np.sweeps} sweeps err "
           f"{relative_l2(phi_np, ref):.1e}; GLSL {rep_gl.sweeps} sweeps err {relative_l2(phi_gl, ref):.1e}")
     assert rep_np.converged and _ended_ok(rep_gl)
@@ -171,7 +171,7 @@ def test_jump_plane_1e4(ctx, stencil):
     p = DiffusionProblem(g, _jump_plane(g), 0.5, {"z-": 1.0}, stencil=stencil)
     ref, _ = DirectSolver(p).solve()
     phi_np, rep_np = jacobi(p, tol=1e-10, maxiter=100000)
-    phi_gl, rep_gl = solve_glsl(p, ctx, tol=1e-8, max_sweeps=100000)
+    phi_gl, rep_gl = solve_glsl(p, ctx, tol=1e-8, maxiter=100000)
     err_np, err_gl = relative_l2(phi_np, ref), relative_l2(phi_gl, ref)
     print(f"jump plane {stencil}: rho {_rho(p):.5f}; numpy {rep_np.sweeps} sweeps err {err_np:.1e}; "
           f"GLSL {rep_gl.sweeps} sweeps err {err_gl:.1e}")

@@ -1,5 +1,5 @@
 """Tests for glsldiff.gl: headless contexts (EGL, OSMesa, auto), shader sources, float textures,
-ping-pong buffers, and the real GL rasterisation of the grid rectangles.
+ping-pong buffers, and the real GL rasterisation of a regular grid's pass primitives.
 
 References: the glsldiff.gl module docstring (backends, ``#include`` and ``defines`` rules),
 the OpenGL 3.3 core rasterisation rules (pixel centres, exact float32/float16 storage).
@@ -16,9 +16,10 @@ import numpy as np
 import pytest
 
 from glsldiff import gl
-from glsldiff.solve.jacobi import grid_primitives
 from glsldiff.core.errors import BackendError, GlsldiffError
-from glsldiff.grids.regular import BOUNDARY, INTERIOR, RegularGrid
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.packing import primitive_vertices
+from glsldiff.solve.stencil import PASSES, pass_primitives
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -141,7 +142,7 @@ def test_older_context_can_be_made_current_again(first, second, use_with):
 
 
 # ---------------------------------------------------------------- shader sources
-@pytest.mark.parametrize("name", ["interior.frag", "boundary.frag", "grid.vert"])
+@pytest.mark.parametrize("name", ["stencil.frag", "transfer.frag", "stencil.vert"])
 def test_shader_source_expands_includes_and_defines(name):
     """``#include`` lines are replaced by the file; defines follow the ``#version`` line."""
     src = gl.shader_source(name, {"STENCIL_PAPER": 1, "FACE_HARMONIC": 0})
@@ -151,7 +152,7 @@ def test_shader_source_expands_includes_and_defines(name):
     assert "#include" not in src
     assert src.count("#version") == 1
     if name.endswith(".frag"):
-        common = (gl.shader_dir() / "common.glsl").read_text()
+        common = (gl.shader_dir() / "diffusion.glsl").read_text()
         assert common.strip() in src
         assert "uniform sampler2D u_state;" in src
 
@@ -179,18 +180,25 @@ def test_shader_include_rules(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("paper", [0, 1])
 @pytest.mark.parametrize("harmonic", [0, 1])
-def test_programs_compile_for_every_variant(bctx, paper, harmonic):
-    """Both passes compile and link for each stencil / face-mean define and expose their uniforms."""
-    defines = {"STENCIL_PAPER": paper, "FACE_HARMONIC": harmonic}
-    progs = [gl.program(bctx, "grid.vert", f, defines) for f in ("interior.frag", "boundary.frag")]
+@pytest.mark.parametrize("uniform", [0, 1])
+def test_programs_compile_for_every_variant(bctx, paper, harmonic, uniform):
+    """The interior and boundary rows, as sweep and as residual, compile and link for each
+    stencil / face-mean / weight define and expose their uniforms."""
+    progs = {(row, res): gl.program(bctx, "stencil.vert", "stencil.frag",
+                                    {"STENCIL_PAPER": paper, "FACE_HARMONIC": harmonic, "UNIFORM_WEIGHTS": uniform,
+                                     "ROW_BOUNDARY": row, "RESIDUAL": res})
+             for row in (0, 1) for res in (0, 1)}
     try:
-        for prog in progs:
+        for prog in progs.values():
             for u in ("u_state", "u_kappa", "u_size"):
                 assert u in prog
-        assert ("u_mu" in progs[0]) and ("u_h2" in progs[0])
-        assert ("u_q" in progs[1]) and ("u_C" in progs[1]) and ("u_d" in progs[1])
+        for res in (0, 1):
+            assert "u_mu" in progs[0, res] and ("u_w1" in progs[0, res]) == (not uniform)
+            assert ("u_scale" in progs[0, res]) == bool(uniform)
+            assert "u_C" in progs[1, res] and ("u_d" in progs[1, res]) == bool(uniform)
+        assert "u_q" in progs[1, 0] and "u_q" in progs[1, 1]
     finally:
-        for prog in progs:
+        for prog in progs.values():
             prog.release()
 
 
@@ -240,48 +248,57 @@ def test_float_texture_rejects_unknown_precision(bctx):
 
 _COUNT_FS = """#version 330 core
 flat in ivec2 v_off0;
-flat in ivec2 v_off1;
+flat in ivec2 v_off4;
 layout(location = 0) out vec4 f_color;
-void main() { f_color = vec4(1.0, float(v_off0.x), float(v_off0.y), float(v_off1.x + v_off1.y)); }
+void main() { f_color = vec4(1.0, float(v_off0.x), float(v_off0.y), float(4096 * v_off4.x + v_off4.y)); }
 """
 
 
 @pytest.mark.parametrize("shape", [(5, 7, 11), (3, 3, 3), (40, 3, 17)], ids=lambda s: "x".join(map(str, s)))
-def test_gl_rasterises_grid_rectangles_once_per_texel(bctx, shape):
-    """With additive blending, grid.vert + the rectangles of grid_primitives hit every interior
-    texel exactly once (interior pass) and every boundary texel exactly once (boundary pass),
-    with the flat offsets of that rectangle; inactive texels and padding get nothing."""
+def test_gl_rasterises_grid_primitives_once_per_texel(bctx, shape):
+    """With additive blending, stencil.vert + the quads, lines and points of pass_primitives hit
+    every interior texel exactly once (interior pass) and every boundary texel exactly once
+    (boundary pass), with that node's own offsets (x- and z- neighbour; interior partner);
+    inactive texels and padding get nothing."""
     g = RegularGrid(*shape)
     w, h = g.texture_size
-    kind_tex = g.pack(g.kind.astype(np.float32) + 1.0)[..., 0] - 1.0  # -1 on padding
-    prog = bctx.program(vertex_shader=gl.shader_source("grid.vert"), fragment_shader=_COUNT_FS)
+    graph, mosaic = g.graph, g.mosaic
+    prog = bctx.program(vertex_shader=gl.shader_source("stencil.vert"), fragment_shader=_COUNT_FS)
     prog["u_size"] = (float(w), float(h))
     tex = gl.float_texture(bctx, (w, h))
     fbo = bctx.framebuffer(color_attachments=[tex])
     objs = [prog, fbo, tex]
+    attrs = ("in_pos", "in_off0", "in_off1", "in_off2", "in_off3", "in_off4", "in_off5")
+    fmt = " ".join(f if a in prog else "8x" for a, f in zip(attrs, ("2f",) + ("2i",) * 6))
+    modes = {"triangles": moderngl.TRIANGLES, "lines": moderngl.LINES, "points": moderngl.POINTS}
     before = bctx.fbo  # rebound before fbo is released (never leave a deleted framebuffer bound)
     try:
-        for verts, want in zip(grid_primitives(g), (INTERIOR, BOUNDARY)):
+        for name, prims in zip(PASSES, pass_primitives(g).values()):
             fbo.clear(0.0, 0.0, 0.0, 0.0)
             fbo.use()
-            vbo = bctx.buffer(verts.tobytes())
-            vao = bctx.vertex_array(prog, [(vbo, "2f 2i 2i", "in_pos", "in_off0", "in_off1")])
-            objs += [vao, vbo]
             bctx.enable(moderngl.BLEND)
             bctx.blend_func = moderngl.ONE, moderngl.ONE
             try:
-                vao.render(moderngl.TRIANGLES)
+                for mode, verts in primitive_vertices(prims).items():
+                    if len(verts):
+                        vbo = bctx.buffer(verts.tobytes())
+                        vao = bctx.vertex_array(prog, [(vbo, fmt, *(a for a in attrs if a in prog))])
+                        objs += [vao, vbo]
+                        vao.render(modes[mode])
             finally:
                 bctx.disable(moderngl.BLEND)
                 bctx.blend_func = moderngl.DEFAULT_BLENDING
             out = np.frombuffer(tex.read(), dtype=np.float32).reshape(h, w, 4)
-            np.testing.assert_array_equal(out[..., 0], (kind_tex == want).astype(np.float32))
-            # the offsets each texel received (numpy scatter of the same rectangles)
-            want_off = np.zeros((h, w, 3), np.float32)
-            for quad in verts.reshape(-1, 6):
-                (x0, y0), (x1, y1) = quad["pos"].min(axis=0).astype(int), quad["pos"].max(axis=0).astype(int)
-                want_off[y0:y1, x0:x1] = [*quad["off0"][0], quad["off1"][0].sum()]
-            np.testing.assert_array_equal(out[..., 1:], want_off)
+            nodes = graph.interior if name == "interior" else graph.boundary
+            t = mosaic.texel(nodes)
+            want = np.zeros((h, w, 4), np.float32)
+            if name == "interior":
+                off0 = mosaic.texel(graph.neighbours[:, 0]) - t
+                off4 = mosaic.texel(graph.neighbours[:, 4]) - t
+            else:
+                off0, off4 = mosaic.texel(graph.link) - t, np.zeros_like(t)
+            want[t[:, 1], t[:, 0]] = np.column_stack([np.ones(len(t)), off0, 4096 * off4[:, 0] + off4[:, 1]])
+            np.testing.assert_array_equal(out, want)
     finally:
         (before if before is not None else bctx.detect_framebuffer(0)).use()
         for o in reversed(objs):

@@ -1,4 +1,5 @@
-"""Tests for glsldiff.grids.regular (RegularGrid) and the texel rectangles of glsldiff.solve.jacobi.grid_primitives.
+"""Tests for glsldiff.grids.regular (RegularGrid) and the texel rectangles the GLSL solver draws on it
+(glsldiff.solve.stencil.pass_primitives).
 
 Reference: the definitions in the glsldiff.grids.regular module docstring (node kinds, face table,
 tiled z-slice packing; Wang et al. 2008 section 5.2, figure 6), re-derived here with loops.
@@ -10,7 +11,7 @@ import itertools
 import numpy as np
 import pytest
 
-from glsldiff.solve.jacobi import grid_primitives
+from glsldiff.solve.stencil import pass_primitives
 from glsldiff.core.errors import InputError
 from glsldiff.grids.regular import BOUNDARY, FACES, INACTIVE, INTERIOR, RegularGrid
 
@@ -53,28 +54,6 @@ def _texel_maps(g: RegularGrid) -> tuple[np.ndarray, np.ndarray]:
         ys, xs = np.mgrid[0:g.ny, 0:g.nx]
         texel_of[flat[z].ravel()] = np.stack([ox + xs.ravel(), oy + ys.ravel()], axis=1)
     return node_at, texel_of
-
-
-def _rects(verts: np.ndarray) -> list[tuple[int, int, int, int, tuple[int, int], tuple[int, int]]]:
-    """Texel rectangles ``(x0, y0, x1, y1, off0, off1)`` back from the two-triangle vertex array."""
-    assert len(verts) % 6 == 0
-    out = []
-    for quad in verts.reshape(-1, 6):
-        pos = quad["pos"]
-        x0, y0 = pos.min(axis=0)
-        x1, y1 = pos.max(axis=0)
-        corners = {(float(a), float(b)) for a, b in pos}
-        assert corners == {(x0, y0), (x1, y0), (x0, y1), (x1, y1)}, "not an axis-aligned quad"
-        tris = [pos[:3], pos[3:]]
-        area = sum(0.5 * abs((t[1][0] - t[0][0]) * (t[2][1] - t[0][1])
-                             - (t[1][1] - t[0][1]) * (t[2][0] - t[0][0])) for t in tris)
-        assert area == pytest.approx((x1 - x0) * (y1 - y0)), "triangles do not tile the quad"
-        assert np.all(pos == np.round(pos)), "rectangle corners must lie on texel edges"
-        for key in ("off0", "off1"):
-            assert np.all(quad[key] == quad[key][0]), f"{key} varies inside one rectangle"
-        out.append((int(x0), int(y0), int(x1), int(y1), tuple(int(v) for v in quad["off0"][0]),
-                    tuple(int(v) for v in quad["off1"][0])))
-    return out
 
 
 # ---------------------------------------------------------------- node kinds and links
@@ -200,37 +179,38 @@ def test_texture_over_limit_is_input_error(shape, limit, what):
 @pytest.mark.parametrize("shape", SHAPES, ids=_ids)
 def test_grid_primitives_cover_each_texel_once(shape):
     """Rasterised in numpy, the interior pass covers each interior texel once, the boundary pass
-    each boundary texel once, and neither touches inactive nodes or padding."""
+    each boundary texel once, and neither touches inactive nodes or padding; a z-slice's interior
+    is one rectangle."""
     g = RegularGrid(*shape)
     node_at, _ = _texel_maps(g)
     kind_tex = np.full(node_at.shape, -1)
     kind_tex[node_at >= 0] = g.kind.ravel()[node_at[node_at >= 0]]
-    interior_v, boundary_v = grid_primitives(g)
-    for verts, want in ((interior_v, INTERIOR), (boundary_v, BOUNDARY)):
+    prims = pass_primitives(g)
+    for name, want in (("interior", INTERIOR), ("boundary", BOUNDARY)):
         cover = np.zeros(node_at.shape, dtype=int)
-        for x0, y0, x1, y1, _, _ in _rects(verts):
+        for x0, y0, x1, y1 in prims[name].rects:
             assert 0 <= x0 < x1 <= cover.shape[1] and 0 <= y0 < y1 <= cover.shape[0]
             cover[y0:y1, x0:x1] += 1
         np.testing.assert_array_equal(cover, (kind_tex == want).astype(int))
+    assert len(prims["interior"].rects) == g.nz - 2
 
 
 @pytest.mark.parametrize("shape", SHAPES, ids=_ids)
 def test_grid_primitives_offsets_reach_the_right_nodes(shape):
-    """Interior rectangles: texel + off0/off1 is the node at z-1/z+1. Boundary rectangles:
-    texel + off0 is the linked interior node (the stencil neighbours of eq. 8)."""
+    """Interior rectangles: texel + offset j is the node's neighbour x-, x+, y-, y+, z-, z+ (the
+    stencil of eq. 8). Boundary rectangles: texel + offset 0 is the linked interior node."""
     g = RegularGrid(*shape)
     node_at, texel_of = _texel_maps(g)
     link = g.link.ravel()
-    plane = g.nx * g.ny
-    interior_v, boundary_v = grid_primitives(g)
-    for x0, y0, x1, y1, off0, off1 in _rects(interior_v):
+    steps = (-1, 1, -g.nx, g.nx, -g.nx * g.ny, g.nx * g.ny)
+    prims = pass_primitives(g)
+    for (x0, y0, x1, y1), offs in zip(prims["interior"].rects, prims["interior"].offsets):
         nodes = node_at[y0:y1, x0:x1].ravel()
-        tex = texel_of[nodes]
-        np.testing.assert_array_equal(tex + off0, texel_of[nodes - plane])
-        np.testing.assert_array_equal(tex + off1, texel_of[nodes + plane])
-    for x0, y0, x1, y1, off0, _ in _rects(boundary_v):
+        for off, step in zip(offs, steps):
+            np.testing.assert_array_equal(texel_of[nodes] + off, texel_of[nodes + step])
+    for (x0, y0, x1, y1), offs in zip(prims["boundary"].rects, prims["boundary"].offsets):
         nodes = node_at[y0:y1, x0:x1].ravel()
-        np.testing.assert_array_equal(texel_of[nodes] + off0, texel_of[link[nodes]])
+        np.testing.assert_array_equal(texel_of[nodes] + offs[0], texel_of[link[nodes]])
 
 
 def test_face_to_boundary_roundtrip_matches_face_volume() -> None:

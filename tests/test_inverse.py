@@ -11,8 +11,8 @@ from glsldiff.inverse.measurements import Measurements, load_measurements, save_
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import ScaledProblem, minimize
-from glsldiff.inverse.synthetic import (bssrdf_error, region_patterns, synthetic_measurements,
-                                        synthetic_volume)
+from glsldiff.inverse.synthetic import bssrdf_error, region_patterns, synthetic_measurements
+from glsldiff.physics.procedural import synthetic_volume
 
 
 def _random_problem(model: ForwardModel, M: int, seed: int) -> tuple[np.ndarray, ...]:

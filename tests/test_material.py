@@ -1,4 +1,5 @@
-"""Tests for glsldiff.physics.material: coefficients, presets, validation and synthetic volumes."""
+"""Tests for glsldiff.physics.material (coefficients, presets, validation) and the synthetic
+volumes of glsldiff.physics.procedural."""
 from __future__ import annotations
 
 import numpy as np
@@ -7,9 +8,9 @@ import pytest
 from glsldiff.physics import material
 from glsldiff.core.errors import InputError
 from glsldiff.physics.material import (
-    PRESETS, Preset, coefficients, marble_volume, optical_properties, preset, random_volume,
-    validate_coefficients,
+    PRESETS, Preset, coefficients, optical_properties, preset, validate_coefficients,
 )
+from glsldiff.physics.procedural import marble_volume, random_volume
 
 # Jensen et al. 2001 measured parameters as transcribed in mertens.md 6.2: sigma_s' RGB, sigma_a RGB [mm^-1]
 JENSEN_TABLE = {

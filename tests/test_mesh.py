@@ -16,6 +16,8 @@ trimesh = pytest.importorskip("trimesh")
 
 from glsldiff import mesh as M  # noqa: E402
 from glsldiff.core.errors import InputError  # noqa: E402
+from glsldiff.mesh.closest import closest_on_triangles  # noqa: E402
+from glsldiff.mesh.types import component_count  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +45,7 @@ def test_sample_meshes_load_closed_genus0(name, repairs):
     assert m.repairs == repairs
     assert m.tm.is_watertight and m.tm.is_winding_consistent
     assert np.isclose(m.tm.volume, m.volume)
-    assert M._component_count(m.faces, len(m.vertices)) == 1
+    assert component_count(m.faces, len(m.vertices)) == 1
 
 
 def test_bunny_size(bunny):
@@ -180,7 +182,8 @@ def test_zero_volume():
 
 
 def test_bad_size_mm():
-    with pytest.raises(InputError, match=r"size_mm=-1.0 must be a finite length > 0 mm"):
+    with pytest.raises(InputError, match=r"size_mm \(mm; None keeps the file's units\) must be a "
+                                         r"number in \(0, inf\), got -1\.0"):
         M.load_mesh("bone", size_mm=-1.0)
 
 
@@ -202,7 +205,7 @@ def test_sphere_and_torus():
     assert np.isclose(t.volume, 2 * np.pi ** 2 * 2.0 * 0.25, rtol=0.02)
     with pytest.raises(InputError, match=r"torus r=3.0 must be smaller than R=2.0"):
         M.torus_mesh(2.0, 3.0)
-    with pytest.raises(InputError, match=r"sphere radius_mm=0 must be a finite length > 0"):
+    with pytest.raises(InputError, match=r"sphere radius_mm \(mm\) must be a number in \(0, inf\), got 0"):
         M.sphere_mesh(0)
 
 
@@ -248,7 +251,7 @@ def test_closest_points_brute_force(bunny):
     t = bunny.triangles
     for i in range(len(p)):
         q = np.repeat(p[i:i + 1], len(t), axis=0)
-        bary = M._closest_on_triangles(q, t[:, 0], t[:, 1], t[:, 2])
+        bary = closest_on_triangles(q, t[:, 0], t[:, 1], t[:, 2])
         c = np.einsum("ij,ijk->ik", bary, t)
         assert dist[i] == pytest.approx(np.linalg.norm(c - p[i], axis=1).min(), abs=1e-12)
 
@@ -260,7 +263,7 @@ def test_closest_on_triangles_regions():
     want = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.5, 0, 0], [0, 0.5, 0],
                      [0.5, 0.5, 0], [0.2, 0.2, 0]])
     n = len(pts)
-    bary = M._closest_on_triangles(pts, np.tile(a, (n, 1)), np.tile(b, (n, 1)), np.tile(c, (n, 1)))
+    bary = closest_on_triangles(pts, np.tile(a, (n, 1)), np.tile(b, (n, 1)), np.tile(c, (n, 1)))
     np.testing.assert_allclose(bary @ np.stack([a, b, c]), want, atol=1e-15)
 
 

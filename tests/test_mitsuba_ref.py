@@ -15,13 +15,14 @@ pytest.importorskip("mitsuba")
 
 from glsldiff.core.errors import BackendError, InputError  # noqa: E402
 from glsldiff.mesh import box_mesh  # noqa: E402
-from glsldiff.render.lighting import latlong_directions  # noqa: E402
+from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, PointLight  # noqa: E402
+from glsldiff.physics.sh import latlong_directions  # noqa: E402
 from glsldiff.validation.mitsuba import (  # noqa: E402
     McCamera, _probe_variant, render_mitsuba, render_scattering_orders, render_subsurface,
     single_scattering_share,
 )
 
-CONST = {"type": "constant", "radiance": 2.0}
+CONST = EnvironmentLight(np.full((2, 4, 3), 2.0))   # uniform: Mitsuba's constant emitter
 
 
 @pytest.fixture(scope="module")
@@ -39,13 +40,14 @@ def cam():
 @pytest.mark.parametrize("eta, light, tol", [
     (1.0, CONST, 0.03),  # null boundary: next-event estimation + MIS, noisy but unbiased
     (1.3, CONST, 1e-4),  # dielectric: no NEE, every path carries exactly L back
-    (1.3, {"type": "envmap", "image": np.full((8, 16, 3), 4.0), "scale": 0.5}, 1e-4),
+    (1.3, EnvironmentLight(np.full((8, 16, 3), 4.0), scale=0.5), 1e-4),
 ])
 def test_white_furnace(cube, cam, eta, light, tol):
     """Non-absorbing medium in a uniform environment: every pixel sees the environment radiance."""
     img, info = render_mitsuba(cube, 0.0, 1.0, eta, cam, light, spp=64)
     assert img.shape == (16, 16, 3) and img.dtype == np.float32
     assert info["integrator"] == "volpath" and info["spp"] == 64 and info["seconds"] > 0
+    assert info["light"] == "constant"
     np.testing.assert_allclose(img.mean(axis=(0, 1)), 2.0, rtol=tol)
 
 
@@ -67,7 +69,7 @@ def test_beer_lambert_and_order_zero(cube, cam, channels):
 def test_orders_split_exactly(cube, cam):
     """Chromatic scattering medium, environment and directional light: the order images of
     render_scattering_orders are exactly non-negative (same paths in all three renders)."""
-    for light in (CONST, {"type": "directional", "direction": (1, 0.3, -1), "irradiance": 1.0}):
+    for light in (CONST, DirectionalLight((1, 0.3, -1), 1.0)):
         ims, info = render_scattering_orders(cube, [0.01, 0.1, 0.3], [0.05, 0.2, 0.5], 1.0, cam, light,
                                              spp=64, seed=3, channels="rgb")
         assert info["sampler"] == "ldsampler"
@@ -98,7 +100,7 @@ def test_single_scattering_and_orders():
     slab = box_mesh((60, 60, 1), origin=(-30, -30, -0.5))
     cam = McCamera((0, 0, 100), (0, 0, 0), (0, 1, 0), 2.0, 8, 8)
     sa, ss = np.array([0.1, 0.2, 0.05]), np.array([0.5, 0.3, 1.0])
-    light = {"type": "directional", "direction": (0, 0, -1), "irradiance": 1.0}
+    light = DirectionalLight((0, 0, -1), 1.0)
     share, info = single_scattering_share(slab, sa, ss, 1.0, cam, light, spp=1024, seed=1)
     im = info["images"]
     expected = ss * 1.0 * np.exp(-(sa + ss)) / (4 * np.pi)
@@ -121,27 +123,8 @@ def test_image_orientation_and_determinism(cam):
     np.testing.assert_array_equal(img, again)
 
 
-def test_envmap_orientation():
-    """Lat-long convention: row 0 is +y; columns run -z, +x, +z, -x (u = 0, 1/4, 1/2, 3/4); row
-    centres at theta = pi row / (H - 1) (30 degrees from +y: row 7/6)."""
-    h, w = 8, 16
-    env = np.ones((h, w, 3))
-    env[..., 0] = np.arange(h)[:, None] + 0.5  # R = row centre
-    env[..., 1] = np.arange(w)[None, :] + 0.5  # G = column centre
-    speck = box_mesh((0.01, 0.01, 0.01), origin=(1000, 1000, 1000))  # out of view
-    for view, up, row, col in [((0, 1, 0), (0, 0, 1), 0.5, None), ((0, -1, 0), (0, 0, 1), h - 0.5, None),
-                               ((1, 0, 0), (0, 1, 0), h / 2, w / 4), ((0, 0, 1), (0, 1, 0), h / 2, w / 2),
-                               ((-1, 0, 0), (0, 1, 0), h / 2, 3 * w / 4),
-                               ((0, 3 ** 0.5, -1), (1, 0, 0), 7 / 6 + 0.5, None)]:
-        eye = McCamera((0, 0, 0), view, up, 1.0, 1, 1)
-        px, _ = render_mitsuba(speck, 0.0, 0.0, 1.0, eye, {"type": "envmap", "image": env}, spp=4)
-        assert abs(px[0, 0, 0] - row) < 0.1, (view, px[0, 0])
-        if col is not None:
-            assert abs(px[0, 0, 1] - col) < 0.1, (view, px[0, 0])
-
-
 def test_envmap_z_up_frame():
-    """frame = "z_up": the glsldiff lat-long convention (glsldiff.render.lighting.latlong_directions).
+    """An EnvironmentLight in the glsldiff lat-long convention (glsldiff.physics.sh.latlong_directions).
     A map holding 1 + its own pixel-centre direction returns 1 + d for any view direction d (up
     to bilinear interpolation of sines: about 0.005 at 32 x 64; at the poles, where the map's
     first and last rows vary with azimuth by sin(pi / 2h) = 0.05, to that)."""
@@ -152,7 +135,8 @@ def test_envmap_z_up_frame():
     for v in views / np.linalg.norm(views, axis=1, keepdims=True):
         up = (0, 0, 1) if abs(v[2]) < 0.9 else (0, 1, 0)
         eye = McCamera((0, 0, 0), tuple(v), up, 0.5, 1, 1)
-        px, _ = render_mitsuba(speck, 0.0, 0.0, 1.0, eye, {"type": "envmap", "image": env, "frame": "z_up"}, spp=4)
+        px, info = render_mitsuba(speck, 0.0, 0.0, 1.0, eye, EnvironmentLight(env), spp=4)
+        assert info["light"] == "envmap"
         tol = 0.06 if abs(v[2]) > 0.99 else 0.015
         np.testing.assert_allclose(px[0, 0], 1.0 + v, atol=tol, err_msg=str(v))
 
@@ -190,20 +174,16 @@ GOOD_VOL = {"sigma_a": np.zeros((2, 2, 2, 3)), "sigma_s": np.ones((2, 2, 2, 3)),
     ({"sigma_a": np.zeros(4)}, "sigma_a"),
     ({"eta": 0.0}, "eta"),
     ({"eta": -1.3}, "eta"),
-    ({"light": {"type": "point", "position": (0, 0, 0)}}, "light['type']"),
-    ({"light": {"type": "constant"}}, "radiance"),
-    ({"light": {"type": "constant", "radiance": 1.0, "colour": 1}}, "colour"),
-    ({"light": {"type": "directional", "direction": (0, 0, 0), "irradiance": 1}}, "direction"),
-    ({"light": {"type": "envmap", "image": np.ones((4, 8))}}, "image"),
-    ({"light": {"type": "envmap", "image": np.ones((4, 8, 3)), "scale": 0}}, "scale"),
-    ({"eta": 1.3, "light": {"type": "directional", "direction": (0, 0, 1), "irradiance": 1}}, "eta = 1"),
+    ({"light": PointLight((0, 0, 0), 1.0)}, "DirectionalLight or an EnvironmentLight"),
+    ({"light": {"type": "constant", "radiance": 1.0}}, "DirectionalLight or an EnvironmentLight"),
+    ({"light": EnvironmentLight(np.arange(8.0)[None, :, None] * np.ones((1, 8, 3)))}, "2 x 2"),
+    ({"eta": 1.3, "light": DirectionalLight((0, 0, 1), 1.0)}, "eta = 1"),
     ({"max_depth": 0}, "max_depth"),
     ({"seed": -1}, "seed"),
     ({"variant": "scalar_spectral"}, "variant"),
     ({"sampler": "sobol"}, "sampler"),
     ({"sampler": "ldsampler", "spp": 24}, "power of 4"),
     ({"sampler": "ldsampler", "spp": 128}, "power of 4"),
-    ({"light": {"type": "envmap", "image": np.ones((4, 8, 3)), "frame": "x_up"}}, "frame"),
     ({"channels": "grey"}, "channels"),
     ({"rr_depth": 0}, "rr_depth"),
     ({"volume": dict(GOOD_VOL, sigma_a=np.zeros((2, 2, 2)))}, "volume['sigma_a']"),

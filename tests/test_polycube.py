@@ -103,11 +103,11 @@ def test_exactly_one_size_argument():
 @pytest.mark.parametrize("kwargs, match", [
     (dict(cube_size=3.0), r"cube_size=3 mm is larger than mesh 'sphere' \(extents \[2\.0, 2\.0, 2\.0\] mm\)"),
     (dict(cube_size=1.9), r"no polycube of mesh 'sphere' \(extents \[2\.0, 2\.0, 2\.0\] mm.*no cube is 50% inside"),
-    (dict(cube_size=-1.0), r"cube_size=-1\.0 must be a finite cube edge > 0 mm"),
+    (dict(cube_size=-1.0), r"cube_size \(cube edge, mm\) must be a number in \(0, inf\), got -1\.0"),
     (dict(cube_size=1e-4), r"too small"),
     (dict(n_cubes=0), r"n_cubes=0 must be an integer >= 1"),
-    (dict(cube_size=0.5, threshold=1.5), r"threshold=1\.5 must be an inside-volume fraction"),
-    (dict(cube_size=0.5, samples=0), r"samples=0 must be an integer in 1\.\.16"),
+    (dict(cube_size=0.5, threshold=1.5), r"threshold \(inside-volume fraction\) must be a number in \(0, 1\], got 1\.5"),
+    (dict(cube_size=0.5, samples=0), r"samples \(samples\^3 points per cube\) must be an integer in \[1, 16\], got 0"),
 ])
 def test_bad_mesh_arguments(kwargs, match):
     with pytest.raises(InputError, match=match):
@@ -166,7 +166,7 @@ def test_explicit_bad_lists(cubes, match):
 
 
 def test_explicit_bad_size():
-    with pytest.raises(InputError, match=r"size=0 must be a finite cube edge > 0 mm"):
+    with pytest.raises(InputError, match=r"polycube size \(cube edge, mm\) must be a number in \(0, inf\), got 0"):
         P.polycube_from_cubes([[0, 0, 0]], 0)
 
 

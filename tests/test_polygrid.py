@@ -8,13 +8,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff.solve.jacobi import solve_glsl
 from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import BOUNDARY, INACTIVE, INTERIOR
 from glsldiff.grids.regular import RegularGrid
 from glsldiff.grids.lattice import OPPOSITE, STEPS, Lattice
 from glsldiff.packing import Mosaic, decompose
-from glsldiff.solve.polyjacobi import PolygridDiffusion, polygrid_primitives, solve_polygrid
+from glsldiff.solve.jacobi import GlslDiffusion, solve_glsl
+from glsldiff.solve.stencil import pass_primitives
 from glsldiff.grids.polygrid import Polygrid, box_polygrid, lattice_polygrid, node_weights
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.oracle.assembly import assemble
@@ -165,7 +165,7 @@ def test_primitives_cover_each_node_once_with_its_own_offsets(cubes, n):
     lat = (box_polygrid(cubes, n).lattice if isinstance(cubes, tuple)
            else Lattice.build(_scanline(cubes), n, 1.0))
     pg = lattice_polygrid(lat)
-    prims = polygrid_primitives(pg)
+    prims = pass_primitives(pg)
     m = pg.mosaic
     for name, nodes, want in (("interior", lat.interior, m.texel(lat.neighbours) - m.texel(lat.interior)[:, None]),
                               ("boundary", lat.boundary, (m.texel(lat.link) - m.texel(lat.boundary))[:, None])):
@@ -215,7 +215,7 @@ def test_sweeps_equal_numpy_jacobi(ctx, stencil, geometry):
     s = assemble(p)
     rng = np.random.default_rng(1)
     x = rng.uniform(0.5, 1.0, s.b.shape)
-    with PolygridDiffusion(p, ctx) as solver:
+    with GlslDiffusion(p, ctx) as solver:
         solver.set_initial(p.to_phi(s.to_volume(x, p.node_shape)))
         solver.sweep(7)
         got = s.from_volume(solver.unknown())
@@ -227,7 +227,7 @@ def test_sweeps_equal_numpy_jacobi(ctx, stencil, geometry):
 @pytest.mark.parametrize("stencil", ["paper", "conservative"])
 def test_box_equals_regular_grid(ctx, stencil):
     """Acceptance: on an axis-aligned box the polygrid system is the regular grid's, and the
-    GLSL polygrid solution equals the regular-grid solvers (direct and GLSL) to <= 1e-4."""
+    GLSL solution on the polygrid equals the regular-grid solutions (direct and GLSL) to <= 1e-4."""
     n, cubes, size = 5, (3, 2, 2), 2.5
     pg = box_polygrid(cubes, n, size)
     g = RegularGrid(cubes[0] * n, cubes[1] * n, cubes[2] * n, h=size / n)
@@ -241,9 +241,9 @@ def test_box_equals_regular_grid(ctx, stencil):
     phi_p, _ = solve_direct(pp)
     act = pg.active
     assert relative_l2(phi_p[act], _to_nodes(pg.lattice, phi_r)[act]) < 1e-12
-    phi_g, rep = solve_polygrid(pp, ctx, tol=5e-7)
+    phi_g, rep = solve_glsl(pp, ctx, tol=5e-7)
     phi_rg, _ = solve_glsl(pr, ctx, tol=5e-7)
-    assert rep.method.startswith("glsl-polygrid")
+    assert rep.method == "glsl-jacobi-fp32"
     assert relative_l2(phi_g[act], phi_p[act]) <= 1e-4
     assert relative_l2(phi_g[act], _to_nodes(pg.lattice, phi_rg)[act]) <= 1e-4
     assert rep.radiance.shape == (pg.n_boundary, 3)
@@ -255,7 +255,7 @@ def test_distorted_polygrid_matches_direct(ctx):
     pg = _distorted(lat, 0.3)
     p = _problem(pg, "paper")
     phi_d, _ = solve_direct(p)
-    phi_g, rep = solve_polygrid(p, ctx, tol=5e-7)
+    phi_g, rep = solve_glsl(p, ctx, tol=5e-7)
     assert relative_l2(phi_g[pg.active], phi_d[pg.active]) <= 1e-4
     assert rep.status in ("converged", "stalled")
 
@@ -265,7 +265,7 @@ def test_fp16_polygrid(ctx):
     pg = lattice_polygrid(lat)
     p = _problem(pg)
     phi_d, _ = solve_direct(p)
-    phi_h, rep = solve_polygrid(p, ctx, precision="fp16", tol=1e-6, max_sweeps=3000)
+    phi_h, rep = solve_glsl(p, ctx, precision="fp16", tol=1e-6, maxiter=3000)
     err = relative_l2(phi_h[pg.active], phi_d[pg.active])
     assert err < 2e-2 and np.all(np.isfinite(phi_h))
 
@@ -282,5 +282,3 @@ def test_polygrid_q_validation():
     q[3] = np.nan
     with pytest.raises(InputError, match="non-finite"):
         DiffusionProblem(pg, 1.0, 0.1, q)
-    with pytest.raises(InputError, match="Polygrid"):
-        PolygridDiffusion(DiffusionProblem(RegularGrid(4, 4, 4), 1.0, 0.1))

@@ -1,19 +1,23 @@
 """Polygrids built from meshes: GLSL = CPU oracle on sphere, bunny and cow; the sphere
-against its closed form; mapping quality; vertex interpolation; the command and figure."""
+against its closed form; mapping quality; the command and figure."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
-from glsldiff.oracle.closed_forms import sphere_fluence
+from glsldiff.bench.sphere import sphere_study
 from glsldiff.commands.cli import main
-from glsldiff.mesh import load_mesh, sphere_mesh
-from glsldiff.solve.polyjacobi import solve_polygrid
+from glsldiff.core.errors import InputError
+from glsldiff.grids.lattice import Lattice
+from glsldiff.grids.mapping import map_to_mesh, separate_collapsed
+from glsldiff.grids.polycube import polycube_from_mesh
 from glsldiff.grids.polygrid import build_polygrid
-from glsldiff.system.problem import DiffusionProblem, relative_l2
+from glsldiff.mesh import closest_points, load_mesh, mesh_from_arrays, sample_mesh_path, sphere_mesh
+from glsldiff.oracle.closed_forms import sphere_fluence
 from glsldiff.oracle.solvers import solve_direct
-
-from glsldiff.sampling import VolumeField, sample_material, to_vertices
+from glsldiff.solve.jacobi import solve_glsl
+from glsldiff.system.problem import DiffusionProblem, relative_l2
 
 
 @pytest.fixture(scope="module")
@@ -37,15 +41,18 @@ def cow_pg():
 SLOW = pytest.mark.slow
 
 
-def _lit_problem(pg, heterogeneous: bool = True):
+def _smooth_material(pg):
+    """kappa (mm, RGB) and mu (mm^-1) varying smoothly over the mesh's bounding box, at every node."""
     lo, hi = pg.mesh.bounds
-    if heterogeneous:
-        z, y, x = np.meshgrid(*[np.linspace(0, 1, 9)] * 3, indexing="ij")
-        k = 0.4 * 3.0 ** np.sin(3 * x + 2 * y + z)
-        field = VolumeField(np.stack([k, 0.8 * k, 0.6 * k], -1), origin=tuple(lo), spacing=tuple((hi - lo) / 8))
-        kappa, mu = sample_material(pg, field, lambda p: 0.02 + 0.05 * (p[:, 2] - lo[2]) / (hi - lo)[2])
-    else:
-        kappa, mu = 0.3, 0.02
+    u = (pg.positions - lo) / (hi - lo)
+    k = 0.4 * 3.0 ** np.sin(3 * u[:, 0] + 2 * u[:, 1] + u[:, 2])
+    kappa = np.stack([k, 0.8 * k, 0.6 * k], -1).reshape(pg.shape + (3,))
+    mu = (0.02 + 0.05 * u[:, 2]).reshape(pg.shape)
+    return kappa, mu
+
+
+def _lit_problem(pg, heterogeneous: bool = True):
+    kappa, mu = _smooth_material(pg) if heterogeneous else (0.3, 0.02)
     x = pg.boundary_positions[:, 0]
     q = (x < np.quantile(x, 0.4))[:, None] * np.array([1.0, 0.9, 0.8])
     return DiffusionProblem(pg, kappa, mu, q)
@@ -57,7 +64,7 @@ def test_glsl_equals_cpu_oracle(ctx, request, name):
     pg = request.getfixturevalue(name)
     p = _lit_problem(pg)
     phi_d, rep_d = solve_direct(p)
-    phi_g, rep_g = solve_polygrid(p, ctx, tol=5e-7)
+    phi_g, rep_g = solve_glsl(p, ctx, tol=5e-7)
     act = pg.active
     assert relative_l2(phi_g[act], phi_d[act]) <= 1e-4
     assert relative_l2(rep_g.radiance, rep_d.radiance) <= 1e-4
@@ -75,7 +82,6 @@ def test_mapping_quality(request, name, inverted):
     st = pg.mapping
     assert st.inverted <= inverted * pg.n_interior
     assert st.outside <= 0.01 * st.outside_checked  # cow n=4: 13 of 2206 (thin legs)
-    from glsldiff.mesh import closest_points
     _, dist, _, _ = closest_points(pg.mesh, pg.boundary_positions)
     assert dist.max() < 1e-6 * pg.lattice.size
     assert np.all(pg.weights > 0)
@@ -109,25 +115,6 @@ def test_sphere_error_against_closed_form():
     assert max(errs) < 0.12, errs
 
 
-def test_to_vertices_reproduces_smooth_fields(sphere_pg):
-    pg = sphere_pg
-    f = lambda p: np.stack([p[:, 0], p[:, 1] + 2 * p[:, 2], np.ones(len(p))], 1)
-    got = to_vertices(pg, f(pg.boundary_positions), pg.mesh.vertices)
-    want = f(pg.mesh.vertices)
-    assert np.abs(got - want).max() < 2.0 * pg.lattice.h
-    np.testing.assert_allclose(got[:, 2], 1.0)
-
-
-def test_sampling_bad_input(sphere_pg):
-    from glsldiff.core.errors import InputError
-    with pytest.raises(InputError, match="kappa"):
-        sample_material(sphere_pg, lambda p: np.ones((len(p), 2)), 0.1)
-    with pytest.raises(InputError, match="mu"):
-        sample_material(sphere_pg, 1.0, np.ones(5))
-    with pytest.raises(InputError, match="rows"):
-        to_vertices(sphere_pg, np.ones((3, 3)), sphere_pg.mesh.vertices)
-
-
 def test_polygrid_command(tmp_path, capsys):
     """`glsldiff polygrid` prints the statistics, writes the CSV, the figure and the solve check."""
     rc = main(["polygrid", "bone", "--n", "4", "--cubes", "60", "--size-mm", "80", "--solve",
@@ -135,7 +122,7 @@ def test_polygrid_command(tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     for word in ("cubes", "interior", "boundary", "removed", "link_variance_mean_h2", "weight_min",
-                 "weights_fallback", "seconds_total", "levels", "glsl-polygrid"):
+                 "weights_fallback", "seconds_total", "levels", "glsl-jacobi"):
         assert word in out
     assert (tmp_path / "polygrid.csv").exists() and (tmp_path / "polygrid_solve.csv").exists()
     from PIL import Image
@@ -145,7 +132,6 @@ def test_polygrid_command(tmp_path, capsys):
 
 def test_polygrid_command_bad_mesh(tmp_path, capsys):
     """A mesh that cannot be closed: one line on stderr, exit code 2."""
-    from glsldiff.mesh import sample_mesh_path
     bad = sample_mesh_path("bunny").parent / "bunny10k_textured.obj"
     rc = main(["polygrid", str(bad), "--out", str(tmp_path), "--no-png"])
     err = capsys.readouterr().err
@@ -156,13 +142,6 @@ def test_separate_collapsed_boundary_nodes():
     """Two boundary nodes put on one point (what closest-point projection does next to a
     sharp feature; the 16^3-per-cube bunny had 11 such pairs) are moved to their axis ray
     hits, onto the surface and apart; nodes that cannot be separated give an InputError."""
-    from glsldiff.core.errors import InputError
-    from glsldiff.grids.lattice import Lattice
-    from glsldiff.grids.mapping import map_to_mesh, separate_collapsed
-    from glsldiff.mesh import closest_points, mesh_from_arrays
-    from glsldiff.grids.polycube import polycube_from_mesh
-    from scipy.spatial import cKDTree
-
     mesh = sphere_mesh(10.0, subdivisions=4)
     pc = polycube_from_mesh(mesh, cube_size=5.0)
     lat = Lattice.build(pc.cubes, 4, pc.size, pc.origin)
@@ -186,8 +165,6 @@ def test_separate_collapsed_boundary_nodes():
 def test_sphere_study_both_series(tmp_path):
     """``glsldiff bench sphere`` rows: both refinement series, errors, truncation errors per
     row kind (shared-partner boundary rows are the worst), GLSL = direct, CSV and PNG."""
-    from glsldiff.bench.sphere import sphere_study
-
     rows = sphere_study(ns=(3,), cube_sizes=(5.0,), n_fixed=3, subdivisions=3, glsl=True,
                         out=tmp_path, variance_iterations=0)
     assert [r["series"] for r in rows] == ["n", "cubes"]

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from glsldiff.physics import material
+from glsldiff.physics import procedural
 from glsldiff.grids.regular import BOUNDARY, INTERIOR, RegularGrid
 from glsldiff.physics.optics import fresnel_transmittance
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.oracle.assembly import assemble, assemble_rhs, jacobi_radius_bound
-from glsldiff.oracle.solvers import DirectSolver, jacobi, solve_direct
+from glsldiff.oracle.solvers import DirectSolver, jacobi, solve_amg, solve_direct
 
 STENCILS = [("paper", "arithmetic"), ("conservative", "arithmetic"), ("conservative", "harmonic")]
 STENCIL_IDS = ["paper", "conservative-arith", "conservative-harm"]
@@ -32,7 +32,7 @@ def _problem(stencil: str, face_mean: str = "arithmetic", shape=(7, 6, 8), h=0.2
     rng = np.random.default_rng(seed)
     white = stencil == "conservative" if white is None else white
     if white:
-        kappa, mu = material.random_volume(g.shape, seed, kappa_contrast=100.0, mu_max=2.0)
+        kappa, mu = procedural.random_volume(g.shape, seed, kappa_contrast=100.0, mu_max=2.0)
     else:
         kappa = 0.1 * np.exp(0.2 * rng.standard_normal(g.shape + (3,)))
         mu = rng.uniform(0.0, 2.0, g.shape + (3,))
@@ -183,8 +183,6 @@ def test_direct_residual(stencil, face_mean):
 def test_amg_solver_matches_direct(stencil, face_mean):
     """solve_amg (pyamg smoothed aggregation + GMRES, the large-grid reference) equals the LU solve."""
     pytest.importorskip("pyamg")
-    from glsldiff.oracle.solvers import solve_amg
-
     p = _problem(stencil, face_mean, shape=(12, 10, 9))
     phi, rep = solve_amg(p, tol=1e-12)
     assert rep.converged and rep.residual < 1e-9
@@ -250,9 +248,9 @@ def test_numpy_jacobi_converges_to_direct(stencil, face_mean):
     phi, rep = jacobi(p, tol=1e-11, maxiter=20000)
     assert rep.converged and rep.status == "converged" and rep.residual <= 1e-11
     assert relative_l2(phi, ref) < 1e-8
-    assert rep.sweeps % 10 == 0 and rep.residuals[-1] == (rep.sweeps, rep.residual)
-    assert rep.residuals[0] == (0, 1.0)
-    assert [n for n, _ in rep.residuals] == list(range(0, rep.sweeps + 1, 10))
+    assert rep.sweeps % 10 == 0 and rep.history[-1] == (rep.sweeps, rep.residual)
+    assert rep.history[0] == (0, 1.0)
+    assert [n for n, _ in rep.history] == list(range(0, rep.sweeps + 1, 10))
     s = assemble(p)
     assert rep.residual == pytest.approx(s.residual(s.from_volume(p.from_phi(phi))), rel=1e-6)
 
@@ -282,7 +280,7 @@ def test_jacobi_convergence_factor_is_spectral_radius(stencil, face_mean):
     res: list[float] = []
     _, rep = jacobi(p, tol=1e-12, maxiter=5000, check_every=1, residuals=res)
     assert rep.converged and len(res) == rep.sweeps + 1 and res[0] == 1.0
-    assert res == [r for _, r in rep.residuals]
+    assert res == [r for _, r in rep.history]
     factor = (res[-1] / res[0]) ** (1.0 / (len(res) - 1))
     tail = (res[-1] / res[-51]) ** (1.0 / 50)
     print(f"{stencil}/{face_mean}: rho={rho:.5f} average factor={factor:.5f} tail factor={tail:.5f}")
@@ -301,11 +299,11 @@ def test_jacobi_warm_start_and_zero_source(stencil):
     ref, _ = solve_direct(p)
     phi, rep = jacobi(p, x0=ref, tol=1e-10, check_every=5)
     assert rep.converged and rep.status == "converged" and rep.sweeps == 0
-    assert rep.residuals == [(0, rep.residual)] and rep.residual < 1e-14
+    assert rep.history == [(0, rep.residual)] and rep.residual < 1e-14
     assert relative_l2(phi, ref) < 1e-12
     phi0, rep0 = jacobi(p.with_q({}), tol=1e-10)
     assert rep0.converged and rep0.sweeps == 0 and np.all(phi0 == 0.0)
-    assert rep0.residuals == [(0, 0.0)]
+    assert rep0.history == [(0, 0.0)]
 
 
 def test_jacobi_zero_budget_returns_initial_guess():
@@ -315,8 +313,32 @@ def test_jacobi_zero_budget_returns_initial_guess():
     phi, rep = jacobi(p, maxiter=0)
     assert rep.sweeps == 0
     assert np.all(phi == 0.0), f"one sweep was applied: max phi = {phi.max():.3g}"
-    assert rep.status == "budget" and not rep.converged and rep.residuals == [(0, 1.0)]
+    assert rep.status == "budget" and not rep.converged and rep.history == [(0, 1.0)]
     x0 = np.random.default_rng(2).uniform(0.1, 1.0, p.grid.shape + (3,))
     phi, rep = jacobi(p, x0=x0, maxiter=0)
     assert rep.sweeps == 0 and rep.status == "budget"
     np.testing.assert_array_equal(phi, np.where(p.grid.active[..., None], x0, 0.0))
+
+
+# ---------------------------------------------------------------- uniform solver interface
+def test_uniform_interface_fills_residuals_and_calls_back():
+    """Every oracle solver takes the pyamg-style arguments (glsldiff.system.report): ``residuals``
+    gets the history (initial residual first, the report's history), ``callback(x)`` sees the
+    unknown vector, ``x0`` starts the iteration; direct: one residual, one callback."""
+    p = _problem("conservative")
+    s = assemble(p)
+    ref, _ = solve_direct(p)
+    seen: list[np.ndarray] = []
+    res: list[float] = []
+    phi, rep = jacobi(p, tol=1e-8, maxiter=5000, x0=0.5 * ref, callback=seen.append, residuals=res)
+    assert rep.converged and res == [r for _, r in rep.history] and len(seen) == len(res) - 1
+    assert res[0] < 1.0  # started from x0, not zero
+    np.testing.assert_array_equal(seen[-1], s.from_volume(p.from_phi(phi)))
+    res_d, seen_d = [], []
+    _, rep_d = solve_direct(p, callback=seen_d.append, residuals=res_d)
+    assert res_d == [rep_d.residual] and len(seen_d) == 1 and rep_d.history == [(0, rep_d.residual)]
+    pytest.importorskip("pyamg")
+    res_a, seen_a = [], []
+    phi_a, rep_a = solve_amg(p, tol=1e-10, x0=ref, callback=seen_a.append, residuals=res_a)
+    assert len(seen_a) == 1 and res_a[0] < 1e-10 and rep_a.sweeps == len(res_a) - 1
+    assert relative_l2(phi_a, ref) < 1e-9

@@ -10,7 +10,7 @@ from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.reflectance import diffuse_reflectance
-from glsldiff.inverse.synthetic import synthetic_volume
+from glsldiff.physics.procedural import synthetic_volume
 from glsldiff.physics.optics import fresnel_transmittance
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 

@@ -9,17 +9,19 @@ import pytest
 
 from glsldiff.core import io
 from glsldiff.core.errors import InputError
+from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, PointLight, ProjectorLight, SpotLight
 from glsldiff.physics.optics import boundary_constant, fdr
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
-from glsldiff.render.renderer import Renderer, check_output, save
-from glsldiff.render.scene import CameraSpec, LightSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
+from glsldiff.render.output import check_output, save
+from glsldiff.render.renderer import Renderer
+from glsldiff.render.scene import CameraSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
 
 pytestmark = pytest.mark.usefixtures("ctx")
 
 
 def _scene(**kw) -> Scene:
     base = Scene(mesh=MeshSpec("sphere", 20.0), polygrid=PolygridSpec(6, 8, 2),
-                 lights=(LightSpec("directional", direction=(0.0, 0.0, 1.0), irradiance=(1.0, 1.0, 1.0)),),
+                 lights=(DirectionalLight((0.0, 0.0, 1.0), (1.0, 1.0, 1.0)),),
                  output=OutputSpec(48, 48), specular=SpecularSpec(0.0, 0.2))
     return dataclasses.replace(base, **kw)
 
@@ -40,7 +42,7 @@ def test_moved_camera_skips_passes_1_and_2(renderer):
     assert "t1" not in rep2.seconds and "t2" not in rep2.seconds
     assert not np.allclose(img1, img2)          # the camera did move
     # a light change re-runs pass 1 and warm-starts pass 2, without re-packing
-    s3 = dataclasses.replace(s2, lights=(LightSpec("directional", direction=(0.1, 0.0, 1.0)),))
+    s3 = dataclasses.replace(s2, lights=(DirectionalLight((0.1, 0.0, 1.0), (1.0, 1.0, 1.0)),))
     _, rep3 = renderer.render(s3)
     assert not rep3.ran("setup") and not rep3.ran("material") and rep3.ran("pass1") and rep3.ran("pass2")
     assert "warm start" in [p for p in rep3.passes if p["pass"] == "pass2"][0]["why"]
@@ -98,10 +100,9 @@ def test_every_light_kind_single_scattering_and_procedural_materials(tmp_path, r
     env = np.zeros((16, 32, 3), np.float32)
     env[:8] = 0.2                                   # bright upper hemisphere
     io.write_exr(tmp_path / "env.exr", env)
-    lights = (LightSpec("point", position=(0.0, 40.0, 40.0), intensity=(2000.0,) * 3),
-              LightSpec("spot", position=(40.0, 0.0, 40.0), direction=(-1.0, 0.0, -1.0), intensity=(2000.0,) * 3,
-                        cone_deg=20.0, falloff_deg=10.0),
-              LightSpec("environment", path="env.exr"))
+    lights = (PointLight((0.0, 40.0, 40.0), (2000.0,) * 3),
+              SpotLight((40.0, 0.0, 40.0), (-1.0, 0.0, -1.0), (2000.0,) * 3, cone_deg=20.0, falloff_deg=10.0),
+              EnvironmentLight(io.read_exr(tmp_path / "env.exr")))
     base = dataclasses.replace(_scene(lights=lights, base_dir=tmp_path), specular=SpecularSpec(0.05, 0.2))
     off, rep_off = renderer.render(base)
     on, rep_on = renderer.render(dataclasses.replace(base, options=OptionsSpec(single_scattering=True)))
@@ -142,8 +143,8 @@ def test_projector_lights_its_image_side_and_a_new_image_reruns_pass_1_only(tmp_
     Image.fromarray(half, "RGB").save(tmp_path / "left.png")
     io.write_exr(tmp_path / "right.exr", half[:, ::-1].astype(np.float32) / 255.0)
     # projector and camera on +z looking at the sphere: the projector's left is image left (-x)
-    proj = LightSpec("projector", position=(0.0, 0.0, 60.0), direction=(0.0, 0.0, -1.0), image="left.png",
-                     intensity=(4000.0,) * 3, fov_deg=30.0)
+    proj = ProjectorLight((0.0, 0.0, 60.0), (0.0, 0.0, -1.0), io.read_image(tmp_path / "left.png"), (4000.0,) * 3,
+                          fov_deg=30.0)
     scene = _scene(lights=(proj,), base_dir=tmp_path,
                    camera=CameraSpec(position=(0.0, 0.0, 70.0), target=(0.0, 0.0, 0.0)))
 
@@ -166,7 +167,7 @@ def test_projector_lights_its_image_side_and_a_new_image_reruns_pass_1_only(tmp_
     gain = halves(img2 - img, img, 4)                  # beyond the image edge's ramp (pixel + vertex)
     assert gain[0] > 0.01 * left and gain[1] == 0.0, gain
     # only the image changed: pass 1 runs again (pass 2 warm-started), no re-packing
-    flipped = dataclasses.replace(scene, lights=(dataclasses.replace(proj, image="right.exr"),))
+    flipped = dataclasses.replace(scene, lights=(dataclasses.replace(proj, image=io.read_image(tmp_path / "right.exr")),))
     img3, rep3 = renderer.render(flipped)
     assert rep3.ran("pass1") and rep3.ran("pass2") and not rep3.ran("setup") and not rep3.ran("material")
     left3, right3 = halves(img3, img3, 2)
@@ -212,8 +213,7 @@ def test_diffuse_surface_reflectance_adds_rho_E_over_pi_in_pass_3_only(tmp_path,
 def test_hard_edged_spot_light(renderer):
     """falloff = cone (allowed by scenes) is a hard edge in pass 1 and in the pass-3 shader
     (GLSL's smoothstep is undefined for equal edges)."""
-    spot = LightSpec("spot", position=(0.0, 0.0, 60.0), direction=(0.0, 0.0, -1.0), intensity=(4000.0,) * 3,
-                     cone_deg=6.0, falloff_deg=6.0)
+    spot = SpotLight((0.0, 0.0, 60.0), (0.0, 0.0, -1.0), (4000.0,) * 3, cone_deg=6.0, falloff_deg=6.0)
     scene = _scene(lights=(spot,), camera=CameraSpec(position=(0.0, 0.0, 60.0), target=(0.0, 0.0, 0.0)),
                    specular=SpecularSpec(0.5, 0.3))
     img, _ = renderer.render(scene)

@@ -6,8 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from glsldiff.core import io
 from glsldiff.core.errors import InputError
-from glsldiff.render.scene import default_scene, load_scene, parse_scene
+from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, ProjectorLight, SpotLight
+from glsldiff.render.scene import LIGHT_KEYS, default_scene, load_scene, parse_scene
 
 GOOD = """
 [mesh]
@@ -46,7 +48,8 @@ def test_good_scene_and_defaults(tmp_path):
     assert s.mesh.source == "sphere" and s.mesh.size_mm == 20.0
     assert s.polygrid.n == 4 and s.polygrid.levels == 2
     assert s.material.preset == "skin1" and s.material.eta == 1.3
-    assert s.lights[0].type == "directional" and s.lights[0].irradiance == (1.0, 1.0, 1.0)
+    assert isinstance(s.lights[0], DirectionalLight) and s.lights[0].irradiance == (1.0, 1.0, 1.0)
+    np.testing.assert_allclose(s.lights[0].direction, np.array([0, 1, 1]) / np.sqrt(2), rtol=1e-15)
     assert (s.output.width, s.output.height) == (64, 48)
     assert s.options.scheme == "hierarchical" and s.options.exitant == "p1"
     d = default_scene()
@@ -100,11 +103,35 @@ def test_unreadable_environment_map_and_other_errors(tmp_path):
 
 
 def test_relative_paths_resolve_against_the_scene_folder(tmp_path):
-    from glsldiff.core import io
-
-    io.write_exr(tmp_path / "env.exr", np.ones((8, 16, 3), np.float32))
+    env = np.ones((8, 16, 3), np.float32)
+    env[0] = 3.0
+    io.write_exr(tmp_path / "env.exr", env)
     s = load_scene(_write(tmp_path, GOOD + '\n[[lights]]\ntype = "environment"\npath = "env.exr"\nscale = 0.5\n'))
-    assert s.resolve(s.lights[1].path) == tmp_path / "env.exr"
+    light = s.lights[1]
+    assert isinstance(light, EnvironmentLight) and light.scale == 0.5 and light.visibility
+    np.testing.assert_array_equal(light.image, env)          # read when the scene is parsed
+
+
+def test_light_kinds_parse_into_the_physics_types(tmp_path):
+    """Each [[lights]] table becomes the light type of its kind, with the scene's defaults;
+    the keys a light table may have are unchanged, and a bad one is named."""
+    text = GOOD + ('\n[[lights]]\ntype = "spot"\nposition = [0, 0, 50]\ndirection = [0, 0, -2]\ncone_deg = 20\n'
+                   '\n[[lights]]\ntype = "point"\nposition = [1, 2, 3]\nshadows = false\n')
+    s = load_scene(_write(tmp_path, text))
+    spot, point = s.lights[1:]
+    assert isinstance(spot, SpotLight) and spot.direction == (0.0, 0.0, -1.0)
+    assert (spot.cone_deg, spot.falloff_deg, spot.intensity) == (20.0, 20.0, (1e4, 1e4, 1e4))
+    assert point.position == (1.0, 2.0, 3.0) and not point.shadows
+    assert set(LIGHT_KEYS) == {"type", "direction", "position", "irradiance", "intensity", "cone_deg",
+                               "falloff_deg", "path", "scale", "shadows", "image", "up", "fov_deg"}
+    with pytest.raises(InputError, match=r"\[lights.1\].colour: unknown key; valid keys: cone_deg, direction"):
+        load_scene(_write(tmp_path, text.replace("cone_deg = 20", "colour = 1")))
+    from PIL import Image
+
+    Image.fromarray(np.zeros((2, 2, 3), np.uint8), "RGB").save(tmp_path / "ok.png")
+    tiny = GOOD + PROJECTOR.format(image="ok.png").replace("direction = [0, 0, -1]", "direction = [0, 0, -1e-14]")
+    with pytest.raises(InputError, match=r"\[lights.1\].direction: ProjectorLight.direction .*non-zero"):
+        load_scene(_write(tmp_path, tiny))                  # not zero, but too short for the light type
 
 
 PROJECTOR = '\n[[lights]]\ntype = "projector"\nposition = [0, 0, 60]\ndirection = [0, 0, -1]\nimage = "{image}"\n'
@@ -113,16 +140,13 @@ PROJECTOR = '\n[[lights]]\ntype = "projector"\nposition = [0, 0, 60]\ndirection 
 def test_projector_light_parses_and_its_png_is_decoded_from_srgb(tmp_path):
     from PIL import Image
 
-    from glsldiff.core import io
-    from glsldiff.render.scene import read_light_image
-
     rgb8 = np.array([[[255, 0, 0], [0, 128, 0]], [[0, 0, 10], [255, 255, 255]]], np.uint8)
     Image.fromarray(rgb8, "RGB").save(tmp_path / "pattern.png")
     s = load_scene(_write(tmp_path, GOOD + PROJECTOR.format(image="pattern.png")))
     lt = s.lights[1]
-    assert lt.type == "projector" and lt.image == "pattern.png" and lt.up is None and lt.fov_deg == 30.0
-    assert s.resolve(lt.image) == tmp_path / "pattern.png"
-    img = read_light_image(s.resolve(lt.image))
+    assert isinstance(lt, ProjectorLight) and lt.up == (0.0, 1.0, 0.0) and lt.fov_deg == 30.0
+    img = io.read_image(tmp_path / "pattern.png")
+    np.testing.assert_array_equal(lt.image, img)
     c = rgb8 / 255.0                                          # sRGB decode, in RGB order
     np.testing.assert_allclose(img, np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4), rtol=1e-12)
     assert img[0, 0, 0] == 1.0 and img[0, 0, 1] == 0.0 and abs(img[0, 1, 1] - 0.2158605) < 1e-6
@@ -130,7 +154,7 @@ def test_projector_light_parses_and_its_png_is_decoded_from_srgb(tmp_path):
     io.write_exr(tmp_path / "pattern.exr", np.full((3, 4, 3), 2.5, np.float32))
     s = load_scene(_write(tmp_path, GOOD + PROJECTOR.format(image="pattern.exr") + "up = [1, 0, 0]\nfov_deg = 50\n"))
     assert s.lights[1].up == (1.0, 0.0, 0.0) and s.lights[1].fov_deg == 50.0
-    np.testing.assert_array_equal(read_light_image(s.resolve(s.lights[1].image)), 2.5)
+    np.testing.assert_array_equal(s.lights[1].image, 2.5)
 
 
 @pytest.mark.parametrize("extra, image, field, match", [
@@ -176,8 +200,6 @@ def test_bad_reflectance(tmp_path, value, match):
 
 
 def test_reflectance_constant_and_map(tmp_path):
-    from glsldiff.core import io
-
     s = load_scene(_write(tmp_path, GOOD.replace('preset = "skin1"', 'preset = "skin1"\nreflectance = 0.04')))
     assert s.material.reflectance == (0.04, 0.04, 0.04)
     np.savez(tmp_path / "block.npz", kappa=np.ones((2, 3, 3, 3)), mu=np.zeros((2, 3, 3, 3)), h_mm=1.0)

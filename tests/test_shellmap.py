@@ -8,7 +8,8 @@ import pytest
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import BOUNDARY, INACTIVE
-from glsldiff.physics.material import coefficients, marble_volume, preset
+from glsldiff.physics.material import coefficients, preset
+from glsldiff.physics.procedural import marble_volume
 from glsldiff.mesh import sphere_mesh
 from glsldiff.grids.polygrid import box_polygrid, build_polygrid
 from glsldiff.system.problem import DiffusionProblem

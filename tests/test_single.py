@@ -14,7 +14,8 @@ from scipy import integrate
 from glsldiff.physics import single
 from glsldiff.core.errors import InputError
 from glsldiff.physics.optics import fresnel_reflectance
-from glsldiff.physics.single import henyey_greenstein, single_scattering
+from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, PointLight, SpotLight
+from glsldiff.physics.single import henyey_greenstein, light_single_scattering, single_scattering
 
 ETA = 1.3
 UP = np.array([0.0, 0.0, 1.0])
@@ -386,3 +387,33 @@ def test_bad_input_names_field(change, field):
     kwargs.update(change)
     with pytest.raises(InputError, match=field.replace("+", r"\+")):
         single_scattering(**kwargs)
+
+
+def test_light_single_scattering_takes_the_light_types():
+    """A light of glsldiff.physics.lights: its direction and normal irradiance per point (sun:
+    E0; point light: I / r^2; spot: times its cone factor) times the visibility."""
+    rng = np.random.default_rng(7)
+    pts = np.c_[rng.uniform(-5, 5, (6, 2)), np.zeros(6)]
+    nrm, view = _rows(UP, 6), _rows([0.3, 0.0, 1.0], 6)
+    mat, vis = (np.array([0.01, 0.1, 0.3]), np.array([1.0, 0.8, 0.5])), np.linspace(0.0, 1.0, 6)
+    sun = DirectionalLight((0.2, -0.4, 1.0), (1.0, 2.0, 3.0))
+    ref = single_scattering(pts, nrm, view, _rows(sun.direction, 6), vis[:, None] * np.array([1.0, 2.0, 3.0]),
+                            mat, ETA)
+    np.testing.assert_allclose(light_single_scattering(pts, nrm, view, sun, mat, ETA, vis), ref, rtol=1e-14)
+    pos = np.array([1.0, 2.0, 30.0])
+    d = pos - pts
+    r2 = (d ** 2).sum(axis=1)
+    ref = single_scattering(pts, nrm, view, d, (100.0 / r2)[:, None] * np.ones(3), mat, ETA, samples=4)
+    np.testing.assert_allclose(light_single_scattering(pts, nrm, view, PointLight(pos, 100.0), mat, ETA,
+                                                       samples=4), ref, rtol=1e-13)
+    spot = SpotLight(pos, (0.0, 0.0, -1.0), 100.0, cone_deg=10.0, falloff_deg=5.0)
+    out = light_single_scattering(pts, nrm, view, spot, mat, ETA)
+    cos_axis = d[:, 2] / np.sqrt(r2)
+    inside, outside = cos_axis > np.cos(np.radians(5.0)), cos_axis < np.cos(np.radians(10.0))
+    assert inside.any() and outside.any()
+    np.testing.assert_allclose(out[inside], ref[inside], rtol=1e-13)
+    assert np.all(out[outside] == 0.0)
+    with pytest.raises(InputError, match="environment"):
+        light_single_scattering(pts, nrm, view, EnvironmentLight(np.ones((2, 4, 3))), mat, ETA)
+    with pytest.raises(InputError, match="visibility"):
+        light_single_scattering(pts, nrm, view, sun, mat, ETA, vis[:3])

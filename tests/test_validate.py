@@ -2,15 +2,15 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from glsldiff.core import io
 from glsldiff.core.errors import InputError
-from glsldiff.render.lighting import latlong_directions, sh_project
-from glsldiff.validation.validate import CASES, _mc_light, _scene, environment_map, mc_split, rmse, validate
+from glsldiff.physics.lights import DirectionalLight, EnvironmentLight
+from glsldiff.physics.sh import latlong_directions, sh_project
+from glsldiff.validation.validate import CASES, _light, _scene, environment_map, mc_split, rmse, validate
 
 
 def test_rmse_is_relative_and_masked():
@@ -44,11 +44,12 @@ def test_environment_maps_and_cases():
     np.testing.assert_array_equal(environment_map("constant", 4, 8), 1.0)
     case = CASES["sphere-eta1.3-sky"]
     assert case.eta == 1.3 and CASES["sphere-sky"].eta == 1.0
-    light = _mc_light(case)
-    assert light["frame"] == "z_up" and light["type"] == "envmap"
-    assert _mc_light(CASES["sphere-eta1.3-constant"]) == {"type": "constant", "radiance": 1.0}
-    scene = _scene(case, None, 16, env_path=Path("env.exr"))
-    assert scene.material.eta == 1.3 and scene.lights[0].type == "environment" and scene.specular.rho_s == 0
+    light = _light(case)
+    assert isinstance(light, EnvironmentLight) and np.array_equal(light.image, environment_map("sky"))
+    np.testing.assert_array_equal(_light(CASES["sphere-eta1.3-constant"]).image, 1.0)
+    assert isinstance(_light(CASES["sphere"]), DirectionalLight)
+    scene = _scene(case, None, 16)
+    assert scene.material.eta == 1.3 and scene.lights[0].digest == light.digest and scene.specular.rho_s == 0
     with pytest.raises(InputError, match="environment light"):
         dataclasses.replace(CASES["sphere"], eta=1.3)
     with pytest.raises(InputError, match="not an environment"):

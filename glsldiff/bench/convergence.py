@@ -31,10 +31,13 @@ from numpy.typing import NDArray
 from glsldiff.core import io
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
-from glsldiff.physics.material import marble_volume
+from glsldiff.grids.polygrid import Polygrid, build_polygrid
+from glsldiff.mesh import load_mesh, torus_mesh
+from glsldiff.oracle.solvers import solve_reference
+from glsldiff.physics.procedural import marble_volume
 from glsldiff.solve.multilevel import MultilevelDiffusion
-from glsldiff.grids.polygrid import Polygrid
 from glsldiff.system.problem import DiffusionProblem
+from glsldiff.system.report import CURRENT
 
 
 def figure15_error(phi_b: NDArray, ref_b: NDArray) -> float:
@@ -52,7 +55,7 @@ def light_source(pg: Polygrid, direction: Sequence[float]) -> NDArray[np.float64
 
 
 def marble_problem(pg: Polygrid, q: NDArray, seed: int = 0, cells: int = 48) -> DiffusionProblem:
-    """Veined marble (:func:`glsldiff.physics.material.marble_volume` sampled over the bounding box
+    """Veined marble (:func:`glsldiff.physics.procedural.marble_volume` sampled over the bounding box
     of the nodes, ``cells`` voxels along each axis, nearest voxel), conservative stencil:
     with the paper's stencil the boundary rows lose diagonal dominance where kappa changes
     between a boundary node and its partner (the veins do), and every scheme diverges."""
@@ -87,9 +90,10 @@ class Curve:
 
 def run_scheme(hierarchy: Hierarchy, problem: DiffusionProblem, ref_b: NDArray, scheme: str,
                tol: float = 1e-6, check_every: int = 10, precision: str = "fp32",
-               depths: Sequence[float | None] | None = None, max_sweeps: int = 20000,
-               solver: MultilevelDiffusion | None = None, keep: bool = False, **options: Any) -> Curve:
-    """Solve with ``scheme`` and record the figure-15 error at every check."""
+               depths: Sequence[float | None] | None = None, maxiter: int = 20000,
+               solver: MultilevelDiffusion | None = None, warm: bool = False, **options: Any) -> Curve:
+    """Solve with ``scheme`` and record the figure-15 error at every check (``warm``: from the
+    solver's current solution, frame coherence)."""
     own = solver is None
     s = solver if solver is not None else MultilevelDiffusion(hierarchy, problem, scheme, precision=precision,
                                                               depths=depths)
@@ -100,15 +104,15 @@ def run_scheme(hierarchy: Hierarchy, problem: DiffusionProblem, ref_b: NDArray, 
     err: list[float] = []
     base = s.compute_seconds
 
-    def record(level: int, w: int, x: NDArray) -> None:
+    def record(x: NDArray) -> None:
         phi = s.problem.to_phi(s.finest.system.to_volume(x, s.problem.node_shape))
-        work.append(w)
+        work.append(s.work)
         secs.append(s.compute_seconds - base)
         err.append(figure15_error(phi.reshape(-1, 3)[b], ref_b))
 
     try:
-        _, rep = s.solve(tol=tol, check_every=check_every, max_sweeps=max_sweeps, callback=record, keep=keep,
-                         **options)
+        _, rep = s.solve(tol=tol, maxiter=maxiter, x0=CURRENT if warm else None, callback=record,
+                         check_every=check_every, **options)
         textures = s.texture_rows()
     finally:
         if own:
@@ -155,17 +159,15 @@ def rotate(direction: Sequence[float], degrees: float) -> NDArray[np.float64]:
 
 def reference(problem: DiffusionProblem) -> tuple[NDArray, float]:
     """Converged fluence and the time of the direct (or pyamg) solve."""
-    from glsldiff.bench.sphere import _solve
-
     t0 = time.perf_counter()
-    phi = _solve(problem, problem.grid.n_active)
+    phi, _ = solve_reference(problem)
     return phi, time.perf_counter() - t0
 
 
 def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light=(0.4, 0.3, 1.0),
           rotation: float = 5.0, precisions: Sequence[str] = ("fp32", "fp16", "paper"),
           schemes: Sequence[str] = ("single", "hierarchical", "adaptive", "multigrid"),
-          max_sweeps: int = 20000) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
+          maxiter: int = 20000) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
     """All measurements on one model: (summary rows, curve rows, extra rows)."""
     hierarchy = Hierarchy.build(pg, levels)
     q = light_source(pg, light)
@@ -185,7 +187,7 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
     for scheme in schemes:
         try:
             c = run_scheme(hierarchy, problem, ref_b, scheme, depths=depths if scheme == "adaptive" else None,
-                           max_sweeps=max_sweeps)
+                           maxiter=maxiter)
         except SolverError as exc:  # a scheme that diverges is a result, not the end of the bench
             summary.append({"model": name, "scheme": scheme, "work_to_target": math.nan,
                             "seconds_to_target": math.nan, "final_error": math.nan, "nodes": pg.n_active,
@@ -216,13 +218,13 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
     ref2, _ = reference(problem.with_q(q2))
     ref2_b = ref2.reshape(-1, 3)[b]
     with MultilevelDiffusion(hierarchy, problem, "hierarchical") as s:
-        run_scheme(hierarchy, problem, ref_b, "hierarchical", solver=s, max_sweeps=max_sweeps)
+        run_scheme(hierarchy, problem, ref_b, "hierarchical", solver=s, maxiter=maxiter)
         s.set_q(q2)
-        warm = run_scheme(hierarchy, problem.with_q(q2), ref2_b, "hierarchical", solver=s, keep=True,
-                          max_sweeps=max_sweeps)
+        warm = run_scheme(hierarchy, problem.with_q(q2), ref2_b, "hierarchical", solver=s, warm=True,
+                          maxiter=maxiter)
         s.set_q(q2)
         cold = run_scheme(hierarchy, problem.with_q(q2), ref2_b, "hierarchical", solver=s,
-                          max_sweeps=max_sweeps)
+                          maxiter=maxiter)
     for label, c in (("cold", cold), ("warm (previous frame)", warm)):
         row = {"model": name, "what": f"light rotated {rotation} deg: {label}"}
         for t in (target, target / 10, target / 100):
@@ -235,7 +237,7 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
         for scheme in ("hierarchical", "multigrid"):
             try:
                 c = run_scheme(hierarchy, problem, ref_b, scheme, precision=prec, tol=1e-6,
-                               max_sweeps=max_sweeps if scheme != "multigrid" else 200)
+                               maxiter=maxiter if scheme != "multigrid" else 200)
             except SolverError as exc:
                 extra.append({"model": name, "what": f"precision {prec} ({scheme})", "status": "diverged",
                               "note": str(exc)[:90]})
@@ -275,17 +277,11 @@ def plot(curves: list[dict[str, Any]], path: Path, target: float) -> None:
 
 def hole_polygrid(n: int = 12, cubes: int = 36) -> Polygrid:
     """The "hole" model: a torus (R = 30 mm, r = 12 mm) with a polycube of about ``cubes`` cubes."""
-    from glsldiff.mesh import torus_mesh
-    from glsldiff.grids.polygrid import build_polygrid
-
     return build_polygrid(torus_mesh(30.0, 12.0), n=n, n_cubes=cubes)
 
 
 def bunny_polygrid(n: int = 8, cubes: int = 253) -> Polygrid:
     """The bunny (100 mm) with the paper's 253-cube target."""
-    from glsldiff.mesh import load_mesh
-    from glsldiff.grids.polygrid import build_polygrid
-
     return build_polygrid(load_mesh("bunny", size_mm=100.0), n=n, n_cubes=cubes)
 
 

@@ -21,8 +21,9 @@ from glsldiff import gl
 from glsldiff.core import io
 from glsldiff.solve.jacobi import GlslDiffusion
 from glsldiff.grids.regular import RegularGrid
-from glsldiff.physics.material import marble_volume
+from glsldiff.inverse.synthetic import region_patterns
 from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.procedural import marble_volume
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.oracle.solvers import DirectSolver
 
@@ -43,7 +44,7 @@ class DemoConfig:
     irradiance: float = 1.0      # projector irradiance on a lit region (arbitrary units)
     eta: float = 1.3
     tol: float = 5e-7
-    max_sweeps: int = 20000
+    maxiter: int = 20000
     precision: str = "fp32"
     seed: int = 0
     out: Path = Path("glsldiff-out")
@@ -54,17 +55,8 @@ def region_sources(grid: RegularGrid, regions: int, irradiance: float, eta: floa
 
     ``q = F_t(eta, 1) E`` for normal-incidence projector irradiance ``E``.
     """
-    fy, fx = grid.face_shape("z-")
-    ys = np.array_split(np.arange(fy), regions)
-    xs = np.array_split(np.arange(fx), regions)
     value = float(fresnel_transmittance(eta, 1.0)) * irradiance
-    out = []
-    for ry in ys:
-        for rx in xs:
-            q = np.zeros((fy, fx))
-            q[np.ix_(ry, rx)] = value
-            out.append({"z-": q})
-    return out
+    return [{"z-": q} for q in region_patterns(grid, "z-", regions, value)]
 
 
 def front_image(report: SolveReport) -> NDArray[np.float64]:
@@ -87,7 +79,7 @@ def run(cfg: DemoConfig, progress: bool = True) -> list[dict[str, object]]:
     with GlslDiffusion(problem, ctx, cfg.precision) as gpu:
         for i, q in enumerate(tqdm(sources, desc="lightings", disable=not progress)):
             gpu.set_q(q)
-            phi, rep = gpu.solve(tol=cfg.tol, max_sweeps=cfg.max_sweeps)
+            phi, rep = gpu.solve(tol=cfg.tol, maxiter=cfg.maxiter)
             phi_ref, rep_ref = direct.solve(q)
             rep.error = relative_l2(phi, phi_ref, grid.active)
             img = front_image(rep)
@@ -116,7 +108,7 @@ def stencil_difference(problem: DiffusionProblem, ctx: object, cfg: DemoConfig) 
     reps = []
     for p in (problem, cons):
         with GlslDiffusion(p, ctx, cfg.precision) as gpu:  # type: ignore[arg-type]
-            reps.append(gpu.solve(tol=cfg.tol, max_sweeps=cfg.max_sweeps)[1])
+            reps.append(gpu.solve(tol=cfg.tol, maxiter=cfg.maxiter)[1])
     return {"image": "paper vs conservative (centre region)", "sweeps": reps[1].sweeps,
             "residual": reps[1].residual, "est_error": reps[1].error_estimate, "error_phi": float("nan"),
             "error_image": relative_l2(front_image(reps[0]), front_image(reps[1])),

@@ -16,7 +16,8 @@ from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.fit import FitOptions, fit_channel
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
-from glsldiff.inverse.synthetic import bssrdf_error, synthetic_measurements, synthetic_volume
+from glsldiff.inverse.synthetic import bssrdf_error, synthetic_measurements
+from glsldiff.physics.procedural import synthetic_volume
 from glsldiff.core.io import write_csv
 from glsldiff.core.tables import print_table
 

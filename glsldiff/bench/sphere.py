@@ -25,10 +25,12 @@ from glsldiff.core.errors import GlsldiffError
 from glsldiff.oracle.closed_forms import sphere_fluence
 from glsldiff.physics.optics import boundary_constant
 from glsldiff.grids.polygrid import Polygrid, build_polygrid, with_weights
+from glsldiff.mesh import sphere_mesh
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.grids.graph import BOUNDARY, INTERIOR
 from glsldiff.oracle.assembly import assemble
-from glsldiff.oracle.solvers import solve_amg, solve_direct
+from glsldiff.oracle.solvers import solve_reference
+from glsldiff.solve.jacobi import solve_glsl
 
 def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
     flat = phi.reshape(pg.size, 3)
@@ -55,12 +57,6 @@ def truncation(p: DiffusionProblem, exact: np.ndarray) -> dict[str, float]:
     return {f"trunc_{k}": float(rel[m].mean()) if m.any() else float("nan") for k, m in groups.items()}
 
 
-def _solve(p: DiffusionProblem, nodes: int) -> np.ndarray:
-    """SuperLU below 20k nodes, else pyamg to a 1e-11 residual (the discretisation error
-    is measured, so both are converged far below it)."""
-    return (solve_direct(p) if nodes < 20_000 else solve_amg(p, tol=1e-11))[0]
-
-
 def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_size: float = 5.0,
                  kappa: float = 1.0 / 3.15, mu: float = 0.05, q: float = 1.0, subdivisions: int = 5,
                  glsl: bool = True, tol: float = 5e-7, out: Path | None = None,
@@ -74,8 +70,6 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
     also shrinks the region the polycube-to-sphere map distorts. Homogeneous channel 0
     carries q; the other channels are 0 (pyamg skips them, SuperLU still factors them).
     """
-    from glsldiff.mesh import sphere_mesh
-
     mesh = sphere_mesh(radius, subdivisions=subdivisions)
     C = float(boundary_constant(1.3))
     rows: list[dict[str, object]] = []
@@ -99,7 +93,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
             t1 = time.perf_counter()
             try:
                 p = DiffusionProblem(g, kappa, mu, (q, 0.0, 0.0), C=C)
-                phi = _solve(p, pg.n_active)
+                phi = solve_reference(p)[0]
             except GlsldiffError:  # raw weights may not even give a valid system
                 row[f"err_boundary_{fallback}"] = row[f"err_interior_{fallback}"] = float("nan")
                 continue
@@ -110,9 +104,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
                 row["solve_s"] = time.perf_counter() - t1
                 row.update(truncation(p, exact))
                 if glsl:
-                    from glsldiff.solve.polyjacobi import solve_polygrid
-
-                    phi_g, rep = solve_polygrid(p, tol=tol)
+                    phi_g, rep = solve_glsl(p, tol=tol)
                     row["glsl_vs_direct"] = relative_l2(phi_g[g.active], phi[g.active])
                     row["glsl_s"] = rep.seconds
                     row["glsl_sweeps"] = rep.sweeps

@@ -37,14 +37,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from glsldiff.render import renderer as render
+    from glsldiff.render.output import check_output, save
+    from glsldiff.render.renderer import Renderer
     from glsldiff.render.scene import default_scene, load_scene
 
-    out = render.check_output(args.out)   # before any work
+    out = check_output(args.out)   # before any work
     scene = load_scene(args.scene) if args.scene else default_scene()
     if args.frames < 1:
         raise InputError(f"--frames={args.frames} must be >= 1")
-    with render.Renderer() as r:
+    with Renderer() as r:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}")
         print("\n".join(rep.lines()))
@@ -53,7 +54,7 @@ def cmd_render(args: argparse.Namespace) -> int:
             ran = [p["pass"] for p in again.passes if p["ran"]]
             print(f"frame {k}: ran {', '.join(ran)}; frame {again.frame_seconds * 1e3:.1f} ms "
                   f"= {1.0 / max(again.frame_seconds, 1e-9):.1f} fps-equivalent")
-    exr, png, exposure = render.save(img, out, scene, rep)
+    exr, png, exposure = save(img, out, scene, rep)
     print(f"wrote {exr} (linear radiance) and {png} (exposure {exposure:.3g}, gamma 2.2)")
     return 0
 
@@ -75,7 +76,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from glsldiff.bench import forward as bench
 
     rows = bench.forward(sizes=args.sizes, out=Path(args.out), max_direct_nodes=args.max_direct_nodes,
-                         seconds=args.seconds, precisions=args.precision)
+                         seconds=args.seconds, precisions=args.precision, schemes=args.schemes,
+                         levels=args.levels, tol=args.tol)
     print_table("glsldiff bench forward", rows)
     print(f"wrote forward.csv, forward_curves.csv and forward.png to {args.out}/")
     return 0
@@ -86,6 +88,7 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
     from glsldiff.mesh import load_mesh
     from glsldiff.figures import polygrid_figure
     from glsldiff.grids.polygrid import build_polygrid
+    from glsldiff.bench import polygrid as polygrid_study
 
     mesh = load_mesh(args.mesh, size_mm=args.size_mm, component=args.component)
     pg = build_polygrid(mesh, n=args.n, cube_size=args.cube_size,
@@ -95,7 +98,7 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
     stats = pg.stats()
     stats["mesh"] = str(args.mesh)
     stats["polycube_threshold"] = float(pg.polycube.threshold)
-    stats["levels"] = " ".join(f"n={lv}:{cnt}" for lv, cnt in level_counts(pg))
+    stats["levels"] = " ".join(f"n={lv}:{cnt}" for lv, cnt in polygrid_study.level_counts(pg))
     print_table(f"polygrid of {args.mesh} ({mesh.extents.max():.3g} mm)",
                 [{"quantity": k, "value": v} for k, v in stats.items()])
     out = Path(args.out)
@@ -104,47 +107,12 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
     if not args.no_png:
         polygrid_figure(pg, str(out / "polygrid.png"))
     if args.solve:
-        rows = check_solve(pg, args.tol)
+        rows = polygrid_study.check_solve(pg, args.tol)
         print_table("GLSL polygrid vs scipy direct (same discrete system)", rows)
         io.write_csv(out / "polygrid_solve.csv", rows)
     print(f"wrote polygrid.csv{'' if args.no_png else ', polygrid.png'}"
           f"{', polygrid_solve.csv' if args.solve else ''} to {out}/")
     return 0
-
-
-def level_counts(pg: "object") -> list[tuple[int, int]]:
-    """Active nodes of the lattice at n, n/2, n/4, ... per cube (the hierarchy's levels)."""
-    from glsldiff.grids.lattice import Lattice
-
-    out, n = [], pg.lattice.n  # type: ignore[attr-defined]
-    while n >= 3:
-        lat = Lattice(pg.lattice.cubes, n, pg.lattice.size, pg.lattice.origin)  # type: ignore[attr-defined]
-        out.append((n, lat.n_interior + lat.n_boundary))
-        n //= 2
-    return out
-
-
-def check_solve(pg: "object", tol: float) -> list[dict[str, object]]:
-    """Marble-like material lit on the -x half: GLSL polygrid vs the CPU direct solve."""
-    import numpy as np
-
-    from glsldiff.physics.material import coefficients, preset
-    from glsldiff.solve.polyjacobi import solve_polygrid
-    from glsldiff.system.problem import DiffusionProblem, relative_l2
-    from glsldiff.oracle.solvers import solve_direct
-
-    m = preset("marble")
-    kappa, mu = coefficients(m.sigma_a, m.sigma_s_prime)
-    x = pg.boundary_positions[:, 0]  # type: ignore[attr-defined]
-    q = (x < np.median(x))[:, None] * np.ones(3)
-    p = DiffusionProblem(pg, kappa, mu, q, eta=m.eta)  # type: ignore[arg-type]
-    phi_d, rep_d = solve_direct(p)
-    phi_g, rep_g = solve_polygrid(p, tol=tol)
-    act = pg.active  # type: ignore[attr-defined]
-    return [{"solver": r.method, "nodes": r.nodes, "sweeps": r.sweeps, "residual": r.residual,
-             "seconds": r.seconds, "error_phi": relative_l2(ph[act], phi_d[act]),
-             "error_radiance": relative_l2(r.radiance, rep_d.radiance), "status": r.status}
-            for r, ph in ((rep_d, phi_d), (rep_g, phi_g))]
 
 
 def cmd_bench_sphere(args: argparse.Namespace) -> int:
@@ -165,7 +133,7 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
     from glsldiff.bench.convergence import convergence_bench
 
     summary, _, extra = convergence_bench(args.models, Path(args.out), target=args.target, hole_n=args.hole_n,
-                                          bunny_n=args.bunny_n, max_sweeps=args.max_sweeps)
+                                          bunny_n=args.bunny_n, maxiter=args.max_sweeps)
     print_table(f"time to error {args.target:g} (figure 15; error = sum (L-L0)^2 / sum L0^2 over the "
                 "boundary nodes, L0 = direct solve; seconds = GPU time of sweeps and transfer passes)", summary)
     print_table("adaptive depth search, frame coherence, precision modes", extra)
@@ -232,6 +200,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="largest grid for the scipy direct (SuperLU) solve; above it the "
                         "pyamg solution is the reference")
     b.add_argument("--precision", nargs="+", default=["fp32", "fp16"], choices=("fp32", "fp16"))
+    b.add_argument("--schemes", nargs="*", default=[], choices=("hierarchical", "multigrid", "single"),
+                   help="also solve with these multiresolution schedules on the grid's hierarchy (every "
+                        "axis needs an odd node count, e.g. 161x161x33), to --tol")
+    b.add_argument("--levels", type=int, default=4, help="levels of the --schemes hierarchy (at most)")
+    b.add_argument("--tol", type=float, default=1e-6,
+                   help="--schemes: Jacobi-scaled residual to solve to")
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench)

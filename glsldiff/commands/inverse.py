@@ -74,7 +74,8 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
 
 def cmd_synth(args: argparse.Namespace) -> int:
     from glsldiff.inverse.measurements import save_measurements
-    from glsldiff.inverse.synthetic import synthetic_measurements, synthetic_volume
+    from glsldiff.inverse.synthetic import synthetic_measurements
+    from glsldiff.physics.procedural import synthetic_volume
     from glsldiff.core.io import write_npz
 
     out = check_output(args.out)

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.core.errors import InputError
 
 __all__ = ["real", "integer", "boolean", "vector3", "unit_vector", "rgb", "finite_array", "points",
-           "unit_rows", "radiance_map"]
+           "unit_rows", "radiance_map", "choice", "finite_values", "require"]
 
 
 def real(value: Any, name: str, lo: float = -math.inf, hi: float = math.inf, lo_open: bool = False,
@@ -24,7 +24,8 @@ def real(value: Any, name: str, lo: float = -math.inf, hi: float = math.inf, lo_
     ok = isinstance(value, numbers.Real) and not isinstance(value, bool)
     x = float(value) if ok else float("nan")
     if not math.isfinite(x) or (x <= lo if lo_open else x < lo) or (x >= hi if hi_open else x > hi):
-        rng = f"{'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
+        rng = (f"{'(' if lo_open or lo == -math.inf else '['}{lo:g}, "
+               f"{hi:g}{')' if hi_open or hi == math.inf else ']'}")
         raise InputError(f"{name} must be a number in {rng}, got {value!r}")
     return x
 
@@ -127,3 +128,38 @@ def radiance_map(image: Any, name: str) -> NDArray[np.float64]:
         raise InputError(f"{name} has {int((img < 0).sum())} negative values (min {img.min():g}); "
                          "radiance must be >= 0")
     return img
+
+
+def choice(value: Any, name: str, options: Sequence[Any]) -> Any:
+    """One of ``options`` (returned as given)."""
+    if value not in options:
+        raise InputError(f"{name}={value!r}; choose one of {tuple(options)}")
+    return value
+
+
+def _where(bad: NDArray[np.bool_]) -> str:
+    """' at e.g. index (i, j)' for the first True entry of ``bad`` ('' for 0-d arrays)."""
+    return f" at e.g. index {tuple(int(i) for i in np.argwhere(bad)[0])}" if bad.ndim else ""
+
+
+def finite_values(value: ArrayLike, name: str) -> NDArray[np.float64]:
+    """A number or array of any shape as float64, every entry finite; the error counts the
+    NaN and inf entries and gives the index of the first."""
+    try:
+        a = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be numeric (a number or an array of numbers): {exc}") from None
+    bad = ~np.isfinite(a)
+    if bad.any():
+        counts = [(int(np.isnan(a).sum()), "NaN"), (int(np.isinf(a).sum()), "inf")]
+        what = " and ".join(f"{n} {kind}" for n, kind in counts if n)
+        raise InputError(f"{name} has {what} value(s){_where(bad)}; replace them with finite numbers")
+    return a
+
+
+def require(a: NDArray[np.float64], bad: NDArray[np.bool_], name: str, rule: str, fix: str) -> None:
+    """Entry-wise rule on an array: raise "``name`` must be ``rule``" with the count, an
+    example value and its index, and ``fix``, if any entry of the mask ``bad`` is set."""
+    if bad.any():
+        raise InputError(f"{name} must be {rule} but has {int(bad.sum())} value(s) violating it "
+                         f"(e.g. {a[bad].flat[0]:g}){_where(bad)}; {fix}")

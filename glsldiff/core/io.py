@@ -1,4 +1,7 @@
-"""Image and table files: OpenEXR (HDR, linear), PNG (tone-mapped), CSV. Writes are atomic.
+"""Image and table files: OpenEXR (HDR, linear), PNG/JPEG (8-bit sRGB), CSV. Writes are atomic.
+
+One reader for images, :func:`read_image`, and one list of the image files it reads,
+:data:`IMAGE_SUFFIXES` (:data:`LDR_SUFFIXES`: the same without OpenEXR, e.g. camera captures).
 
 Every writer goes to a temporary file in the destination folder and renames it into
 place, so an interrupted run never leaves a truncated file under the final name.
@@ -14,7 +17,9 @@ from typing import Iterator, Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from PIL import Image
 
+from glsldiff.core.checks import finite_array
 from glsldiff.core.errors import GlsldiffError, InputError
 
 
@@ -33,22 +38,26 @@ def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
             os.unlink(tmp)
 
 
+#: 8/16-bit image files OpenCV decodes (captures, projector images); sRGB-encoded.
+LDR_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
+#: Every image file :func:`read_image` reads: OpenEXR (linear) and :data:`LDR_SUFFIXES`.
+IMAGE_SUFFIXES = (".exr",) + LDR_SUFFIXES
+
+
 def _rgb(image: ArrayLike, name: str) -> NDArray[np.float32]:
     img = np.asarray(image, dtype=np.float32)
     if img.ndim == 2:
         img = np.repeat(img[..., None], 3, axis=2)
     if img.ndim != 3 or img.shape[2] != 3 or img.size == 0:
         raise InputError(f"{name}: expected an (h, w, 3) or (h, w) image, got shape {np.shape(image)}")
-    if not np.all(np.isfinite(img)):
-        raise InputError(f"{name}: image has {int((~np.isfinite(img)).sum())} non-finite values; not written")
-    return img
+    return finite_array(img, f"{name}: image").astype(np.float32)  # float32 first: values beyond its range are inf
 
 
 def write_exr(path: str | os.PathLike, image: ArrayLike,
               attributes: Mapping[str, str] | None = None, half: bool = False) -> Path:
     """Write a linear RGB image (row 0 = top) as ZIP-compressed OpenEXR: float32 pixels, or
     16-bit half floats with ``half=True`` (values beyond the half range, 65504, are refused)."""
-    import OpenEXR
+    import OpenEXR  # heavy import (~60 ms): only EXR files need it
 
     img = np.ascontiguousarray(_rgb(image, str(path)))
     if half:
@@ -65,7 +74,7 @@ def write_exr(path: str | os.PathLike, image: ArrayLike,
 
 def read_exr(path: str | os.PathLike) -> NDArray[np.float32]:
     """Read the RGB channels of an OpenEXR file as ``(h, w, 3)`` float32."""
-    import OpenEXR
+    import OpenEXR  # heavy import (~60 ms): only EXR files need it
 
     if not Path(path).is_file():
         raise GlsldiffError(f"{path}: no such EXR file")
@@ -79,6 +88,33 @@ def read_exr(path: str | os.PathLike) -> NDArray[np.float32]:
             raise GlsldiffError(f"{path}: no R, G, B channels (has {sorted(ch)})") from exc
 
 
+def srgb_to_linear(c: ArrayLike) -> NDArray[np.float64]:
+    """sRGB-encoded values in [0, 1] to linear (IEC 61966-2-1)."""
+    c = np.asarray(c, dtype=np.float64)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def read_image(path: str | os.PathLike, exr_only: bool = False) -> NDArray[np.float64]:
+    """``(h, w, 3)`` linear RGB of an image file (row 0 = top): OpenEXR (``.exr``, or any
+    file with ``exr_only``) as stored; any other file as 8-bit (OpenCV), BGR -> RGB and
+    sRGB-decoded to [0, 1]. InputError naming the file when it is missing or cannot be read."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such image file")
+    if exr_only or p.suffix.lower() == ".exr":
+        try:
+            return np.asarray(read_exr(p), dtype=np.float64)
+        except (GlsldiffError, RuntimeError, OSError, ValueError) as exc:  # no RGB; OpenEXR's errors on a corrupt file
+            raise InputError(f"{p}: cannot read the OpenEXR image ({' '.join(str(exc).split())})") from None
+    import cv2  # OpenCV is a heavy import; only 8-bit files need it
+
+    bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"{p}: OpenCV cannot read it as an 8-bit PNG or JPEG (image files: "
+                         f"{', '.join(IMAGE_SUFFIXES)})")
+    return srgb_to_linear(bgr[..., ::-1] / 255.0)
+
+
 def tonemap(image: ArrayLike, exposure: float, gamma: float = 2.2) -> NDArray[np.uint8]:
     """``clip(exposure * L, 0, 1) ** (1 / gamma)`` as 8-bit sRGB-like values."""
     img = np.clip(np.asarray(image, dtype=np.float64) * exposure, 0.0, 1.0) ** (1.0 / gamma)
@@ -87,8 +123,6 @@ def tonemap(image: ArrayLike, exposure: float, gamma: float = 2.2) -> NDArray[np
 
 def write_png(path: str | os.PathLike, image8: NDArray[np.uint8]) -> Path:
     """Write an 8-bit RGB image (row 0 = top) as PNG."""
-    from PIL import Image
-
     with atomic_path(path) as tmp:
         Image.fromarray(np.ascontiguousarray(image8), "RGB").save(tmp, format="PNG")
     return Path(path)

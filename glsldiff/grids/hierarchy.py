@@ -1,6 +1,17 @@
-"""Multiresolution polygrid (Wang et al. 2008, section 5.3, figure 8), CPU side.
+"""Multiresolution grids (Wang et al. 2008, section 5.3, figure 8), CPU side: a grid and its
+coarser levels, with the transfer operators between them as sparse matrices (lengths in mm).
 
-A coarser level keeps the polycube and halves the nodes per cube edge (``n -> n/2``):
+Regular grids (:func:`coarsen_regular`) coarsen vertex-centred, by 2 per axis: coarse node
+``(X, Y, Z)`` sits on fine node ``(2X, 2Y, 2Z)`` (161 -> 81 -> 41 nodes, spacing ``h -> 2h``;
+every axis needs an odd node count), so each level is again a :class:`RegularGrid` with its
+boundary faces where the fine ones are. Prolongation is trilinear interpolation of phi from
+the active coarse nodes (weights renormalised where an edge or corner node, which carries no
+unknown, drops out); restriction is full weighting (the transpose of the trilinear weights)
+normalised per row: ``restrict_kind`` over the fine nodes of the coarse node's own kind
+(interior or boundary rows: their units differ), ``restrict_all`` (material) over all fine nodes.
+
+Polygrids (:func:`coarsen`): a coarser level keeps the polycube and halves the nodes per cube
+edge (``n -> n/2``):
 node ``(cube, z, y, x)`` of the coarse level is the parent of the eight fine nodes
 ``(cube, 2z+a, 2y+b, 2x+c)``. The coarse lattice is classified again
 (:class:`glsldiff.grids.lattice.Lattice`), and
@@ -15,19 +26,20 @@ node ``(cube, z, y, x)`` of the coarse level is the parent of the eight fine nod
 * the Laplacian weights are recomputed from the coarse positions (appendix B), so each
   level is a complete :class:`~glsldiff.grids.polygrid.Polygrid` with its own T_w1 / T_w2.
 
-:class:`Transfer` holds the grid-transfer operators used by the coarse-to-fine solve and
-the multigrid of :mod:`glsldiff.solve.multilevel`, as sparse matrices that the GLSL passes are
-tested against: prolongation ``P`` copies each fine node's value from its parent (from the
-nearest active coarse node where the parent was removed, at convex polycube edges);
-restriction ``R`` averages, at each coarse node, its children of the same kind (interior
-rows from interior children, boundary rows from boundary children: the two kinds of row
-have different units).
+Its prolongation copies each fine node's value from its parent (from the nearest active coarse
+node where the parent was removed, at convex polycube edges); its restriction averages, at each
+coarse node, its children of the same kind (interior rows from interior children, boundary rows
+from boundary children).
+
+:class:`Transfer` holds the operators used by the coarse-to-fine solve and the multigrid of
+:mod:`glsldiff.solve.multilevel`; the GLSL transfer pass applies exactly these matrices and is
+tested against them.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Any
+from typing import Any, Union
 
 import numpy as np
 import scipy.sparse as sp
@@ -38,16 +50,24 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import BOUNDARY, INACTIVE, INTERIOR
 from glsldiff.grids.lattice import Lattice
 from glsldiff.grids.polygrid import Polygrid, node_weights
+from glsldiff.grids.regular import RegularGrid
+
+Grid = Union[Polygrid, RegularGrid]
 
 # the 27 lattice offsets (x, y, z) searched for a substitute parent
 _AROUND = np.stack(np.meshgrid([0, -1, 1], [0, -1, 1], [0, -1, 1], indexing="ij"), -1).reshape(-1, 3)
 
 
+def _normalise_rows(m: sp.spmatrix) -> sp.csr_matrix:
+    m = sp.csr_matrix(m)
+    m.eliminate_zeros()
+    total = np.asarray(m.sum(axis=1)).ravel()
+    return (sp.diags(np.where(total > 0, 1.0 / np.where(total > 0, total, 1.0), 0.0)) @ m).tocsr()
+
+
 def _mean_matrix(rows: NDArray[np.int64], cols: NDArray[np.int64], shape: tuple[int, int]) -> sp.csr_matrix:
     """Row-normalised 0/1 matrix: each row averages its listed columns (empty rows stay 0)."""
-    m = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=shape)
-    count = np.asarray(m.sum(axis=1)).ravel()
-    return sp.diags(np.where(count > 0, 1.0 / np.maximum(count, 1), 0.0)) @ m
+    return _normalise_rows(sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=shape))
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,28 +76,19 @@ class Transfer:
 
     Attributes
     ----------
-    parent
-        ``(N_f,)`` coarse flat index of each fine node's parent.
-    source
-        ``(N_f,)`` coarse node each active fine node copies from (its parent, or the
-        nearest active coarse node when the parent was removed); -1 at removed fine nodes.
+    prolong
+        ``(N_f, N_c)`` interpolation of phi; rows of inactive fine nodes are 0, the others
+        sum to 1 over active coarse nodes.
     restrict_kind
-        ``(N_c, N_f)`` mean over the children of the coarse node's own kind.
+        ``(N_c, N_f)`` weighted mean over the fine nodes of the coarse node's own kind
+        (residuals, the boundary source).
     restrict_all
-        ``(N_c, N_f)`` mean over the existing children (material, positions).
+        ``(N_c, N_f)`` weighted mean over the fine nodes (material, positions).
     """
 
-    parent: NDArray[np.int64]
-    source: NDArray[np.int64]
+    prolong: sp.csr_matrix
     restrict_kind: sp.csr_matrix
     restrict_all: sp.csr_matrix
-
-    @cached_property
-    def prolong(self) -> sp.csr_matrix:
-        """``(N_f, N_c)`` injection from :attr:`source` (rows of removed fine nodes are 0)."""
-        ok = np.flatnonzero(self.source >= 0)
-        return sp.csr_matrix((np.ones(ok.size), (ok, self.source[ok])),
-                             shape=(self.source.size, self.restrict_all.shape[0]))
 
 
 def _parents(fine: Lattice, coarse: Lattice) -> NDArray[np.int64]:
@@ -142,27 +153,66 @@ def coarsen(pg: Polygrid, **weight_options: Any) -> tuple[Polygrid, Transfer]:
             active_c = np.flatnonzero(ckind != INACTIVE)
             _, k = cKDTree(pos[active_c]).query(pg.positions[orphan[~found]])
             source[orphan[~found]] = active_c[k]
-    return coarse, Transfer(parent, source, restrict_kind.tocsr(), restrict_all.tocsr())
+    ok = np.flatnonzero(source >= 0)
+    prolong = sp.csr_matrix((np.ones(ok.size), (ok, source[ok])), shape=(nf, nc))
+    return coarse, Transfer(prolong, restrict_kind.tocsr(), restrict_all.tocsr())
+
+
+def _interpolation_1d(n: int) -> sp.csr_matrix:
+    """``(n, (n + 1) / 2)`` linear interpolation from every second node (``n`` odd)."""
+    even, odd = np.arange(0, n, 2), np.arange(1, n, 2)
+    rows = np.concatenate([even, odd, odd])
+    cols = np.concatenate([even // 2, (odd - 1) // 2, (odd + 1) // 2])
+    vals = np.concatenate([np.ones(even.size), np.full(2 * odd.size, 0.5)])
+    return sp.csr_matrix((vals, (rows, cols)), shape=(n, (n + 1) // 2))
+
+
+def coarsen_regular(grid: RegularGrid) -> tuple[RegularGrid, Transfer]:
+    """The next coarser level of a regular grid (``(n + 1) / 2`` nodes per axis, spacing
+    ``2 h``) and the transfer operators between the two (module docstring)."""
+    dims = (grid.nx, grid.ny, grid.nz)
+    if any(n % 2 == 0 or n < 5 for n in dims):
+        raise InputError(f"a {grid.nx}x{grid.ny}x{grid.nz} regular grid cannot be coarsened: every axis "
+                         "needs an odd node count >= 5 (coarse node X sits on fine node 2X), e.g. "
+                         "161x161x33 -> 81x81x17")
+    coarse = RegularGrid(*((n + 1) // 2 for n in dims), h=2.0 * float(grid.h),
+                         max_texture_size=grid.max_texture_size)
+    px, py, pz = (_interpolation_1d(n) for n in dims)
+    tensor = sp.kron(pz, sp.kron(py, px), format="csr")          # (N_f, N_c), C order [z, y, x]
+    fkind, ckind = grid.kind.ravel(), coarse.kind.ravel()
+    fine_on = sp.diags((fkind != INACTIVE).astype(np.float64))
+    coarse_on = sp.diags((ckind != INACTIVE).astype(np.float64))
+    prolong = _normalise_rows(fine_on @ tensor @ coarse_on)
+    alive = fkind != INACTIVE
+    reached = np.diff(prolong.indptr) > 0
+    if np.any(alive & ~reached):
+        raise ValueError("an active fine node has no active coarse node to interpolate from")
+    weights = tensor.T.tocoo()
+    same = (ckind[weights.row] == fkind[weights.col]) & (ckind[weights.row] != INACTIVE)
+    restrict_kind = _normalise_rows(sp.csr_matrix((weights.data[same], (weights.row[same], weights.col[same])),
+                                                  shape=weights.shape))
+    return coarse, Transfer(prolong, restrict_kind, _normalise_rows(weights))
 
 
 @dataclass(eq=False)
 class Hierarchy:
-    """A polygrid and its coarser levels; ``grids[0]`` is the finest (the original).
-
-    ``transfers[l]`` maps between ``grids[l]`` (fine) and ``grids[l + 1]`` (coarse).
+    """A grid (regular or polygrid) and its coarser levels; ``grids[0]`` is the finest (the
+    original). ``transfers[l]`` maps between ``grids[l]`` (fine) and ``grids[l + 1]`` (coarse).
     """
 
-    grids: list[Polygrid]
+    grids: list[Grid]
     transfers: list[Transfer]
 
     @classmethod
-    def build(cls, pg: Polygrid, levels: int = 3, **weight_options: Any) -> "Hierarchy":
-        """``levels`` levels (1 = the polygrid alone); each halves ``n``."""
+    def build(cls, grid: Grid, levels: int = 3, **weight_options: Any) -> "Hierarchy":
+        """``levels`` levels (1 = the grid alone); each halves the nodes per axis (per cube
+        edge). ``weight_options`` (polygrids) go to :func:`glsldiff.grids.weights.laplacian_weights`."""
         if not isinstance(levels, (int, np.integer)) or levels < 1:
             raise InputError(f"levels={levels!r} must be an integer >= 1")
-        grids, transfers = [pg], []
+        grids, transfers = [grid], []
         for _ in range(levels - 1):
-            coarse, t = coarsen(grids[-1], **weight_options)
+            g = grids[-1]
+            coarse, t = coarsen_regular(g) if isinstance(g, RegularGrid) else coarsen(g, **weight_options)
             grids.append(coarse)
             transfers.append(t)
         return cls(grids, transfers)
@@ -172,17 +222,16 @@ class Hierarchy:
         return len(self.grids)
 
     def restrict_q(self, q: NDArray, level: int) -> NDArray[np.float64]:
-        """A finest-level source (node array ``shape + (3,)``) at ``level``, per boundary node."""
+        """A finest-level source (node array ``shape + (3,)``) at ``level`` (its node array)."""
         x = np.asarray(q, dtype=np.float64).reshape(-1, 3)
         for t in self.transfers[:level]:
             x = t.restrict_kind @ x
-        return x[self.grids[level].lattice.boundary]
+        return x.reshape(self.grids[level].shape + (3,))
 
     def depth(self, level: int) -> NDArray[np.float64]:
         """``(N,)`` distance of every node of ``level`` to the nearest boundary node of the
         finest level (a sample of the surface), mm; 0 at boundary nodes of the finest level."""
-        tree = self._surface_tree
-        d, _ = tree.query(self.grids[level].positions)
+        d, _ = self._surface_tree.query(self.grids[level].positions)
         return d
 
     @cached_property
@@ -190,19 +239,10 @@ class Hierarchy:
         return cKDTree(self.grids[0].boundary_positions)
 
     def prolong_phi(self, phi: NDArray, level: int) -> NDArray[np.float64]:
-        """Fluence on ``level`` (node array) copied to ``level - 1`` (parent injection)."""
+        """Fluence on ``level`` (node array) interpolated to ``level - 1`` (``Transfer.prolong``)."""
         t = self.transfers[level - 1]
         fine = self.grids[level - 1]
         return (t.prolong @ np.asarray(phi, dtype=np.float64).reshape(-1, 3)).reshape(fine.shape + (3,))
 
-    def stats(self) -> list[dict[str, Any]]:
-        """Per level: n, h (mm), node counts by kind, texture size, weight fallbacks."""
-        rows = []
-        for i, g in enumerate(self.grids):
-            rows.append({"level": i, "n": g.n, "h_mm": g.lattice.h, "interior": g.n_interior,
-                         "boundary": g.n_boundary, "texture": "x".join(map(str, g.texture_size)),
-                         "fallback": g.weight_stats.fallback if g.weight_stats else 0})
-        return rows
 
-
-__all__ = ["Hierarchy", "Transfer", "coarsen", "INTERIOR", "BOUNDARY"]
+__all__ = ["Hierarchy", "Transfer", "coarsen", "coarsen_regular", "INTERIOR", "BOUNDARY"]

@@ -33,25 +33,14 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.checks import real, vector3
 from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import BOUNDARY, INACTIVE, INTERIOR, NEIGHBOURS
+from glsldiff.grids.polycube import cube_coordinates
 
 # lattice step per neighbour slot, (x, y, z) order, matching NEIGHBOURS
 STEPS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)
 OPPOSITE = np.array([1, 0, 3, 2, 5, 4])
-
-
-def _validate_cubes(cubes: ArrayLike) -> NDArray[np.int64]:
-    arr = np.asarray(cubes)
-    if arr.ndim != 2 or arr.shape[1] != 3 or arr.shape[0] == 0:
-        raise InputError(f"cubes must be a non-empty (k, 3) integer array, got shape {arr.shape}")
-    if not np.issubdtype(arr.dtype, np.integer):
-        if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
-            raise InputError("cubes must hold integer cube coordinates")
-    arr = arr.astype(np.int64)
-    if len(np.unique(arr, axis=0)) != len(arr):
-        raise InputError("cubes contains duplicate cube coordinates")
-    return arr
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,15 +67,12 @@ class Lattice:
 
     @classmethod
     def build(cls, cubes: ArrayLike, n: int, size: float, origin: ArrayLike = (0.0, 0.0, 0.0)) -> "Lattice":
-        cubes = _validate_cubes(cubes)
+        cubes = cube_coordinates(cubes, distinct=True)
         if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or n < 2:
             raise InputError(f"n={n!r} nodes per cube edge must be an integer >= 2")
-        if not (np.isfinite(size) and size > 0):
-            raise InputError(f"cube size {size!r} mm must be finite and > 0")
-        origin = np.asarray(origin, dtype=np.float64)
-        if origin.shape != (3,) or not np.all(np.isfinite(origin)):
-            raise InputError(f"origin must be 3 finite numbers (mm), got {origin!r}")
-        lat = cls(cubes, int(n), float(size), origin)
+        size = real(size, "cube size (mm)", lo=0.0, lo_open=True)
+        origin = vector3(origin, "origin (mm)")
+        lat = cls(cubes, int(n), size, origin)
         if lat.n_interior == 0:
             raise InputError(f"the polygrid of {len(cubes)} cube(s) with n={n} has no interior node; "
                              "use more nodes per cube (n >= 3) or more cubes")

@@ -26,19 +26,17 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.optimize as so
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
-
-if TYPE_CHECKING:
-    from glsldiff.mesh import Mesh
+from glsldiff.mesh import Mesh, axis_hits, closest_points, contains
 
 logger = logging.getLogger(__name__)
 
@@ -92,13 +90,11 @@ def _inverted(pos: NDArray, nbrs: NDArray[np.int64]) -> NDArray[np.bool_]:
 
 def _collapsed(xb: NDArray, tol: float) -> NDArray[np.int64]:
     """Indices of the boundary nodes closer than ``tol`` (mm) to another one."""
-    from scipy.spatial import cKDTree
-
     pairs = cKDTree(xb).query_pairs(tol, output_type="ndarray")
     return np.unique(pairs)
 
 
-def separate_collapsed(lattice: Lattice, mesh: "Mesh", xb: NDArray, nrm: NDArray, tol: float,
+def separate_collapsed(lattice: Lattice, mesh: Mesh, xb: NDArray, nrm: NDArray, tol: float,
                        rounds: int = 3) -> int:
     """Move boundary nodes that closest-point projection collapsed onto one point.
 
@@ -111,8 +107,6 @@ def separate_collapsed(lattice: Lattice, mesh: "Mesh", xb: NDArray, nrm: NDArray
     ``xb``, ``nrm`` are updated in place; returns the number of nodes moved. Raises
     InputError if two nodes still coincide (closer than ``1e-4 tol``).
     """
-    from glsldiff.mesh import axis_hits, closest_points
-
     moved = np.zeros(len(xb), dtype=bool)
     for _ in range(rounds):
         bad = _collapsed(xb, tol)
@@ -156,7 +150,7 @@ def _variance_objective(x: NDArray, pos: NDArray, free: NDArray, centers: NDArra
     return f, grad[free].ravel()
 
 
-def map_to_mesh(lattice: Lattice, mesh: "Mesh", relax_iterations: int = 10, relax_step: float = 0.5,
+def map_to_mesh(lattice: Lattice, mesh: Mesh, relax_iterations: int = 10, relax_step: float = 0.5,
                 variance_iterations: int = 100, d_fraction: float = 0.1,
                 containment_samples: int = 20000, seed: int = 0,
                 collapse_tol: float = 0.01) -> tuple[NDArray, NDArray, MappingStats]:
@@ -188,8 +182,6 @@ def map_to_mesh(lattice: Lattice, mesh: "Mesh", relax_iterations: int = 10, rela
         ``(N, 3)`` positions (removed nodes keep their lattice position), ``(n_boundary, 3)``
         outward unit normals at the boundary nodes, and :class:`MappingStats`.
     """
-    from glsldiff.mesh import closest_points, contains
-
     st = MappingStats(shared_partners=lattice.shared_partners)
     t0 = time.perf_counter()
     pos = lattice.lattice_positions.copy()

@@ -16,6 +16,9 @@ builds it automatically:
 Cube coordinates are integer triples ``(ix, iy, iz)``; cube ``(i, j, k)`` spans
 ``origin + size * ([i, i+1] x [j, j+1] x [k, k+1])``. Cube lists are kept in scan-line
 order: sorted by ``iz``, then ``iy``, then ``ix``.
+
+(About 550 lines, over the usual 400: the cube-set topology (2x2x2 configurations,
+:class:`Topology`) is the natural piece to move into its own grids module.)
 """
 from __future__ import annotations
 
@@ -23,15 +26,16 @@ import logging
 import math
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
+from glsldiff.core.checks import integer, real, vector3
 from glsldiff.core.errors import InputError
-
-if TYPE_CHECKING:  # pragma: no cover
-    from glsldiff.mesh import Mesh
+from glsldiff.mesh import Mesh, contains_grid
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +138,9 @@ class Topology:
         return self.nonmanifold_edges == 0 and self.nonmanifold_vertices == 0
 
 
-def _as_cubes(cubes: ArrayLike, what: str = "cubes") -> NDArray[np.int64]:
+def cube_coordinates(cubes: ArrayLike, what: str = "cubes", distinct: bool = False) -> NDArray[np.int64]:
+    """Validated integer cube coordinates ``(k, 3)`` ``(ix, iy, iz)``, k >= 1, as int64 (integral
+    floats are accepted); with ``distinct``, no cube may be listed twice."""
     a = np.asarray(cubes)
     if a.ndim != 2 or a.shape[1] != 3:
         raise InputError(f"{what} must be an integer (k, 3) array of cube coordinates "
@@ -147,7 +153,13 @@ def _as_cubes(cubes: ArrayLike, what: str = "cubes") -> NDArray[np.int64]:
         if not np.isfinite(a).all() or (a != np.round(a)).any():
             raise InputError(f"{what} must hold integer cube coordinates (ix, iy, iz); found "
                              "non-integer values")
-    return a.astype(np.int64)
+    a = a.astype(np.int64)
+    if distinct:
+        uniq, counts = np.unique(a, axis=0, return_counts=True)
+        if (counts > 1).any():
+            raise InputError(f"{what} has {int((counts - 1).sum())} duplicate entr(y/ies), e.g. "
+                             f"{uniq[counts > 1][0].tolist()}; list every cube once")
+    return a
 
 
 def _occupancy(cubes: NDArray[np.int64], pad: int = 1
@@ -167,10 +179,6 @@ _SIX = np.array([[[0, 0, 0], [0, 1, 0], [0, 0, 0]],
 
 def _topology_of(occ: NDArray[np.bool_]) -> Topology:
     """Topology of a dense occupancy grid with an empty border layer."""
-    from scipy import ndimage
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     _, n_comp = ndimage.label(occ, structure=_SIX)
     _, n_empty = ndimage.label(~occ, structure=_SIX)
     shape = np.array(occ.shape)
@@ -219,7 +227,7 @@ def surface_topology(cubes: ArrayLike) -> Topology:
     The surface is made of the cube faces not shared by two cubes; ``euler`` counts its
     unique vertices, edges and quads, and ``genus = (2 * surfaces - euler) / 2``.
     """
-    c = _as_cubes(cubes)
+    c = cube_coordinates(cubes)
     return _topology_of(_occupancy(c)[0])
 
 
@@ -257,24 +265,21 @@ class Polycube:
     threshold: float = float("nan")
 
     def __post_init__(self) -> None:
-        c = _as_cubes(self.cubes)
+        c = cube_coordinates(self.cubes)
         order = _scanline(c)
         c = np.ascontiguousarray(c[order])
         frac = np.asarray(self.fraction, dtype=np.float64)
         if frac.shape != (len(c),):
             raise InputError(f"polycube fraction must have shape ({len(c)},), got {frac.shape}")
         frac = frac[order].copy()
-        origin = np.array(self.origin, dtype=np.float64)
-        if origin.shape != (3,) or not np.isfinite(origin).all():
-            raise InputError(f"polycube origin must be 3 finite numbers (mm), got {self.origin!r}")
-        if not (math.isfinite(self.size) and self.size > 0):
-            raise InputError(f"polycube size={self.size!r} must be a finite cube edge > 0 mm")
+        origin = vector3(self.origin, "polycube origin (mm)").copy()
+        size = real(self.size, "polycube size (cube edge, mm)", lo=0.0, lo_open=True)
         for a in (c, frac, origin):
             a.setflags(write=False)
         object.__setattr__(self, "cubes", c)
         object.__setattr__(self, "fraction", frac)
         object.__setattr__(self, "origin", origin)
-        object.__setattr__(self, "size", float(self.size))
+        object.__setattr__(self, "size", size)
         object.__setattr__(self, "threshold", float(self.threshold))
 
     def __repr__(self) -> str:
@@ -345,18 +350,8 @@ def polycube_from_cubes(cubes: ArrayLike, size: float,
     The cubes must be distinct, form one 6-connected component without enclosed cavities,
     and have a two-manifold surface (no two cubes meeting only at an edge or a vertex).
     """
-    c = _as_cubes(cubes)
-    try:
-        s = float(size)
-    except (TypeError, ValueError):
-        s = float("nan")
-    if not (math.isfinite(s) and s > 0):
-        raise InputError(f"polycube size={size!r} must be a finite cube edge > 0 mm")
-    uniq, counts = np.unique(c, axis=0, return_counts=True)
-    if (counts > 1).any():
-        dup = uniq[counts > 1]
-        raise InputError(f"cubes has {int((counts - 1).sum())} duplicate entr(y/ies), e.g. "
-                         f"{dup[0].tolist()}; list every cube once")
+    c = cube_coordinates(cubes, distinct=True)
+    s = real(size, "polycube size (cube edge, mm)", lo=0.0, lo_open=True)
     topo = _topology_of(_occupancy(c)[0])
     _check_explicit(topo)
     return Polycube(c, s, np.asarray(origin, dtype=np.float64), np.full(len(c), np.nan),
@@ -387,11 +382,9 @@ class _Fractions:
     frac: NDArray[np.float64]  # (nx, ny, nz)
 
 
-def _fractions(mesh: "Mesh", size: float, samples: int,
+def _fractions(mesh: Mesh, size: float, samples: int,
                cache: dict[float, _Fractions]) -> _Fractions:
     """Inside-volume fraction of every cube of the grid of edge ``size`` centred on the mesh."""
-    from glsldiff.mesh import contains_grid
-
     if size in cache:
         return cache[size]
     lo, hi = mesh.bounds
@@ -442,7 +435,7 @@ def _make_manifold(occ: NDArray[np.bool_], frac: NDArray[np.float64]
     raise InputError("polycube manifold repair did not converge")  # pragma: no cover
 
 
-def _build(mesh: "Mesh", fr: _Fractions, threshold: float
+def _build(mesh: Mesh, fr: _Fractions, threshold: float
            ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:
     """Cubes (k,3), their fractions and the padded occupancy for one threshold."""
     occ0 = fr.frac >= threshold
@@ -453,12 +446,12 @@ def _build(mesh: "Mesh", fr: _Fractions, threshold: float
     return cubes, frac[occ], occ
 
 
-def _count(mesh: "Mesh", size: float, threshold: float, samples: int,
+def _count(mesh: Mesh, size: float, threshold: float, samples: int,
            cache: dict[float, _Fractions]) -> int:
     return len(_build(mesh, _fractions(mesh, size, samples, cache), threshold)[0])
 
 
-def _search_size(mesh: "Mesh", n_cubes: int, threshold: float, samples: int,
+def _search_size(mesh: Mesh, n_cubes: int, threshold: float, samples: int,
                  cache: dict[float, _Fractions]) -> float:
     """Cube size whose polycube (after the manifold repair) has about ``n_cubes`` cubes."""
     s = (abs(mesh.volume) / n_cubes) ** (1 / 3)
@@ -486,7 +479,7 @@ def _search_size(mesh: "Mesh", n_cubes: int, threshold: float, samples: int,
     return best[1]
 
 
-def polycube_from_mesh(mesh: "Mesh", cube_size: float | None = None, n_cubes: int | None = None,
+def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int | None = None,
                        threshold: float = 0.5, samples: int = 4) -> Polycube:
     """Polycube approximating a closed mesh, with the mesh's topology.
 
@@ -512,21 +505,12 @@ def polycube_from_mesh(mesh: "Mesh", cube_size: float | None = None, n_cubes: in
         raise InputError("polycube_from_mesh: give exactly one of cube_size (cube edge, mm) and "
                          f"n_cubes (target cube count); got cube_size={cube_size!r}, "
                          f"n_cubes={n_cubes!r}")
-    if (not isinstance(samples, (int, np.integer)) or isinstance(samples, bool)
-            or not 1 <= samples <= 16):
-        raise InputError(f"samples={samples!r} must be an integer in 1..16 (samples^3 points "
-                         "per cube)")
-    if not (isinstance(threshold, (int, float, np.number)) and 0 < threshold <= 1):
-        raise InputError(f"threshold={threshold!r} must be an inside-volume fraction in (0, 1]")
+    integer(samples, "samples (samples^3 points per cube)", 1, 16)
+    real(threshold, "threshold (inside-volume fraction)", 0.0, 1.0, lo_open=True)
     ext = mesh.extents
     ext_txt = f"{np.round(ext, 4).tolist()} mm"
     if cube_size is not None:
-        try:
-            s = float(cube_size)
-        except (TypeError, ValueError):
-            s = float("nan")
-        if not (math.isfinite(s) and s > 0):
-            raise InputError(f"cube_size={cube_size!r} must be a finite cube edge > 0 mm")
+        s = real(cube_size, "cube_size (cube edge, mm)", lo=0.0, lo_open=True)
         if s > ext.max():
             raise InputError(f"cube_size={s:g} mm is larger than {name} (extents {ext_txt}); "
                              f"use a cube size below its smallest extent {ext.min():.4g} mm")

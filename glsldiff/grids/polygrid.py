@@ -18,7 +18,7 @@ import logging
 import time
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -26,13 +26,13 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.graph import BOUNDARY, INACTIVE, INTERIOR, NodeGraph
 from glsldiff.grids.lattice import Lattice
+from glsldiff.grids.mapping import MappingStats, link_variance, map_to_mesh
+from glsldiff.grids.polycube import Polycube, polycube_from_mesh
+from glsldiff.grids.weights import WeightStats, laplacian_weights
+from glsldiff.mesh import Mesh
 from glsldiff.packing import Mosaic
 
-if TYPE_CHECKING:
-    from glsldiff.grids.mapping import MappingStats
-    from glsldiff.mesh import Mesh
-    from glsldiff.grids.polycube import Polycube
-    from glsldiff.grids.weights import WeightStats
+__all__ = ["Polygrid", "build_polygrid", "box_polygrid", "lattice_polygrid", "INTERIOR", "BOUNDARY", "INACTIVE"]
 
 logger = logging.getLogger(__name__)
 
@@ -57,10 +57,10 @@ class Polygrid:
     positions: NDArray[np.float64]
     normals: NDArray[np.float64]
     weights: NDArray[np.float64]
-    weight_stats: "WeightStats | None" = None
-    mapping: "MappingStats | None" = None
-    mesh: "Mesh | None" = None
-    polycube: "Polycube | None" = None
+    weight_stats: WeightStats | None = None
+    mapping: MappingStats | None = None
+    mesh: Mesh | None = None
+    polycube: Polycube | None = None
     seconds: dict[str, float] = field(default_factory=dict)
     max_texture_size: int = 16384
     kept_blocks: NDArray[np.bool_] | None = None
@@ -208,7 +208,6 @@ class Polygrid:
     def stats(self) -> dict[str, Any]:
         """Counts, geometry and weight quality (see ``glsldiff polygrid``)."""
         lat = self.lattice
-        from glsldiff.grids.mapping import link_variance
         var = link_variance(self.positions, lat.interior, lat.neighbours) / lat.h ** 2
         out: dict[str, Any] = {**lat.counts(), "h_mm": lat.h, "cube_mm": lat.size,
                                "texture": "x".join(map(str, self.texture_size)),
@@ -224,9 +223,8 @@ class Polygrid:
         return out
 
 
-def node_weights(positions: NDArray, lattice: Lattice, **options: Any) -> tuple[NDArray, "WeightStats"]:
+def node_weights(positions: NDArray, lattice: Lattice, **options: Any) -> tuple[NDArray, WeightStats]:
     """Laplacian weights of every interior node (options of :func:`glsldiff.grids.weights.laplacian_weights`)."""
-    from glsldiff.grids.weights import laplacian_weights
     return laplacian_weights(positions[lattice.interior], positions[lattice.neighbours], **options)
 
 
@@ -249,8 +247,8 @@ def box_polygrid(cubes: tuple[int, int, int], n: int, size: float = 1.0, **kwarg
     return lattice_polygrid(Lattice.build(cube_list, n, size), **kwargs)
 
 
-def build_polygrid(mesh: "Mesh", n: int = 16, cube_size: float | None = None, n_cubes: int | None = None,
-                   threshold: float = 0.5, polycube: "Polycube | None" = None,
+def build_polygrid(mesh: Mesh, n: int = 16, cube_size: float | None = None, n_cubes: int | None = None,
+                   threshold: float = 0.5, polycube: Polycube | None = None,
                    mapping: dict[str, Any] | None = None, weights: dict[str, Any] | None = None,
                    max_texture_size: int = 16384) -> Polygrid:
     """Polycube, lattice, mapping and weights for a closed mesh.
@@ -270,9 +268,6 @@ def build_polygrid(mesh: "Mesh", n: int = 16, cube_size: float | None = None, n_
         Options of :func:`glsldiff.grids.mapping.map_to_mesh` and
         :func:`glsldiff.grids.weights.laplacian_weights`.
     """
-    from glsldiff.grids.mapping import map_to_mesh
-    from glsldiff.grids.polycube import polycube_from_mesh
-
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     if polycube is None:
@@ -292,9 +287,6 @@ def build_polygrid(mesh: "Mesh", n: int = 16, cube_size: float | None = None, n_
     pg = Polygrid(lattice, pos, normals, w, wstats, mstats, mesh, polycube, seconds, max_texture_size)
     logger.info("polygrid: %s", {k: pg.stats()[k] for k in ("cubes", "interior", "boundary", "removed")})
     return pg
-
-
-__all__ = ["Polygrid", "build_polygrid", "box_polygrid", "lattice_polygrid", "INTERIOR", "BOUNDARY", "INACTIVE"]
 
 
 def with_weights(pg: Polygrid, **weight_options: Any) -> Polygrid:

@@ -35,7 +35,7 @@ figure 6, for a single cube).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 
 import numpy as np
@@ -78,6 +78,8 @@ class RegularGrid:
         Node spacing in mm.
     max_texture_size
         Largest texture edge the packing may use (texels).
+    kept_blocks
+        z-slices held in the packed textures (default all), see :meth:`with_blocks`.
     """
 
     nx: int
@@ -85,6 +87,7 @@ class RegularGrid:
     nz: int
     h: float = 1.0
     max_texture_size: int = 16384
+    kept_blocks: tuple[bool, ...] | None = None
 
     def __post_init__(self) -> None:
         for name in ("nx", "ny", "nz"):
@@ -128,6 +131,17 @@ class RegularGrid:
     def active(self) -> NDArray[np.bool_]:
         """``(nz, ny, nx)`` bool: nodes that carry an unknown."""
         return self.kind != INACTIVE
+
+    @cached_property
+    def positions(self) -> NDArray[np.float64]:
+        """``(size, 3)`` node positions ``(x h, y h, z h)`` in mm, flat (C) order."""
+        z, y, x = np.indices(self.shape).reshape(3, -1)
+        return np.stack([x, y, z], axis=1) * float(self.h)
+
+    @property
+    def boundary_positions(self) -> NDArray[np.float64]:
+        """``(n_boundary, 3)`` positions of the boundary nodes (``graph.boundary`` order), mm."""
+        return self.positions[self.graph.boundary]
 
     @property
     def n_interior(self) -> int:
@@ -267,8 +281,16 @@ class RegularGrid:
     # ---- texture packing -----------------------------------------------------
     @cached_property
     def mosaic(self) -> Mosaic:
-        """The z-slices as ``nx x ny`` texel blocks (see :class:`glsldiff.packing.Mosaic`)."""
-        return Mosaic(self.nx, self.ny, self.nz, self.max_texture_size)
+        """The z-slices as ``nx x ny`` texel blocks (see :class:`glsldiff.packing.Mosaic`), only
+        the :attr:`kept_blocks` where given."""
+        kept = None if self.kept_blocks is None else np.array(self.kept_blocks, dtype=bool)
+        return Mosaic(self.nx, self.ny, self.nz, self.max_texture_size, kept)
+
+    def with_blocks(self, kept: NDArray[np.bool_] | None) -> "RegularGrid":
+        """The same grid packed with only the ``kept`` z-slices (``(nz,)`` bool; ``None``: all):
+        node arrays keep their shape, the textures drop the other slices, whose nodes no
+        solver pass may then read."""
+        return replace(self, kept_blocks=None if kept is None else tuple(bool(k) for k in np.asarray(kept)))
 
     @property
     def tiles(self) -> tuple[int, int]:

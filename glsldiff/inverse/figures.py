@@ -15,7 +15,7 @@ def depth_slices(path: str | os.PathLike, kappa: NDArray, mu: NDArray, h: float,
                  depths: Sequence[int] | None = None, truth: tuple[NDArray, NDArray] | None = None) -> Path:
     """PNG of kappa (mm) and mu (mm^-1) at several depths (z-slices), channel 1 (green);
     with ``truth`` the true volume's slices are drawn in the row above each fitted row."""
-    import matplotlib
+    import matplotlib  # heavy import (~0.3 s), only for this figure
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

@@ -21,14 +21,17 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
+from scipy.optimize import least_squares
 
-from glsldiff.core.errors import InputError, SolverError
+from glsldiff.core.checks import choice, integer, real
+from glsldiff.core.errors import SolverError
+from glsldiff.core.io import write_npz
 from glsldiff.grids.graph import INTERIOR
+from glsldiff.inverse.glsl import GlslForwardModel
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, minimize
-from glsldiff.core.io import write_npz
 
 Array = NDArray[np.float64]
 
@@ -53,18 +56,13 @@ class FitOptions:
     backend: str = "cpu"          # "cpu": one SuperLU factor per material; "glsl": GPU Jacobi
 
     def __post_init__(self) -> None:
-        if self.backend not in BACKENDS:
-            raise InputError(f"backend={self.backend!r}; choose one of {BACKENDS}")
-        if self.method not in METHODS:
-            raise InputError(f"method={self.method!r}; choose one of {METHODS}")
-        for name in ("kappa0", "mu0"):
-            v = getattr(self, name)
-            if not (np.isfinite(v) and v > 0):
-                raise InputError(f"{name}={v!r} must be finite and > 0")
-        if not (np.isfinite(self.lam) and self.lam >= 0):
-            raise InputError(f"lambda={self.lam!r} must be finite and >= 0")
-        if self.max_evals < 1 or self.homogeneous_evals < 1:
-            raise InputError("max_evals and homogeneous_evals must be >= 1")
+        choice(self.backend, "backend", BACKENDS)
+        choice(self.method, "method", METHODS)
+        real(self.kappa0, "kappa0 (mm)", 0.0, lo_open=True)
+        real(self.mu0, "mu0 (mm^-1)", 0.0, lo_open=True)
+        real(self.lam, "lambda", 0.0)
+        for name in ("max_evals", "homogeneous_evals"):
+            integer(getattr(self, name), name, 1, 2**62)
 
 
 @dataclass
@@ -104,8 +102,6 @@ def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: 
     trust-region reflective solver; each Jacobian costs two extra solves with the factor
     of the residual's evaluation (:meth:`Factorized.tangent`), not extra factorisations.
     The regulariser vanishes for a homogeneous volume."""
-    from scipy.optimize import least_squares
-
     o = objective
     model = o.model
     if type(model) is not ForwardModel:  # e.g. the GLSL path: the two-unknown fit runs on the CPU
@@ -181,7 +177,6 @@ def fit_measurements(meas: Measurements, options: FitOptions | None = None,
     options = options or FitOptions()
     t0 = time.perf_counter()
     if options.backend == "glsl":
-        from glsldiff.inverse.glsl import GlslForwardModel
         model: ForwardModel = GlslForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)
     else:
         model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)

@@ -19,24 +19,25 @@ from numpy.typing import NDArray
 
 from glsldiff.core.errors import SolverError
 from glsldiff.inverse.model import Factorized, ForwardModel
+from glsldiff.solve.jacobi import GlslDiffusion
 from glsldiff.system.problem import DiffusionProblem
+from glsldiff.system.report import RELAX_TOL
 
 Array = NDArray[np.float64]
 
 
 @dataclass
 class GlslForwardModel(ForwardModel):
-    """:class:`ForwardModel` whose solves run in GLSL (``tol``: Jacobi residual)."""
+    """:class:`ForwardModel` whose solves run in GLSL (``tol``: Jacobi residual, ``maxiter``: sweeps
+    per solve)."""
 
-    tol: float = 1e-6
-    max_sweeps: int = 50000
+    tol: float = RELAX_TOL
+    maxiter: int = 50000
     sweeps: int = 0
-    _solver: object = field(default=None, repr=False)
+    _solver: GlslDiffusion | None = field(default=None, repr=False)
     _warm: dict = field(default_factory=dict, repr=False)
 
     def factorize(self, kappa: Array, mu: Array) -> "GlslFactorized":
-        from glsldiff.solve.jacobi import GlslDiffusion
-
         kappa, mu = np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64)
         t0 = time.perf_counter()
         kv, mv = self.volume(kappa, 1.0), self.volume(mu, 0.0)
@@ -80,7 +81,7 @@ class GlslFactorized(Factorized):
             q[g.graph.boundary, :len(cols)] = Qv[:, cols]
             solver.set_q(q.reshape(g.shape + (3,)))
             key = (trans, start)
-            phi, rep = solver.solve(tol=m.tol, max_sweeps=m.max_sweeps, x0=m._warm.get(key))
+            phi, rep = solver.solve(tol=m.tol, maxiter=m.maxiter, x0=m._warm.get(key))
             m._warm[key] = phi
             m.sweeps += rep.sweeps
             x = solver.problem.from_phi(phi).reshape(-1, 3)[g.graph.active]

@@ -11,7 +11,8 @@ For each of ``M`` illumination conditions a measurement holds
 
 Face arrays follow :mod:`glsldiff.grids.regular` (``z-`` face: ``(ny-2, nx-2)``, indexed ``[y, x]``).
 Back-lit thin samples: ``lit_face="z-"``, ``observed_face="z+"``; front-lit thick samples:
-both ``"z-"``.
+both ``"z-"`` (:data:`SETUPS`). The projector lights the lit face one region at a time, the
+face split into ``n x n`` regions (:func:`face_regions`; paper: 4 x 4).
 
 ``.npz`` layout (:func:`save_measurements` / :func:`load_measurements`)::
 
@@ -35,11 +36,23 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.checks import integer, real
 from glsldiff.core.errors import InputError
-from glsldiff.grids.regular import FACES, RegularGrid
 from glsldiff.core.io import write_npz
+from glsldiff.grids.regular import FACES, RegularGrid
 
 REQUIRED = ("shape", "h", "lit_face", "observed_face", "incoming", "radiance")
+SETUPS = {"back": ("z-", "z+"), "front": ("z-", "z-")}  # setup -> (lit face, observed face)
+
+
+def face_regions(face_shape: tuple[int, int], n: int) -> list[tuple[slice, slice]]:
+    """The ``n x n`` projector regions of a face-node array of shape ``(rows, cols)``: the
+    ``(rows, cols)`` slices of each, row-major over the regions; sizes differ by at most one
+    node (``np.array_split``)."""
+    fy, fx = face_shape
+    integer(n, "n (regions per side)", 1, min(fy, fx))
+    return [(slice(int(ys[0]), int(ys[-1]) + 1), slice(int(xs[0]), int(xs[-1]) + 1))
+            for ys in np.array_split(np.arange(fy), n) for xs in np.array_split(np.arange(fx), n)]
 
 
 @dataclass
@@ -69,8 +82,7 @@ class Measurements:
             if face not in FACES:
                 raise InputError(f"{name}={face!r}; valid faces: {', '.join(FACES)}")
             setattr(self, name, face)
-        if not (np.isfinite(self.eta) and self.eta > 0):
-            raise InputError(f"eta={self.eta!r} must be a finite relative index > 0")
+        self.eta = real(self.eta, "eta (relative refractive index)", 0.0, lo_open=True)
         self.incoming = self._face_stack("incoming", self.incoming, self.lit_face)
         self.radiance = self._face_stack("radiance", self.radiance, self.observed_face)
         M = self.incoming.shape[0]
@@ -96,8 +108,8 @@ class Measurements:
                 raise InputError(f"the mask observes nothing in channel {c}")
             if not np.any(self.radiance[..., c][self.mask[..., c]] > 0):
                 raise InputError(f"every used radiance value of channel {c} is 0; nothing to fit")
-        if self.C is not None and not (np.isfinite(self.C) and self.C > 0):
-            raise InputError(f"C={self.C!r} must be finite and > 0")
+        if self.C is not None:
+            self.C = real(self.C, "C (boundary constant)", 0.0, lo_open=True)
 
     def _face_stack(self, name: str, values: ArrayLike, face: str) -> NDArray[np.float64]:
         arr = np.asarray(values, dtype=np.float64)
@@ -128,8 +140,7 @@ class Measurements:
                 raise InputError(f"mask has shape {mask.shape}; expected {shape[:3]} or {shape}")
             mask = mask.copy()
         if self.saturation is not None:
-            if not (np.isfinite(self.saturation) and self.saturation > 0):
-                raise InputError(f"saturation={self.saturation!r} must be finite and > 0")
+            real(self.saturation, "saturation", 0.0, lo_open=True)
             mask &= self.radiance < self.saturation
         return mask
 

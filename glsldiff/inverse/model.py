@@ -22,12 +22,13 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
+from glsldiff.core.checks import choice
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.regular import RegularGrid
 from glsldiff.physics.exitance import exitance_coefficients
 from glsldiff.physics.optics import boundary_constant, fresnel_transmittance
 from glsldiff.system.problem import FACE_MEANS, STENCILS, DiffusionProblem
-from glsldiff.oracle.assembly import _matrix
+from glsldiff.oracle.assembly import channel_matrix
 
 Array = NDArray[np.float64]
 
@@ -71,10 +72,8 @@ class ForwardModel:
     stats: SolveStats = field(default_factory=SolveStats)
 
     def __post_init__(self) -> None:
-        if self.stencil not in STENCILS:
-            raise InputError(f"stencil={self.stencil!r}; choose one of {STENCILS}")
-        if self.face_mean not in FACE_MEANS:
-            raise InputError(f"face_mean={self.face_mean!r}; choose one of {FACE_MEANS}")
+        choice(self.stencil, "stencil", STENCILS)
+        choice(self.face_mean, "face_mean", FACE_MEANS)
         if self.C is None:
             self.C = float(boundary_constant(self.eta))
         g = self.grid.graph
@@ -114,7 +113,7 @@ class ForwardModel:
             raise SolverError("the material became non-finite during the fit")
         prob = DiffusionProblem(self.grid, self.volume(kappa, 1.0), self.volume(mu, 0.0), C=self.C,
                                 eta=self.eta, stencil=self.stencil, face_mean=self.face_mean)
-        return _matrix(prob, 0)[0].tocsr()
+        return channel_matrix(prob, 0)[0].tocsr()
 
     def factorize(self, kappa: Array, mu: Array) -> "Factorized":
         """Assemble and factorise ``A(kappa, mu)`` (vectors over the active nodes)."""

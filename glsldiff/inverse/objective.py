@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff.core.checks import real
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.model import ForwardModel, regularizer_matrix
 
@@ -64,8 +65,7 @@ class Objective:
             setattr(self, name, a)
         if not (self.Q.shape == self.Y.shape == self.W.shape):
             raise InputError(f"Q, Y, W shapes differ: {self.Q.shape}, {self.Y.shape}, {self.W.shape}")
-        if not (np.isfinite(self.lam) and self.lam >= 0):
-            raise InputError(f"lambda={self.lam!r} must be finite and >= 0")
+        real(self.lam, "lambda", 0.0)
         self.norm = float(np.sum(self.W * self.Y**2))
         if self.norm <= 0:
             raise InputError("the used measurements are all zero: nothing to fit")

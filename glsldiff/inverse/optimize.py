@@ -17,7 +17,8 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.core.errors import InputError, SolverError
+from glsldiff.core.checks import choice
+from glsldiff.core.errors import SolverError
 from glsldiff.inverse.objective import Objective
 
 Array = NDArray[np.float64]
@@ -79,8 +80,7 @@ class ScaledProblem:
         self.gradients = 0
         n = self.objective.model.n
         self.n = n
-        if self.parameterization not in PARAMETERIZATIONS:
-            raise InputError(f"parameterization={self.parameterization!r}; choose one of {PARAMETERIZATIONS}")
+        choice(self.parameterization, "parameterization", PARAMETERIZATIONS)
         lo = np.concatenate([np.full(n, KAPPA_RANGE[0]), np.full(n, MU_RANGE[0])])
         hi = np.concatenate([np.full(n, KAPPA_RANGE[1]), np.full(n, MU_RANGE[1])])
         if self.parameterization == "log":
@@ -146,8 +146,7 @@ def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float 
     """Minimise from ``z0`` until ``f < stopval``, the relative change of f falls below
     ``ftol_rel``, or the budget is spent. Returns the best ``z``; ``problem.trace`` says why
     it stopped."""
-    if problem.method not in METHODS:
-        raise InputError(f"method={problem.method!r}; choose one of {METHODS}")
+    choice(problem.method, "method", METHODS)
     z0 = np.clip(np.asarray(z0, dtype=np.float64), problem.lower, problem.upper)
     tr = problem.trace
     try:
@@ -165,7 +164,7 @@ def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float 
 
 
 def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -> None:
-    import nlopt
+    import nlopt  # only the nlopt methods need it (~50 ms import)
 
     opt = nlopt.opt(getattr(nlopt, NLOPT_METHODS[problem.method]), z0.size)
     opt.set_min_objective(problem)

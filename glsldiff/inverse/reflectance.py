@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.checks import choice, integer
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
@@ -70,13 +71,11 @@ def diffuse_reflectance(meas: Measurements, kappa: ArrayLike, mu: ArrayLike, con
     ``mu`` (mm^-1), node volumes ``(nz, ny, nx[, 3])`` of ``meas.grid``; ``irradiance``
     (scalar or RGB) is the uniform light's irradiance (default: from ``q``)."""
 
-    if exitant not in EXITANT:
-        raise InputError(f"exitant={exitant!r}; choose one of {EXITANT}")
+    choice(exitant, "exitant", EXITANT)
     if meas.lit_face != meas.observed_face:
         raise InputError(f"the reflectance needs a front-lit measurement (lit face = observed face); this one "
                          f"lights {meas.lit_face} and observes {meas.observed_face}")
-    if not (isinstance(condition, (int, np.integer)) and 0 <= condition < meas.M):
-        raise InputError(f"condition={condition!r} must index one of the {meas.M} illumination conditions")
+    integer(condition, "condition (index of an illumination condition)", 0, meas.M - 1)
     if irradiance is None:
         lit = meas.incoming[condition].reshape(-1, 3)
         irradiance = lit.max(axis=0) / float(fresnel_transmittance(meas.eta, 1.0))

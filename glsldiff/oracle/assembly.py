@@ -107,59 +107,81 @@ def diverged_message(problem: DiffusionProblem, method: str, sweeps: int) -> str
             f">= {bound:.3f} (bound from linked node pairs).{hint}")
 
 
-def _matrix(problem: DiffusionProblem, c: int) -> tuple[sp.csr_matrix, NDArray]:
-    """Matrix and its diagonal for channel ``c`` (rows of :mod:`glsldiff.grids.graph`).
+def stencil_terms(problem: DiffusionProblem, c: int) -> tuple[NDArray, NDArray, NDArray]:
+    """The stencil variants, the one place they live on the CPU (GLSL twin: the section "the
+    stencil" of ``shaders/diffusion.glsl``), for channel ``c``:
 
-    Interior row ``i`` (times the row scale ``s_i``; ``w_j`` the scaled weights):
-    paper ``(sum_j w_j + s_i mu_i/kappa_i) u_i - sum_j w_j u_j``, conservative
-    ``(sum_j w_j k_ij + s_i mu_i) phi_i - sum_j w_j k_ij phi_j``. Boundary row ``b``
-    (times ``d_b``, and ``kappa_b`` for the paper's unknown): ``phi_b + 2 C kappa_b
-    (phi_b - phi_j) / d_b = q_b``.
+    ``a``, ``(n_interior, 6)``
+        coupling of each interior node to its neighbours: the scaled weight ``w_j`` (paper,
+        Laplacian of ``kappa phi``) or ``w_j k_ij`` with the face mean ``k_ij`` of ``kappa_i``
+        and ``kappa_j`` (conservative, ``div(kappa grad phi)``);
+    ``sigma``, ``(n_interior,)``
+        absorption times the row scale: ``s mu / kappa`` (paper) or ``s mu``;
+    ``t``, ``(N,)``
+        the unknown per unit fluence, ``x = t phi`` (:func:`unknown_factor`).
     """
     g = problem.graph
     k = problem.kappa.reshape(-1, 3)[:, c]
     m = problem.mu.reshape(-1, 3)[:, c]
+    interior = g.interior
+    t = unknown_factor(problem)[:, c]
+    if problem.stencil == "paper":
+        return g.weights, g.scale * (m[interior] / k[interior]), t
+    ki, kj = k[interior, None], k[g.neighbours]
+    face = 0.5 * (ki + kj) if problem.face_mean == "arithmetic" else 2.0 * ki * kj / (ki + kj)
+    return g.weights * face, g.scale * m[interior], t
+
+
+def unknown_factor(problem: DiffusionProblem) -> NDArray[np.float64]:
+    """``(N, 3)`` unknown per unit fluence, ``x = t phi``: kappa (paper) or 1, as defined by
+    :meth:`DiffusionProblem.from_phi`."""
+    return problem.from_phi(np.ones(problem.kappa.shape)).reshape(-1, 3)
+
+
+def channel_matrix(problem: DiffusionProblem, c: int) -> tuple[sp.csr_matrix, NDArray]:
+    """Matrix and its diagonal for channel ``c`` (rows of :mod:`glsldiff.grids.graph`, in the
+    unknown ``x = t phi`` of :func:`stencil_terms`).
+
+    Interior row ``i`` (times the row scale ``s_i``): ``(sum_j a_ij + sigma_i) x_i - sum_j a_ij
+    x_j``. Boundary row ``b`` (times ``d_b t_b``): ``phi_b + 2 C kappa_b (phi_b - phi_j) / d_b
+    = q_b``, i.e. ``(d_b + 2 C kappa_b) x_b - 2 C kappa_b (t_b / t_j) x_j = d_b t_b q_b``.
+    """
+    g = problem.graph
+    a, sigma, t = stencil_terms(problem, c)
+    kappa = problem.kappa.reshape(-1, 3)[:, c]
     C = float(problem.C)
     active = g.active
     pos = np.full(g.size, -1, dtype=np.int64)
     pos[active] = np.arange(active.size)
 
     interior, nb = g.interior, g.neighbours
-    if problem.stencil == "paper":
-        w = g.weights
-    else:
-        ki, kj = k[interior, None], k[nb]
-        face = 0.5 * (ki + kj) if problem.face_mean == "arithmetic" else 2.0 * ki * kj / (ki + kj)
-        w = g.weights * face
     diag = np.zeros(g.size)
-    diag[interior] = w.sum(axis=1) + g.scale * (m[interior] / k[interior] if problem.stencil == "paper"
-                                                else m[interior])
+    diag[interior] = a.sum(axis=1) + sigma
     boundary, j = g.boundary, g.link
-    kb = k[boundary]
+    kb = kappa[boundary]
     diag[boundary] = g.d + 2.0 * C * kb
-    off_b = 2.0 * C * kb * kb / k[j] if problem.stencil == "paper" else 2.0 * C * kb
+    off_b = 2.0 * C * kb * t[boundary] / t[j]
 
     r = np.concatenate([np.repeat(interior, 6), boundary, active])
     cc = np.concatenate([nb.ravel(), j, active])
-    v = np.concatenate([-w.ravel(), -off_b, diag[active]])
+    v = np.concatenate([-a.ravel(), -off_b, diag[active]])
     A = sp.csr_matrix((v, (pos[r], pos[cc])), shape=(active.size, active.size))
     return A, diag[active]
 
 
 def assemble(problem: DiffusionProblem) -> LinearSystem:
     """The discrete system of ``problem`` for all three channels (block diagonal)."""
-    blocks = [_matrix(problem, c) for c in range(3)]
+    blocks = [channel_matrix(problem, c) for c in range(3)]
     active = problem.graph.active
     return LinearSystem(sp.block_diag([A for A, _ in blocks], format="csr"), assemble_rhs(problem),
                         np.concatenate([d for _, d in blocks]), active)
 
 
 def assemble_rhs(problem: DiffusionProblem) -> NDArray[np.float64]:
-    """Right-hand side ``b`` (channel-major over the active nodes): ``d_b kappa_b q_b``
-    (paper) or ``d_b q_b`` (conservative) at boundary nodes, 0 at interior nodes."""
+    """Right-hand side ``b`` (channel-major over the active nodes): ``d_b t_b q_b`` at boundary
+    nodes (:func:`channel_matrix`), 0 at interior nodes."""
     g = problem.graph
     q = problem.q.reshape(-1, 3)
     b = np.zeros((g.size, 3))
-    kb = problem.kappa.reshape(-1, 3)[g.boundary] if problem.stencil == "paper" else 1.0
-    b[g.boundary] = g.d[:, None] * kb * q[g.boundary]
+    b[g.boundary] = g.d[:, None] * unknown_factor(problem)[g.boundary] * q[g.boundary]
     return b[g.active].T.reshape(-1)

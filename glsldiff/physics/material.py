@@ -1,8 +1,9 @@
-"""Material coefficients, measured presets and synthetic heterogeneous volumes.
+"""Material coefficients, measured presets and volume checks.
 
 The diffusion solver works with kappa = 1/(3 (sigma_a + sigma_s')) [mm] and mu = sigma_a
 [mm^-1] per node and RGB channel (Wang et al. 2008, eq. 1). Volumes are arrays of shape
-S + (3,), S = (nz, ny, nx) grid nodes.
+S + (3,), S = (nz, ny, nx) grid nodes; heterogeneous ones are built in
+:mod:`glsldiff.physics.procedural`.
 """
 from __future__ import annotations
 
@@ -10,13 +11,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import ndimage
 
+from glsldiff.core.checks import finite_values, real, require
 from glsldiff.core.errors import InputError
-from glsldiff.physics.optics import _check, _finite, _out
+from glsldiff.physics.optics import _out, optical_pair
 
 __all__ = ["Preset", "PRESETS", "preset", "coefficients", "optical_properties",
-           "validate_coefficients", "marble_volume", "random_volume"]
+           "validate_coefficients"]
 
 Array = NDArray[np.float64]
 ArrayOrScalar = NDArray[np.float64] | np.float64
@@ -34,12 +35,15 @@ def coefficients(sigma_a: ArrayLike, sigma_s_prime: ArrayLike) -> tuple[ArrayOrS
     -------
     kappa = 1/(3 (sigma_a + sigma_s')) [mm], mu = sigma_a [mm^-1].
     """
-    sa, ss = np.broadcast_arrays(_finite("sigma_a", sigma_a), _finite("sigma_s_prime", sigma_s_prime))
-    _check("sigma_a", sa, sa < 0.0, ">= 0", "absorption coefficients are non-negative, in mm^-1")
-    _check("sigma_s_prime", ss, ss < 0.0, ">= 0", "reduced scattering is non-negative, in mm^-1")
-    st = sa + ss
-    _check("sigma_a + sigma_s_prime", st, st <= 0.0, "> 0", "make sigma_a or sigma_s_prime positive")
+    sa, _, st = optical_pair(sigma_a, sigma_s_prime)
     return _out(1.0 / (3.0 * st)), _out(sa.copy())
+
+
+def _kappa_mu(k: Array, m: Array) -> tuple[Array, Array]:
+    """``(kappa, mu)`` after checking kappa > 0 [mm] and mu >= 0 [mm^-1] entry by entry."""
+    require(k, k <= 0.0, "kappa", "> 0", "kappa = 1/(3 (sigma_a + sigma_s')) is a positive length in mm")
+    require(m, m < 0.0, "mu", ">= 0", "mu = sigma_a is a non-negative absorption coefficient in mm^-1")
+    return k, m
 
 
 def optical_properties(kappa: ArrayLike, mu: ArrayLike) -> tuple[ArrayOrScalar, ArrayOrScalar]:
@@ -47,14 +51,12 @@ def optical_properties(kappa: ArrayLike, mu: ArrayLike) -> tuple[ArrayOrScalar, 
 
     Requires kappa > 0, mu >= 0 and 1/(3 kappa) >= mu (else sigma_s' < 0: not physical).
     """
-    k, m = np.broadcast_arrays(_finite("kappa", kappa), _finite("mu", mu))
-    _check("kappa", k, k <= 0.0, "> 0", "kappa = 1/(3 (sigma_a + sigma_s')) is a positive length in mm")
-    _check("mu", m, m < 0.0, ">= 0", "mu = sigma_a is a non-negative absorption coefficient in mm^-1")
+    k, m = _kappa_mu(*np.broadcast_arrays(finite_values(kappa, "kappa"), finite_values(mu, "mu")))
     st = 1.0 / (3.0 * k)
     ss = st - m
     tol = 1e-12 * st  # round-off of a coefficients() round trip
-    _check("1/(3 kappa) - mu (= sigma_s')", ss, ss < -tol, ">= 0",
-           "that (kappa, mu) pair is not physical: lower kappa or mu so that 3 kappa mu <= 1")
+    require(ss, ss < -tol, "1/(3 kappa) - mu (= sigma_s')", ">= 0",
+            "that (kappa, mu) pair is not physical: lower kappa or mu so that 3 kappa mu <= 1")
     return _out(m.copy()), _out(np.maximum(ss, 0.0))
 
 
@@ -69,16 +71,14 @@ class Preset:
 
     def __post_init__(self) -> None:
         for field in ("sigma_s_prime", "sigma_a"):
-            a = np.array(_finite(f"{self.name}.{field}", getattr(self, field)), dtype=np.float64)
+            a = np.array(finite_values(getattr(self, field), f"{self.name}.{field}"), dtype=np.float64)
             if a.shape != (3,):
                 raise InputError(f"{self.name}.{field} must have shape (3,) (RGB), got {a.shape}")
             a.flags.writeable = False
             object.__setattr__(self, field, a)
         coefficients(self.sigma_a, self.sigma_s_prime)  # validates signs
-        eta = float(_finite(f"{self.name}.eta", self.eta))
-        if eta <= 0.0:
-            raise InputError(f"{self.name}.eta must be a relative index > 0 (e.g. 1.3), got {eta}")
-        object.__setattr__(self, "eta", eta)
+        object.__setattr__(self, "eta", real(self.eta, f"{self.name}.eta (relative index, e.g. 1.3)", 0.0,
+                                             lo_open=True))
 
     def coefficients(self) -> tuple[Array, Array]:
         """(kappa [mm], mu [mm^-1]), each of shape (3,)."""
@@ -131,7 +131,7 @@ def validate_coefficients(kappa: ArrayLike, mu: ArrayLike,
     last axis is taken as RGB when it has size 3 or 1, so pass `shape` for grey volumes whose
     last spatial axis has size 3). Rejects NaN/inf, kappa <= 0, mu < 0 and shape mismatches.
     """
-    k, m = _finite("kappa", kappa), _finite("mu", mu)
+    k, m = finite_values(kappa, "kappa"), finite_values(mu, "mu")
     if shape is None:
         big = k if k.ndim >= m.ndim else m
         shape = big.shape[:-1] if big.ndim and big.shape[-1] in (1, 3) else big.shape
@@ -147,78 +147,4 @@ def validate_coefficients(kappa: ArrayLike, mu: ArrayLike,
         raise InputError(f"{name} has shape {a.shape} but kappa {k.shape} and mu {m.shape} must share "
                          f"the spatial shape {S}: give {name} shape {S}, {S + (3,)} or a scalar")
 
-    k, m = np.array(rgb("kappa", k)), np.array(rgb("mu", m))
-    _check("kappa", k, k <= 0.0, "> 0", "kappa = 1/(3 (sigma_a + sigma_s')) is a positive length in mm")
-    _check("mu", m, m < 0.0, ">= 0", "mu = sigma_a is a non-negative absorption coefficient in mm^-1")
-    return k, m
-
-
-def _smooth_noise(shape: tuple[int, ...], rng: np.random.Generator, octaves: int, cells: int) -> Array:
-    """Sum of `octaves` octaves of cubic-upsampled lattice noise in about [-1, 1]."""
-    total = np.zeros(shape)
-    for o in range(octaves):
-        n = cells * 2**o  # lattice cells across the longest axis
-        lattice = [max(2, int(np.ceil(n * s / max(shape))) + 1) for s in shape]
-        field = ndimage.zoom(rng.uniform(-1.0, 1.0, lattice), [s / l for s, l in zip(shape, lattice)],
-                             order=3, mode="nearest")
-        total += 0.5**o * field[tuple(slice(0, s) for s in shape)]
-    return total
-
-
-def marble_volume(shape: tuple[int, ...], seed: int = 0, base: str | Preset = "marble",
-                  vein: str | Preset | None = None, *, vein_absorption: float = 20.0,
-                  vein_scattering: float = 0.5, stripes: float = 3.0, turbulence: float = 5.0,
-                  sharpness: float = 6.0, octaves: int = 4) -> tuple[Array, Array]:
-    """Deterministic synthetic "marble with veins" volume (sin-turbulence marble).
-
-    Vein weight t = (1 - |sin(2 pi stripes u + turbulence n(x))|)^sharpness in [0, 1], with u the
-    coordinate along a fixed oblique direction (0 to 1 across the longest axis) and n smooth
-    lattice noise (`octaves` octaves, 2^o * 2 cells, amplitude 2^-o). sigma_a and sigma_s'
-    [mm^-1] blend linearly from `base` (t = 0) to `vein` (t = 1), so kappa and mu stay within
-    the two materials' values. vein=None means base.sigma_a * vein_absorption and
-    base.sigma_s_prime * vein_scattering (a darker, more absorbing material).
-
-    Returns
-    -------
-    (kappa [mm], mu [mm^-1]), each of shape shape + (3,); identical for equal arguments.
-    """
-    shape = (int(shape),) if np.isscalar(shape) else tuple(int(n) for n in shape)
-    if not 1 <= len(shape) <= 3 or min(shape) < 1:
-        raise InputError(f"shape must be 1 to 3 positive grid sizes (nz, ny, nx), got {shape}")
-    for name, v in (("vein_absorption", vein_absorption), ("vein_scattering", vein_scattering),
-                    ("sharpness", sharpness)):
-        if not (np.isfinite(v) and v > 0):
-            raise InputError(f"{name} must be a finite number > 0, got {v}")
-    b = preset(base)
-    if vein is None:
-        sa1, ss1 = b.sigma_a * vein_absorption, b.sigma_s_prime * vein_scattering
-    else:
-        sa1, ss1 = preset(vein).sigma_a, preset(vein).sigma_s_prime
-    rng = np.random.default_rng(seed)
-    axes = np.meshgrid(*[np.arange(s) / max(max(shape) - 1, 1) for s in shape], indexing="ij")
-    direction = np.array([0.3, 0.5, 1.0][-len(shape):])  # (z, y, x) weights: vein sheets roughly normal to x
-    u = sum(w * x for w, x in zip(direction / np.linalg.norm(direction), axes))
-    phase = 2.0 * np.pi * stripes * u + turbulence * _smooth_noise(shape, rng, octaves, 2)
-    t = ((1.0 - np.abs(np.sin(phase))) ** sharpness)[..., None]
-    return coefficients((1.0 - t) * b.sigma_a + t * sa1, (1.0 - t) * b.sigma_s_prime + t * ss1)
-
-
-def random_volume(shape: tuple[int, ...], rng: np.random.Generator | int | None,
-                  kappa_contrast: float = 100.0, mu_max: float = 10.0,
-                  kappa_min: float = 0.01) -> tuple[Array, Array]:
-    """Random (kappa, mu) volume of shape shape + (3,) for solver tests.
-
-    kappa is log-uniform in [kappa_min, kappa_min * kappa_contrast] [mm] and mu uniform in
-    [0, mu_max] [mm^-1], independently per node and channel. Pairs need not be physical
-    (3 kappa mu may exceed 1); `optical_properties` would reject those.
-    """
-    if not (np.isfinite(kappa_contrast) and kappa_contrast >= 1.0):
-        raise InputError(f"kappa_contrast must be a finite ratio >= 1, got {kappa_contrast}")
-    if not (np.isfinite(mu_max) and mu_max >= 0.0):
-        raise InputError(f"mu_max must be finite and >= 0 mm^-1, got {mu_max}")
-    if not (np.isfinite(kappa_min) and kappa_min > 0.0):
-        raise InputError(f"kappa_min must be finite and > 0 mm, got {kappa_min}")
-    gen = np.random.default_rng(rng)
-    full = ((int(shape),) if np.isscalar(shape) else tuple(int(n) for n in shape)) + (3,)
-    kappa = kappa_min * kappa_contrast ** gen.uniform(0.0, 1.0, full)
-    return kappa, gen.uniform(0.0, mu_max, full)
+    return _kappa_mu(np.array(rgb("kappa", k)), np.array(rgb("mu", m)))

@@ -14,10 +14,11 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import integrate, optimize
 
+from glsldiff.core.checks import finite_values, require
 from glsldiff.core.errors import InputError
 
 __all__ = [
-    "PAPER_C", "fresnel_reflectance", "fresnel_transmittance", "fdr", "fdr_integral",
+    "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "fdr", "fdr_integral",
     "boundary_constant", "eta_for_boundary_constant", "DipoleConstants",
     "dipole_constants", "dipole_rd", "dipole_total_reflectance",
 ]
@@ -29,36 +30,21 @@ __all__ = [
 PAPER_C = 2.1489
 
 
-def _where(bad: NDArray[np.bool_]) -> str:
-    """' at e.g. index (i, j)' for the first True entry of `bad` ('' for 0-d arrays)."""
-    return f" at e.g. index {tuple(int(i) for i in np.argwhere(bad)[0])}" if bad.ndim else ""
-
-
-def _finite(name: str, value: ArrayLike) -> NDArray[np.float64]:
-    """Return `value` as a float64 array; raise InputError naming `name` if any entry is NaN/inf."""
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name} must be numeric (a number or an array of numbers): {exc}") from None
-    bad = ~np.isfinite(a)
-    if bad.any():
-        counts = [(int(np.isnan(a).sum()), "NaN"), (int(np.isinf(a).sum()), "inf")]
-        what = " and ".join(f"{n} {kind}" for n, kind in counts if n)
-        raise InputError(f"{name} has {what} value(s){_where(bad)}; replace them with finite numbers")
-    return a
-
-
-def _check(name: str, a: NDArray[np.float64], bad: NDArray[np.bool_], rule: str, fix: str) -> None:
-    """Raise InputError "`name` must be `rule`" if any entry of the mask `bad` is set."""
-    if bad.any():
-        raise InputError(f"{name} must be {rule} but has {int(bad.sum())} value(s) violating it "
-                         f"(e.g. {a[bad].flat[0]:g}){_where(bad)}; {fix}")
-
-
 def _eta(eta: ArrayLike) -> NDArray[np.float64]:
-    a = _finite("eta", eta)
-    _check("eta", a, a <= 0.0, "> 0", "eta is the relative index n_inside / n_outside (e.g. 1.3)")
+    a = finite_values(eta, "eta")
+    require(a, a <= 0.0, "eta", "> 0", "eta is the relative index n_inside / n_outside (e.g. 1.3)")
     return a
+
+
+def optical_pair(sigma_a: ArrayLike, sigma_s_prime: ArrayLike) -> tuple[NDArray[np.float64], ...]:
+    """Checked ``(sigma_a, sigma_s', sigma_t' = sigma_a + sigma_s')`` [mm^-1], broadcast together:
+    finite, sigma_a >= 0, sigma_s' >= 0 and sigma_t' > 0."""
+    sa, ss = np.broadcast_arrays(finite_values(sigma_a, "sigma_a"), finite_values(sigma_s_prime, "sigma_s_prime"))
+    require(sa, sa < 0.0, "sigma_a", ">= 0", "absorption coefficients are non-negative, in mm^-1")
+    require(ss, ss < 0.0, "sigma_s_prime", ">= 0", "reduced scattering is non-negative, in mm^-1")
+    st = sa + ss
+    require(st, st <= 0.0, "sigma_a + sigma_s_prime", "> 0", "make sigma_a or sigma_s_prime positive")
+    return sa, ss, st
 
 
 def _out(a: NDArray[np.float64]) -> NDArray[np.float64] | np.float64:
@@ -80,8 +66,8 @@ def fresnel_reflectance(eta: ArrayLike, cos_i: ArrayLike) -> NDArray[np.float64]
     -------
     F_r in [0, 1] (dimensionless); 1 under total internal reflection (eta < 1).
     """
-    eta, c = np.broadcast_arrays(_eta(eta), _finite("cos_i", cos_i))
-    _check("cos_i", c, (c < 0.0) | (c > 1.0), "in [0, 1]", "pass the cosine of the incidence angle")
+    eta, c = np.broadcast_arrays(_eta(eta), finite_values(cos_i, "cos_i"))
+    require(c, (c < 0.0) | (c > 1.0), "cos_i", "in [0, 1]", "pass the cosine of the incidence angle")
     return _out(_fresnel_r(eta, c))
 
 
@@ -142,8 +128,8 @@ def boundary_constant(eta: ArrayLike) -> NDArray[np.float64] | np.float64:
 
 def eta_for_boundary_constant(C: ArrayLike) -> NDArray[np.float64] | np.float64:
     """Relative index eta with boundary_constant(eta) == C, by Brent's method (C > 0)."""
-    c = _finite("C", C)
-    _check("C", c, c <= 0.0, "> 0", "C = (1 + F_dr)/(1 - F_dr) is positive (2.6021 for eta 1.3)")
+    c = finite_values(C, "C")
+    require(c, c <= 0.0, "C", "> 0", "C = (1 + F_dr)/(1 - F_dr) is positive (2.6021 for eta 1.3)")
     out = np.empty_like(c)
     for idx, cv in np.ndenumerate(c):
         target = (cv - 1.0) / (cv + 1.0)  # F_dr; fdr(eta) is increasing for eta > 0
@@ -169,11 +155,7 @@ class DipoleConstants:
 
 def dipole_constants(sigma_a: ArrayLike, sigma_s_prime: ArrayLike, eta: ArrayLike) -> DipoleConstants:
     """Dipole constants from absorption and reduced scattering [mm^-1] and relative index eta."""
-    sa, ss = _finite("sigma_a", sigma_a), _finite("sigma_s_prime", sigma_s_prime)
-    _check("sigma_a", sa, sa < 0.0, ">= 0", "absorption coefficients are non-negative")
-    _check("sigma_s_prime", ss, ss < 0.0, ">= 0", "reduced scattering coefficients are non-negative")
-    st = sa + ss
-    _check("sigma_a + sigma_s_prime", st, st <= 0.0, "> 0", "make sigma_a or sigma_s_prime positive")
+    sa, ss, st = optical_pair(sigma_a, sigma_s_prime)
     sa, ss, st, A = np.broadcast_arrays(sa, ss, st, np.asarray(boundary_constant(eta)))
     D = 1.0 / (3.0 * st)
     z_r = 1.0 / st
@@ -195,8 +177,8 @@ def dipole_rd(r: ArrayLike, sigma_a: ArrayLike, sigma_s_prime: ArrayLike,
     eta
         Relative refractive index (boundary constant from the Groenhuis F_dr).
     """
-    rr = _finite("r", r)
-    _check("r", rr, rr < 0.0, ">= 0", "r is a distance in mm")
+    rr = finite_values(r, "r")
+    require(rr, rr < 0.0, "r", ">= 0", "r is a distance in mm")
     k = dipole_constants(sigma_a, sigma_s_prime, eta)
     d_r = np.sqrt(rr**2 + k.z_r**2)
     d_v = np.sqrt(rr**2 + k.z_v**2)

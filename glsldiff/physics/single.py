@@ -1,5 +1,7 @@
 r"""Single scattering below a locally planar surface (optional term of the final shading pass).
 
+(Over 400 lines: the derivation and its checks are documented here, with the code.)
+
 Wang et al. 2008 (section 5, final pass) add an optional single-scattering term to the
 multiple-scattering radiance of the diffusion solve. glsldiff evaluates it per shaded surface
 point in the way of Jensen, Marschner, Levoy and Hanrahan 2001, "A practical model for
@@ -106,6 +108,9 @@ Limits
   object, so a material callable must accept any position (clamp to its volume).
 * Irradiance is for one directional light per call (sum several calls for several lights);
   shadowing is the caller's (``irradiance`` is already multiplied by visibility).
+  :func:`light_single_scattering` takes a light of :mod:`glsldiff.physics.lights` instead
+  (directional, point, spot or projector: its direction and normal irradiance per point,
+  :func:`~glsldiff.physics.lights.incidence`), and its visibility per point.
 * Heterogeneous media are integrated along the two straight refracted paths only; samples
   reach about :math:`5.2/\lambda` (16 nodes) below the surface, so a medium much clearer below
   the surface than at it loses the tail.
@@ -117,10 +122,12 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.checks import finite_array
 from glsldiff.core.errors import InputError
+from glsldiff.physics.lights import DirectLight, incidence, to_light
 from glsldiff.physics.optics import fresnel_transmittance
 
-__all__ = ["MODELS", "Material", "single_scattering", "henyey_greenstein"]
+__all__ = ["MODELS", "Material", "single_scattering", "light_single_scattering", "henyey_greenstein"]
 
 Array = NDArray[np.float64]
 #: A material: a callable positions (M, 3) mm -> (sigma_a, sigma_s') each (M, 3) mm^-1, or a
@@ -331,6 +338,28 @@ def single_scattering(points: ArrayLike, normals: ArrayLike, view_dirs: ArrayLik
         out[idx[a:b]] = _march(material, p[a:b], T_o[a:b], -T_l[a:b], t_o[a:b], t_i[a:b],
                                G[a:b], C[a:b], u, w, ul, wl, light_samples, g)
     return out
+
+
+def light_single_scattering(points: ArrayLike, normals: ArrayLike, view_dirs: ArrayLike, light: DirectLight,
+                            material: Material, eta: float, visibility: ArrayLike | None = None,
+                            **options: object) -> Array:
+    """:func:`single_scattering` of one light of :mod:`glsldiff.physics.lights`.
+
+    ``light`` is a directional, point, spot or projector light: per point its direction
+    (:func:`~glsldiff.physics.lights.to_light`) and its normal irradiance
+    (:func:`~glsldiff.physics.lights.incidence`: inverse square, spot cone, projector image)
+    times ``visibility`` ``(N,)`` in [0, 1] (default 1: unshadowed). ``options`` are those of
+    :func:`single_scattering` (``samples``, ``g``, ``light_samples``, ``model``).
+    """
+    p = _vectors("points", points, None, unit=False)
+    if visibility is not None:
+        visibility = finite_array(visibility, "visibility")
+        if visibility.shape != (p.shape[0],):
+            raise InputError(f"visibility must have shape ({p.shape[0]},), one value per point, "
+                             f"got {visibility.shape}")
+    scale, colour = incidence(light, p, visibility)
+    return single_scattering(p, normals, view_dirs, to_light(light, p), scale[:, None] * colour, material, eta,
+                             **options)  # type: ignore[arg-type]
 
 
 def _march(material: Callable, p: Array, T_o: Array, up_l: Array, t_o: Array, t_i: Array,

@@ -1,4 +1,4 @@
-"""Rendering (Wang et al. 2008, section 5): TOML scenes, lights and pass 1 (incident light at
-the boundary nodes), per-node materials and the shell-layer mapping, pass 2 through
+"""Rendering (Wang et al. 2008, section 5): TOML scenes, shadow maps and pass 1 (incident
+light at the boundary nodes), per-node materials and the shell-layer mapping, pass 2 through
 :mod:`glsldiff.solve`, and pass 3 (surface shading) into an HDR image.
 """

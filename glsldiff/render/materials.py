@@ -2,10 +2,9 @@
 
 * homogeneous: a preset or ``sigma_a`` / ``sigma_s_prime``;
 * procedural, evaluated over the nodes' bounding box (unit coordinates ``u`` in [0, 1]^3):
-  ``veins`` (:func:`glsldiff.physics.material.marble_volume` on a 64^3 lattice, trilinear),
-  ``layers`` (bands of the base and the second material along +y, 8 per object height,
-  bent by smooth noise), ``inclusions`` (spheres of the second material, 5 % of the
-  volume, radii 3-8 % of the object size, seeded);
+  ``veins`` (:func:`glsldiff.physics.procedural.marble_volume` on a 64^3 lattice, trilinear),
+  ``layers`` and ``inclusions`` (:func:`glsldiff.physics.procedural.point_weight`: bands
+  along +y bent by smooth noise, or seeded spheres filling 5 % of the volume);
 * a block volume file (``.npz`` with ``kappa``, ``mu`` of shape ``(nz, ny, nx, 3)`` and
   ``h_mm``), mapped through a shell layer (:func:`glsldiff.render.shellmap.map_shell`).
 
@@ -26,8 +25,11 @@ from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
 from glsldiff.core.errors import InputError
-from glsldiff.physics.material import Preset, coefficients, marble_volume, preset
+from glsldiff.core.io import read_image
+from glsldiff.physics.material import Preset, coefficients, preset
+from glsldiff.physics.procedural import blend, default_vein, marble_volume, point_weight, unit_box
 from glsldiff.render.scene import MaterialSpec, Scene
+from glsldiff.render.shellmap import map_shell, map_surface
 
 
 def _pair(spec: MaterialSpec) -> tuple[NDArray, NDArray]:
@@ -42,17 +44,7 @@ def _second(spec: MaterialSpec, base: tuple[NDArray, NDArray]) -> tuple[NDArray,
     if spec.vein is not None:
         p = preset(spec.vein)
         return np.asarray(p.sigma_a, float), np.asarray(p.sigma_s_prime, float)
-    return base[0] * 20.0, base[1] * 0.5   # darker, more absorbing (as marble_volume's default vein)
-
-
-def _unit(positions: NDArray) -> NDArray[np.float64]:
-    lo, hi = positions.min(axis=0), positions.max(axis=0)
-    return (positions - lo) / np.maximum(hi - lo, 1e-9)
-
-
-def _noise(u: NDArray, seed: int, cells: int = 6) -> NDArray[np.float64]:
-    g = np.random.default_rng(seed).uniform(-1.0, 1.0, (cells + 1,) * 3)
-    return map_coordinates(g, (u * cells).T[::-1], order=3, mode="nearest")
+    return default_vein(base)   # darker, more absorbing (as marble_volume's default vein)
 
 
 @lru_cache(maxsize=4)
@@ -62,25 +54,6 @@ def _vein_lattice(cells: int, seed: int, sigma_a: tuple, sigma_s_prime: tuple, e
     many times per frame)."""
     base = preset(base_name) if base_name else Preset("custom", np.array(sigma_s_prime), np.array(sigma_a), eta)
     return marble_volume((cells,) * 3, seed=seed, base=base, vein=preset(vein_name) if vein_name else None)
-
-
-def blend_weight(kind: str, positions: NDArray, seed: int) -> NDArray[np.float64]:
-    """Weight ``t`` in [0, 1] of the second material at each position (``(N, 3)`` mm)."""
-    u = _unit(positions)
-    if kind == "layers":
-        s = np.sin(2.0 * np.pi * (8.0 * u[:, 1] + 0.8 * _noise(u, seed)))
-        return 0.5 + 0.5 * np.tanh(3.0 * s)
-    if kind == "inclusions":
-        rng = np.random.default_rng(seed)
-        t = np.zeros(len(u))
-        vol, k = 0.0, 0
-        while vol < 0.05 and k < 400:
-            c, r = rng.uniform(0.1, 0.9, 3), rng.uniform(0.03, 0.08)
-            t = np.maximum(t, np.clip((r - np.linalg.norm(u - c, axis=1)) / (0.2 * r), 0.0, 1.0))
-            vol += 4.0 / 3.0 * np.pi * r ** 3
-            k += 1
-        return t
-    raise InputError(f"unknown procedural volume {kind!r}")
 
 
 def _block(scene: Scene) -> tuple[NDArray, NDArray, float]:
@@ -105,11 +78,8 @@ def surface_reflectance(scene: Scene, polygrid: Any) -> NDArray[np.float64] | No
     nb = len(polygrid.boundary_positions)
     if not isinstance(r, str):
         return np.tile(np.asarray(r, dtype=np.float64), (nb, 1))
-    from glsldiff.core.io import read_exr
-    from glsldiff.render.shellmap import map_surface
-
     _, _, h = _block(scene)
-    img = np.asarray(read_exr(scene.resolve(r)), np.float64)[..., :3]
+    img = read_image(scene.resolve(r), exr_only=True)[..., :3]
     rho = map_surface(polygrid, img, (img.shape[1] * h, img.shape[0] * h))
     return np.clip(rho, 0.0, 1.0)
 
@@ -120,8 +90,6 @@ def node_material(scene: Scene, positions: NDArray, polygrid: Any = None) -> tup
     base = _pair(spec)
     n = len(positions)
     if spec.volume is not None:
-        from glsldiff.render.shellmap import map_shell
-
         path = scene.resolve(spec.volume)
         kb, mb, h = _block(scene)
         core: Any = spec.core if spec.core == "mean" else preset(spec.core)
@@ -135,14 +103,11 @@ def node_material(scene: Scene, positions: NDArray, polygrid: Any = None) -> tup
         cells = 64
         kv, mv = _vein_lattice(cells, spec.seed, tuple(base[0]), tuple(base[1]), spec.eta,
                                spec.preset if spec.sigma_a is None else None, spec.vein)
-        coords = (_unit(positions) * (cells - 1)).T[::-1]   # (z, y, x) lattice order
+        coords = (unit_box(positions) * (cells - 1)).T[::-1]   # (z, y, x) lattice order
         kappa = np.stack([map_coordinates(kv[..., c], coords, order=1, mode="nearest") for c in range(3)], -1)
         mu = np.stack([map_coordinates(mv[..., c], coords, order=1, mode="nearest") for c in range(3)], -1)
         return kappa, mu, {"material": f"veins over {spec.preset or 'marble'}"}
-    t = blend_weight(spec.procedural, positions, spec.seed)[:, None]
-    other = _second(spec, base)
-    sa = (1 - t) * base[0] + t * other[0]
-    ss = (1 - t) * base[1] + t * other[1]
-    kappa, mu = coefficients(sa, ss)
+    t = point_weight(spec.procedural, positions, spec.seed)[:, None]
+    kappa, mu = blend(base, _second(spec, base), t)
     return np.asarray(kappa), np.asarray(mu), {"material": f"{spec.procedural}, second material share "
                                                            f"{float(t.mean()):.2f}"}

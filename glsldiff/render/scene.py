@@ -1,6 +1,7 @@
 """Scenes for ``glsldiff render``: a TOML file, validated field by field.
 
-Every length is in mm and every coefficient in mm^-1. A scene file has the tables below;
+Every length is in mm and every coefficient in mm^-1. A scene file has the tables below
+(this docstring is the format's reference, hence the module's length);
 all are optional except ``[mesh]`` (the built-in default scene, :func:`default_scene`,
 fills every field). Unknown tables or keys are errors (a misspelt key would otherwise be
 silently ignored).
@@ -29,7 +30,7 @@ silently ignored).
                               # "rho.exr": a measured map over the block's face, tiled like the volume
                               # (glsldiff.inverse.reflectance)
 
-    [[lights]]                # directional | point | spot | projector | environment
+    [[lights]]                # directional | point | spot | projector | environment (glsldiff.physics.lights)
     type = "directional"
     direction = [0.3, 1.0, 0.6]   # towards the light
     irradiance = [1.0, 1.0, 1.0]
@@ -65,6 +66,13 @@ silently ignored).
     precision = "fp32"        # fp32 | fp16 | paper
     exitant = "p1"            # p1 (P1 radiance, Marshak source) | arbree (TransCut eq. 3) | paper (net flux)
     single_scattering = false
+
+``[[lights]]`` tables parse straight into the light types of :mod:`glsldiff.physics.lights`
+(``Scene.lights``); the other keys of a light table: ``cone_deg`` (in (0, 90], default 30) and
+``falloff_deg`` (default min(25, cone_deg)) of a spot, ``intensity`` (default 1e4) of point,
+spot and projector lights, ``path`` (an OpenEXR lat-long map, see
+:class:`~glsldiff.physics.lights.EnvironmentLight`) and ``scale`` of an environment. Image
+files are read (and checked) when the scene is parsed.
 """
 from __future__ import annotations
 
@@ -81,11 +89,19 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
+from glsldiff.core.io import read_image
+from glsldiff.mesh import SAMPLE_MESHES
 from glsldiff.physics.exitance import EXITANT
+from glsldiff.physics.lights import (KINDS, DirectionalLight, EnvironmentLight, Light, PointLight, ProjectorLight,
+                                     SpotLight)
 from glsldiff.physics.material import preset as lookup_preset
+from glsldiff.physics.procedural import POINT_KINDS
 
-PROCEDURAL = ("veins", "layers", "inclusions")
-LIGHT_TYPES = ("directional", "point", "spot", "projector", "environment")
+PROCEDURAL = ("veins",) + POINT_KINDS  # veins: a marble lattice; the others: weights at the nodes
+LIGHT_TYPES = tuple(KINDS)
+#: Keys of a ``[[lights]]`` table (module docstring); which ones each kind reads: :func:`_light`.
+LIGHT_KEYS = ("type", "direction", "position", "irradiance", "intensity", "cone_deg", "falloff_deg", "path",
+              "scale", "shadows", "image", "up", "fov_deg")
 SCHEMES = ("single", "hierarchical", "multigrid")
 
 
@@ -115,23 +131,6 @@ class MaterialSpec:
     core: str = "mean"
     shell_mm: float | None = None
     reflectance: tuple[float, float, float] | str | None = None   # diffuse surface albedo, or a map (EXR)
-
-
-@dataclass(frozen=True)
-class LightSpec:
-    type: str
-    direction: tuple[float, float, float] | None = None
-    position: tuple[float, float, float] | None = None
-    irradiance: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    intensity: tuple[float, float, float] = (1.0e4, 1.0e4, 1.0e4)
-    cone_deg: float = 30.0
-    falloff_deg: float = 25.0
-    path: str | None = None
-    scale: float = 1.0
-    shadows: bool = True
-    image: str | None = None                            # projector image file
-    up: tuple[float, float, float] | None = None        # projector up; None: (0, 1, 0)
-    fov_deg: float = 30.0                               # projector vertical field of view
 
 
 @dataclass(frozen=True)
@@ -171,7 +170,7 @@ class Scene:
     mesh: MeshSpec = MeshSpec()
     polygrid: PolygridSpec = PolygridSpec()
     material: MaterialSpec = MaterialSpec()
-    lights: tuple[LightSpec, ...] = ()
+    lights: tuple[Light, ...] = ()
     camera: CameraSpec = CameraSpec()
     output: OutputSpec = OutputSpec()
     specular: SpecularSpec = SpecularSpec()
@@ -189,28 +188,15 @@ def _resolve(base_dir: Path, path: str) -> Path:
     return p if p.is_absolute() else base_dir / p
 
 
-def read_light_image(path: str | Path, exr_only: bool = False) -> NDArray[np.float64]:
-    """``(H, W, 3)`` linear RGB of a light's image file: OpenEXR as stored, or an 8-bit PNG or
-    JPEG (any file OpenCV decodes) converted BGR -> RGB and sRGB-decoded to [0, 1].
-    ``exr_only``: read every file as OpenEXR. Raises on a file that cannot be decoded."""
-    p = Path(path)
-    if exr_only or p.suffix.lower() == ".exr":
-        from glsldiff.core.io import read_exr
-        return np.asarray(read_exr(p), dtype=np.float64)
-    import cv2
-
-    bgr = cv2.imread(str(p), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise InputError(f"{p}: OpenCV cannot read it as an 8-bit PNG or JPEG")
-    c = bgr[..., ::-1].astype(np.float64) / 255.0
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
 def default_scene() -> Scene:
     """The built-in scene: the pymeshlab bunny (100 mm) in veined marble under a
     directional light from the upper left front, camera framed automatically."""
     return Scene(material=MaterialSpec(preset="marble", procedural="veins"),
-                 lights=(LightSpec("directional", direction=(-0.4, 0.7, 0.6), irradiance=(1.0, 1.0, 1.0)),))
+                 lights=(DirectionalLight(_unit((-0.4, 0.7, 0.6)), (1.0, 1.0, 1.0)),))
+
+
+def _unit(a: Any) -> NDArray[np.float64]:
+    return vec(a) / np.linalg.norm(a)
 
 
 # ---------------------------------------------------------------- validation helpers
@@ -323,7 +309,8 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
         if volume is None:
             t.fail("reflectance", "a reflectance map tiles like the block volume: give [material].volume too, "
                                   "or a constant albedo")
-        reflectance = _image_file(t, "reflectance", scene_dir, "reflectance map", exr_only=True)
+        reflectance = t.string("reflectance", None)
+        _image(t, "reflectance", scene_dir, "reflectance map", exr_only=True)
     else:
         reflectance = t.vec3("reflectance", None, nonneg=True)
         if reflectance is not None and max(reflectance) > 1.0:
@@ -334,9 +321,9 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
                         shell_mm=t.number("shell_mm", None, 0.0, lo_open=True), reflectance=reflectance)
 
 
-def _image_file(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool) -> str | None:
-    """``[table].key``, an image file (relative to the scene file), read once to check
-    that it exists, decodes (:func:`read_light_image`) and has finite pixels >= 0."""
+def _image(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool) -> NDArray[np.float64] | None:
+    """The image of file ``[table].key`` (relative to the scene file), checked that it exists,
+    decodes (:func:`glsldiff.core.io.read_image`) and has finite pixels >= 0; None if the key is absent."""
     path = t.string(key, None)
     if path is None:
         return None
@@ -345,15 +332,15 @@ def _image_file(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool)
         t.fail(key, f"{what} {str(p)!r} does not exist")
     kind = "OpenEXR" if exr_only else "OpenEXR, PNG or JPEG"
     try:
-        img = read_light_image(p, exr_only)
+        img = read_image(p, exr_only)
     except Exception as exc:  # OpenEXR raises plain exceptions on corrupt files
         t.fail(key, f"{what} {str(p)!r} is not a readable {kind} file ({' '.join(str(exc).split())})")
     if not np.all(np.isfinite(img)) or img.min() < 0:
         t.fail(key, f"{what} {str(p)!r} has negative or non-finite pixels")
-    return path
+    return img
 
 
-def _light(t: _Table, scene_dir: Path) -> LightSpec:
+def _light(t: _Table, scene_dir: Path) -> Light:
     kind = t.data.get("type")
     if kind not in LIGHT_TYPES:
         t.fail("type", f"{kind!r} is not one of {', '.join(LIGHT_TYPES)}")
@@ -377,18 +364,31 @@ def _light(t: _Table, scene_dir: Path) -> LightSpec:
         if np.linalg.norm(np.cross(a, b)) < 1e-6 * np.linalg.norm(a) * np.linalg.norm(b):
             t.fail("up", f"{list(u)}{'' if up else ' (the default)'} is parallel to direction "
                          f"{list(direction)}; give an up vector across the optical axis")
-    return LightSpec(kind, direction=direction, position=t.vec3("position", None),
-                     irradiance=t.vec3("irradiance", (1.0, 1.0, 1.0), nonneg=True),
-                     intensity=t.vec3("intensity", (1.0e4, 1.0e4, 1.0e4), nonneg=True),
-                     cone_deg=cone, falloff_deg=falloff,
-                     path=_image_file(t, "path", scene_dir, "environment map", exr_only=True),
-                     scale=t.number("scale", 1.0, 0.0), shadows=t.boolean("shadows", True),
-                     image=_image_file(t, "image", scene_dir, "projector image", exr_only=False),
-                     up=up, fov_deg=fov)
+    position = t.vec3("position", None)
+    irradiance = t.vec3("irradiance", (1.0, 1.0, 1.0), nonneg=True)
+    intensity = t.vec3("intensity", (1.0e4, 1.0e4, 1.0e4), nonneg=True)
+    env_map = _image(t, "path", scene_dir, "environment map", exr_only=True)
+    scale = t.number("scale", 1.0, 0.0)
+    shadows = t.boolean("shadows", True)
+    image = _image(t, "image", scene_dir, "projector image", exr_only=False)
+    try:
+        if kind == "directional":
+            return DirectionalLight(_unit(direction), irradiance, shadows)
+        if kind == "point":
+            return PointLight(position, intensity, shadows)
+        if kind == "spot":
+            return SpotLight(position, _unit(direction), intensity, cone, falloff, shadows)
+        if kind == "projector":
+            return ProjectorLight(position, direction, image, intensity, up=up if up is not None else (0.0, 1.0, 0.0),
+                                  fov_deg=fov, shadows=shadows)
+        return EnvironmentLight(env_map, scale)   # visibility on; ``shadows`` is not read
+    except InputError as exc:   # e.g. "SpotLight.direction must be ...": name the table's key
+        key = str(exc).split(" ", 1)[0].partition(".")[2].partition("=")[0]
+        t.fail(key if key in LIGHT_KEYS else "", str(exc))
+        raise   # not reached: fail raises
 
 
-_TABLES = {"mesh": MeshSpec, "polygrid": PolygridSpec, "material": MaterialSpec, "lights": LightSpec,
-           "camera": CameraSpec, "output": OutputSpec, "specular": SpecularSpec, "options": OptionsSpec}
+_TABLES = ("mesh", "polygrid", "material", "lights", "camera", "output", "specular", "options")
 
 
 def _keys(cls: type) -> set[str]:
@@ -406,7 +406,6 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     if not m.has("source"):
         m.fail("source", "missing; give a sample name (bunny, cow, bone, airplane, sphere) or a mesh file path")
     source = m.string("source", "bunny")
-    from glsldiff.mesh import SAMPLE_MESHES
     if source not in SAMPLE_MESHES and source != "sphere":
         p = _resolve(base_dir, source)
         if not p.is_file():
@@ -426,7 +425,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     raw = data.get("lights", [])
     if not isinstance(raw, list):
         raise InputError(f"{src}: [[lights]]: must be an array of tables ([[lights]]), got {type(raw).__name__}")
-    lights = tuple(_light(_Table(src, f"lights.{i}", d, _keys(LightSpec)), base_dir) for i, d in enumerate(raw))
+    lights = tuple(_light(_Table(src, f"lights.{i}", d, set(LIGHT_KEYS)), base_dir) for i, d in enumerate(raw))
     if not lights:
         raise InputError(f"{src}: [[lights]]: the scene has no light; add a [[lights]] table")
 

@@ -27,7 +27,7 @@ thereby the harmonic mean of its neighbours, never the arithmetic one: the mixtu
 materials has the mean extinction, not the mean diffusion length. Every interpolated
 value is a convex combination of voxel values, so kappa stays > 0, mu >= 0 and
 ``3 kappa mu <= 1`` wherever the block satisfies it (non-physical blocks, e.g. the
-solver-test volumes of :func:`glsldiff.physics.material.random_volume`, are accepted as they are).
+solver-test volumes of :func:`glsldiff.physics.procedural.random_volume`, are accepted as they are).
 The core blend works in the same variables.
 
 Depth
@@ -90,16 +90,19 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
+from glsldiff.core.checks import choice, real, rgb
 from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import INACTIVE, NEIGHBOURS
-from glsldiff.physics.material import Preset, preset
 from glsldiff.grids.polygrid import Polygrid
+from glsldiff.mesh import closest_points
+from glsldiff.physics.material import Preset, preset
 
 __all__ = ["AUTO_MESH_QUERIES", "FACE_FRAMES", "map_shell", "shell_coordinates"]
 
 Array = NDArray[np.float64]
 DepthFrom = Literal["auto", "mesh", "nodes"]
 Tiling = Literal["wrap", "mirror"]
+TILINGS = ("wrap", "mirror")
 
 #: Per outward neighbour slot (``x-, x+, y-, y+, z-, z+``): ``(u axis, u sign, v axis)``
 #: with axes 0, 1, 2 = x, y, z of the polycube; ``sign * e_u x e_v`` is the outward axis.
@@ -111,16 +114,6 @@ FACE_FRAMES = np.array([[1, -1, 2], [1, 1, 2], [0, 1, 2], [0, -1, 2], [0, -1, 1]
 
 
 # ---- validation ------------------------------------------------------------------------
-def _positive(name: str, value: Any, unit: str) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"{name}={value!r} must be a number ({unit})") from None
-    if isinstance(value, bool) or not np.isfinite(v) or v <= 0.0:
-        raise InputError(f"{name}={value!r} must be finite and > 0 ({unit})")
-    return v
-
-
 def _block(name: str, values: ArrayLike) -> Array:
     """``(nz, ny, nx)`` grey or ``(nz, ny, nx, 1|3)`` block as a float64 ``(nz, ny, nx, 3)``."""
     try:
@@ -150,20 +143,9 @@ def _core(core: Any, sigma_t: Array, mu: Array) -> tuple[Array, Array]:
             raise InputError(f"core: {exc} (or 'mean': the block's bottom-layer mean)") from None
         return 1.0 / (3.0 * np.asarray(k)), np.asarray(m, dtype=np.float64)
     if isinstance(core, (tuple, list)) and len(core) == 2:
-        out = []
-        for name, val in (("core kappa", core[0]), ("core mu", core[1])):
-            try:
-                a = np.broadcast_to(np.asarray(val, dtype=np.float64), (3,)).copy()
-            except (TypeError, ValueError):
-                raise InputError(f"{name} must be a number or an RGB triple, got {val!r}") from None
-            if not np.all(np.isfinite(a)):
-                raise InputError(f"{name}={a.tolist()} must be finite")
-            out.append(a)
-        k, m = out
+        k, m = np.array(rgb(core[0], "core kappa", "mm")), np.array(rgb(core[1], "core mu", "mm^-1"))
         if np.any(k <= 0.0):
             raise InputError(f"core kappa={k.tolist()} must be > 0 mm")
-        if np.any(m < 0.0):
-            raise InputError(f"core mu={m.tolist()} must be >= 0 mm^-1")
         return 1.0 / (3.0 * k), m
     raise InputError(f"core={core!r}: give 'mean' (the block's bottom-layer mean), a preset name "
                      "or Preset, or a (kappa [mm], mu [mm^-1]) pair of scalars or RGB triples")
@@ -197,8 +179,7 @@ def shell_coordinates(pg: Polygrid, *, depth_from: DepthFrom = "auto",
     """
     if not isinstance(pg, Polygrid):
         raise InputError(f"pg must be a Polygrid, got {type(pg).__name__}")
-    if depth_from not in ("auto", "mesh", "nodes"):
-        raise InputError(f"depth_from={depth_from!r}; choose 'auto', 'mesh' or 'nodes'")
+    choice(depth_from, "depth_from", ("auto", "mesh", "nodes"))
     if depth_from == "mesh" and pg.mesh is None:
         raise InputError("depth_from='mesh' needs a polygrid built from a mesh (pg.mesh is None)")
     lat = pg.lattice
@@ -214,7 +195,6 @@ def shell_coordinates(pg: Polygrid, *, depth_from: DepthFrom = "auto",
         if depth_from == "mesh" or need.size <= AUTO_MESH_QUERIES:
             mode = "mesh"
     if mode == "mesh":
-        from glsldiff.mesh import closest_points
         if need.size:
             _, d, _, _ = closest_points(pg.mesh, pg.positions[need])
             depth[need] = np.minimum(d, depth[need])
@@ -228,11 +208,6 @@ def shell_coordinates(pg: Polygrid, *, depth_from: DepthFrom = "auto",
 
 
 # ---- block lookup ----------------------------------------------------------------------
-def _check_tiling(tiling: Any) -> None:
-    if tiling not in ("wrap", "mirror"):
-        raise InputError(f"tiling={tiling!r}; choose 'wrap' or 'mirror'")
-
-
 def _tile(i: NDArray[np.int64], n: int, tiling: str) -> NDArray[np.int64]:
     """Integer voxel index -> index in ``[0, n)``: periodic, or reflected (period ``2n``)."""
     if tiling == "wrap":
@@ -329,12 +304,12 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
                          "sigma_s')) is a positive length in mm")
     if np.any(mb < 0.0):
         raise InputError(f"mu_block has {int((mb < 0).sum())} negative values; mu = sigma_a >= 0 mm^-1")
-    h = _positive("h_mm", h_mm, "block voxel size, mm")
-    scale = _positive("scale", scale, "block magnification on the object")
-    _check_tiling(tiling)
+    h = real(h_mm, "h_mm (block voxel size, mm)", 0.0, lo_open=True)
+    scale = real(scale, "scale (block magnification on the object)", 0.0, lo_open=True)
+    choice(tiling, "tiling", TILINGS)
     nz, ny, nx = kb.shape[:3]
     voxel = h * scale
-    thickness = nz * voxel if thickness_mm is None else _positive("thickness_mm", thickness_mm, "mm")
+    thickness = nz * voxel if thickness_mm is None else real(thickness_mm, "thickness_mm (mm)", 0.0, lo_open=True)
     sigma_t = 1.0 / (3.0 * kb)
     core_st, core_mu = _core(core, sigma_t, mb)
 
@@ -384,8 +359,8 @@ def map_surface(pg: Polygrid, image: ArrayLike, period_mm: tuple[float, float],
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 3 or not np.all(np.isfinite(img)):
         raise InputError(f"a surface map must be a finite (H, W, C) array, got shape {img.shape}")
-    px, py = (_positive("period_mm", p, "map extent, mm") for p in period_mm)
-    _check_tiling(tiling)
+    px, py = (real(p, "period_mm (map extent, mm)", 0.0, lo_open=True) for p in period_mm)
+    choice(tiling, "tiling", TILINGS)
     geo = shell_coordinates(pg, depth_from="nodes")
     b = pg.lattice.boundary
     h, w = img.shape[:2]

@@ -1,4 +1,4 @@
-"""A validated forward-diffusion problem on a regular grid, shared by every solver.
+"""A validated forward-diffusion problem on a grid (regular or polygrid), shared by every solver.
 
 The continuous problem (Wang et al. 2008, eqs. 1-2), with outward normal n::
 
@@ -167,16 +167,17 @@ def relative_l2(x: ArrayLike, ref: ArrayLike, mask: NDArray[np.bool_] | None = N
 
 
 def level_problems(hierarchy: Hierarchy, problem: DiffusionProblem) -> list[DiffusionProblem]:
-    """``problem`` (on the hierarchy's finest polygrid) and its restriction to every coarser
-    level: kappa, mu averaged over existing children, q over boundary children."""
+    """``problem`` (on the hierarchy's finest grid) and its restriction to every coarser level:
+    kappa and mu by the transfers' ``restrict_all``, q by ``restrict_kind`` (boundary from
+    boundary nodes), see :class:`glsldiff.grids.hierarchy.Transfer`."""
     if problem.grid is not hierarchy.grids[0]:
-        raise InputError("the problem is not on this hierarchy's finest polygrid")
+        raise InputError("the problem is not on this hierarchy's finest grid")
     out = [problem]
     for t, g in zip(hierarchy.transfers, hierarchy.grids[1:]):
         p = out[-1]
         kappa = (t.restrict_all @ p.kappa.reshape(-1, 3)).reshape(g.shape + (3,))
         mu = (t.restrict_all @ p.mu.reshape(-1, 3)).reshape(g.shape + (3,))
-        q = (t.restrict_kind @ p.q.reshape(-1, 3))[g.lattice.boundary]
+        q = (t.restrict_kind @ p.q.reshape(-1, 3)).reshape(g.shape + (3,))
         out.append(DiffusionProblem(g, kappa, mu, q, eta=p.eta, C=p.C, stencil=p.stencil,
                                     face_mean=p.face_mean))
     return out

@@ -1,4 +1,27 @@
-"""The report every solver returns next to its solution."""
+"""The report every solver returns next to its solution, the stopping rule of the iterative
+solvers and their default tolerances.
+
+Every solver, CPU oracle or GLSL, has the pyamg/scipy-style signature
+``solve(..., tol, maxiter, x0, callback, residuals) -> (solution, SolveReport)``:
+
+``tol``
+    Relaxation solvers (numpy and GLSL Jacobi, the multilevel schedules): the Jacobi-scaled
+    residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``, default :data:`RELAX_TOL`. The
+    algebraic-multigrid reference: the relative residual ``||b - A x|| / ||b||`` per channel,
+    default :data:`REFERENCE_TOL`. A direct solve is exact and takes none.
+``maxiter``
+    Iteration budget: Jacobi sweeps, V-cycles (multigrid) or AMG cycles; default
+    :data:`MAXITER` for relaxations.
+``x0``
+    Initial fluence (node array), ``None`` for the solver's cold start (zero, or a
+    schedule's coarse-to-fine start), or :data:`CURRENT` for the GLSL solvers' current
+    iterate on the GPU (restarts, frame coherence).
+``callback``
+    ``callback(x)`` after each residual check, ``x`` the unknown vector (channel-major,
+    float64; see :class:`glsldiff.oracle.assembly.LinearSystem`).
+``residuals``
+    A list the solver fills with its residual history (initial residual first).
+"""
 from __future__ import annotations
 
 import math
@@ -6,6 +29,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import NDArray
+
+RELAX_TOL = 1e-6        # relaxation solvers: Jacobi-scaled residual
+REFERENCE_TOL = 1e-12   # algebraic multigrid reference: relative residual ||b - A x|| / ||b||
+MAXITER = 20000         # relaxation solvers: sweeps (V-cycles for multigrid)
+CURRENT = "current"     # x0: continue from the GLSL solver's current iterate
 
 
 @dataclass
@@ -15,21 +43,25 @@ class SolveReport:
     Attributes
     ----------
     method
-        Solver name (``"glsl-jacobi"``, ``"numpy-jacobi"``, ``"scipy-direct"``).
+        Solver name (``"glsl-jacobi-fp32"``, ``"numpy-jacobi"``, ``"scipy-direct"``, ...).
+    nodes
+        Unknowns per channel.
     sweeps
-        Jacobi sweeps run (0 for a direct solve).
+        Iterations run: Jacobi sweeps (finest level), V-cycles for multigrid, AMG cycles;
+        0 for a direct solve.
     residual
         Final Jacobi-scaled residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||``.
     seconds
         Wall-clock time of the solve (uploads and read-backs included).
     converged
         Whether ``residual <= tol`` was reached within the sweep budget.
-    residuals
-        ``(sweep, residual)`` pairs at each check, in order.
+    history
+        ``(iteration, residual)`` pairs at each check, in order (the initial guess first).
     error_estimate
-        Estimated relative L2 error to the converged solution from the observed
-        contraction rate rho: ``||x_{n+1} - x_n|| / ((1 - rho) ||x_n||)``; ``nan`` when
-        rho could not be estimated.
+        Estimated relative L2 error of the unknown to the converged solution, from the
+        change of the iterate over the last check interval and the contraction rho of the
+        residual over it: ``||x_n - x_{n-k}|| / ((1 - rho) ||x_n||)``; ``nan`` when rho
+        could not be estimated; 0 for a direct solve.
     error
         Relative L2 error against a reference solution, when the caller measured one.
     status
@@ -51,18 +83,13 @@ class SolveReport:
     residual: float = float("nan")
     seconds: float = 0.0
     converged: bool = False
-    residuals: list[tuple[int, float]] = field(default_factory=list)
+    history: list[tuple[int, float]] = field(default_factory=list)
     error_estimate: float = float("nan")
     error: float | None = None
-    device: str = "cpu"
     status: str = "converged"
     radiance: dict[str, NDArray[np.float64]] = field(default_factory=dict, repr=False)
     levels: list[dict[str, object]] = field(default_factory=list)
     work: int | None = None
-
-    @property
-    def node_updates_per_second(self) -> float:
-        return self.nodes * self.sweeps / self.seconds if self.seconds > 0 else float("nan")
 
     def summary(self) -> str:
         """One line for logs and the CLI."""
@@ -93,16 +120,19 @@ def channel_ratio(num: NDArray, den: NDArray) -> float:
     return float(np.max(nn[ok] / dd[ok]))
 
 
-def contraction_error_estimate(residuals: list[tuple[int, float]], step_norm: float,
+def contraction_error_estimate(history: list[tuple[int, float]], change_norm: float,
                                x_norm: float) -> float:
-    """Relative error estimate from the last two residual checks (see :class:`SolveReport`)."""
-    if len(residuals) < 2 or x_norm == 0.0:
+    """Relative error estimate (see :class:`SolveReport`) from the last two residual checks of
+    ``history`` and ``change_norm = ||x_n - x_{n-k}||``, the change of the iterate between them:
+    for a contraction by ``rho`` per check interval the remaining error is at most
+    ``rho / (1 - rho)`` times the last change, and about ``1 / (1 - rho)`` times it while the
+    slowest mode dominates."""
+    if len(history) < 2 or x_norm == 0.0:
         return float("nan")
-    (n0, r0), (n1, r1) = residuals[-2], residuals[-1]
+    (n0, r0), (n1, r1) = history[-2], history[-1]
     if r0 <= 0.0 or r1 <= 0.0 or n1 <= n0 or r1 >= r0:
         return float("nan")
-    rho = (r1 / r0) ** (1.0 / (n1 - n0))
-    return step_norm / ((1.0 - rho) * x_norm)
+    return change_norm / ((1.0 - r1 / r0) * x_norm)
 
 
 class ConvergenceMonitor:
@@ -114,14 +144,14 @@ class ConvergenceMonitor:
     matrix has spectral radius >= 1), ``"stalled"`` (no 1 % improvement of the best
     residual for ``patience`` checks without a rising trend, at a residual below
     ``floor_max``: the rounding floor of the arithmetic or storage; fp16 buffers floor
-    near 2e-3, fp32 near 3e-7), ``"budget"`` (sweep budget spent) or ``None`` (go on).
+    near 2e-3, fp32 near 3e-7), ``"budget"`` (``maxiter`` spent) or ``None`` (go on).
     A residual above ``floor_max`` is never taken for a rounding floor: the iteration
     goes on until it converges, diverges or spends its budget.
     """
 
-    def __init__(self, tol: float, max_sweeps: int, patience: int = 8,
+    def __init__(self, tol: float, maxiter: int, patience: int = 8,
                  floor_max: float = 1e-2) -> None:
-        self.tol, self.max_sweeps, self.patience = tol, max_sweeps, patience
+        self.tol, self.maxiter, self.patience = tol, maxiter, patience
         self.floor_max = floor_max
         self.history: list[tuple[int, float]] = []
         self._best = float("inf")
@@ -147,4 +177,4 @@ class ConvergenceMonitor:
                     return "diverged"
                 if res <= self.floor_max:
                     return "stalled"
-        return "budget" if sweeps >= self.max_sweeps else None
+        return "budget" if sweeps >= self.maxiter else None

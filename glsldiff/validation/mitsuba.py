@@ -1,10 +1,13 @@
 """Monte Carlo reference renderer (Mitsuba 3 ``volpath``) for validating the diffusion renderer.
 
+(Over 400 lines: one cohesive reference, whose measured Mitsuba conventions are documented here.)
+
 :func:`render_mitsuba` renders a closed :class:`~glsldiff.mesh.Mesh` filled with a homogeneous
-or a gridded heterogeneous medium (isotropic phase function) under a directional, constant or
-lat-long environment light, with Mitsuba 3's volumetric path tracer. Scene units are mm, so
-coefficients in mm^-1 apply directly and radiance comes out in the light's units (irradiance E
-of a directional light in W mm^-2 gives radiance in W mm^-2 sr^-1, and so on).
+or a gridded heterogeneous medium (isotropic phase function) under a directional or an
+environment light (:mod:`glsldiff.physics.lights`), with Mitsuba 3's volumetric path tracer.
+Scene units are mm, so coefficients in mm^-1 apply directly and radiance comes out in the
+light's units (irradiance E of a directional light in W mm^-2 gives radiance in W mm^-2
+sr^-1, and so on).
 
 Model
 -----
@@ -16,29 +19,32 @@ Model
   unchanged, and volpath treats the crossing as a free, uncounted event); any other ``eta``
   gives a smooth ``dielectric`` with ``int_ior = eta``, ``ext_ior = 1`` (Fresnel reflection and
   refraction; radiance leaving the denser medium is divided by eta^2 as physics requires).
-- Lights (``light`` dict, one of):
+- Lights (``light``): the renderer's own :mod:`glsldiff.physics.lights` types, converted to
+  Mitsuba emitters here:
 
-  ``{"type": "directional", "direction": (3,), "irradiance": (3,)}``
-      ``direction`` points FROM the object TOWARDS the light (it is negated for Mitsuba, whose
-      ``directional`` emitter takes the propagation direction); ``irradiance`` [RGB] on a surface
-      facing the light. A delta light: it is reached only by next-event estimation, which cannot
-      pass a smooth dielectric (a delta BSDF), so ``eta != 1`` with a directional light raises
-      :class:`~glsldiff.core.errors.InputError` (use ``eta = 1``, or an environment light).
-  ``{"type": "constant", "radiance": (3,)}``
-      Uniform environment radiance [RGB] from every direction.
-  ``{"type": "envmap", "image": (H, W, 3), "scale": float, "frame": "y_up" | "z_up"}``
-      Lat-long environment radiance [RGB], bilinear lookup; ``scale`` (default 1) multiplies it.
-      ``frame = "y_up"`` (default): Mitsuba's own ``envmap`` convention, no ``to_world``. Row
-      centres lie at the polar angle theta = pi row / (H - 1) from +y (row 0 *on* the +y pole,
-      the last row on the -y pole); column centres at u = (column + 0.5) / W, u running
-      through the directions -z (u = 0), +x (u = 1/4), +z (u = 1/2), -x (u = 3/4), wrapping
-      around (all measured, and pinned by a test). ``frame = "z_up"``: the convention of
-      :class:`glsldiff.render.lighting.EnvironmentLight` (row centres at theta = pi (row + 0.5) / H
+  :class:`~glsldiff.physics.lights.DirectionalLight`
+      Mitsuba's ``directional`` emitter with the light's ``irradiance`` [RGB] on a surface facing
+      it; its ``direction`` points FROM the object TOWARDS the light, so it is negated for
+      Mitsuba, which takes the propagation direction. A delta light: it is reached only by
+      next-event estimation, which cannot pass a smooth dielectric (a delta BSDF), so
+      ``eta != 1`` with a directional light raises :class:`~glsldiff.core.errors.InputError`
+      (use ``eta = 1``, or an environment light).
+  :class:`~glsldiff.physics.lights.EnvironmentLight` of a uniform map
+      Mitsuba's ``constant`` emitter, radiance ``scale`` times the pixel value [RGB].
+  :class:`~glsldiff.physics.lights.EnvironmentLight`
+      Mitsuba's ``envmap`` (lat-long radiance [RGB], bilinear lookup) with the light's
+      ``scale``; the map is at least 2 x 2 pixels. Its spherical-harmonics ``order``,
+      ``visibility`` and ``directions`` are pass 1's approximations and are not used.
+      Mitsuba's own lat-long convention (measured): row centres at the polar angle
+      theta = pi row / (H - 1) from +y (row 0 *on* the +y pole, the last row on the -y pole);
+      column centres at u = (column + 0.5) / W, u running through the directions -z (u = 0),
+      +x (u = 1/4), +z (u = 1/2), -x (u = 3/4), wrapping around. The glsldiff convention
+      (:func:`glsldiff.physics.sh.latlong_directions`: row centres at theta = pi (row + 0.5) / H
       from +z; azimuth phi = -pi + 2 pi u from +x towards +y, u = (column + 0.5) / W, so
-      u = 1/4 is -y, 1/2 is +x, 3/4 is +y). It is mapped onto Mitsuba's by mirroring the
-      columns (u -> 1 - u, exact), resampling the rows linearly in theta onto Mitsuba's row
-      centres, and the ``to_world`` rotation that sends Mitsuba's local (x, y, z) to world
-      (y, z, x); a test compares directions against :func:`glsldiff.render.lighting.latlong_directions`.
+      u = 1/4 is -y, 1/2 is +x, 3/4 is +y) is mapped onto Mitsuba's by mirroring the columns
+      (u -> 1 - u, exact), resampling the rows linearly in theta onto Mitsuba's row centres,
+      and the ``to_world`` rotation that sends Mitsuba's local (x, y, z) to world (y, z, x); a
+      test compares directions against :func:`~glsldiff.physics.sh.latlong_directions`.
 
 - Camera: :class:`McCamera`, a pinhole with a *vertical* field of view (Mitsuba ``perspective``
   with ``fov_axis = "y"``); box reconstruction filter, so every pixel is the plain mean of its
@@ -111,22 +117,16 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core import checks
 from glsldiff.core.errors import BackendError, InputError
 from glsldiff.mesh import Mesh
+from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, Light
 
 __all__ = ["McCamera", "render_mitsuba", "render_scattering_orders", "render_subsurface",
-           "single_scattering_share", "LIGHT_TYPES", "RGB_VARIANTS", "ENV_FRAMES"]
+           "single_scattering_share", "RGB_VARIANTS"]
 
 log = logging.getLogger(__name__)
 
-#: Light dictionaries :func:`render_mitsuba` accepts, with their required and optional keys.
-LIGHT_TYPES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
-    "directional": (("direction", "irradiance"), ()),
-    "constant": (("radiance",), ()),
-    "envmap": (("image",), ("scale", "frame")),
-}
-#: Lat-long conventions of an envmap light (module docstring).
-ENV_FRAMES = ("y_up", "z_up")
 #: Extinction [mm^-1] of the opaque, purely absorbing interior of :func:`render_subsurface`.
 OPAQUE_SIGMA_A = 1.0e4
 #: Mitsuba variants usable here (RGB rendering: spectral variants would upsample coefficients).
@@ -141,35 +141,6 @@ _CHANNEL_MODES = ("auto", "split", "rgb")
 # ---------------------------------------------------------------------------------------
 # Input checks
 # ---------------------------------------------------------------------------------------
-def _finite_array(name: str, value: Any) -> NDArray[np.float64]:
-    try:
-        a = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name} must be numeric, got {value!r}") from exc
-    if not np.all(np.isfinite(a)):
-        raise InputError(f"{name} has {int((~np.isfinite(a)).sum())} non-finite values (NaN/inf); "
-                         "pass finite numbers")
-    return a
-
-
-def _vec3(name: str, value: Any) -> NDArray[np.float64]:
-    a = _finite_array(name, value)
-    if a.shape != (3,):
-        raise InputError(f"{name} must have shape (3,), got {a.shape}")
-    return a
-
-
-def _rgb(name: str, value: Any, unit: str) -> NDArray[np.float64]:
-    """A non-negative RGB triple from a scalar or a (3,) array."""
-    a = _finite_array(name, value)
-    if a.shape not in ((), (1,), (3,)):
-        raise InputError(f"{name} must be a scalar or an RGB triple of shape (3,) [{unit}], got shape {a.shape}")
-    a = np.broadcast_to(a, (3,)).copy()
-    if (a < 0).any():
-        raise InputError(f"{name} = {a.tolist()} must be >= 0 [{unit}]")
-    return a
-
-
 def _positive_int(name: str, value: Any) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise InputError(f"{name} must be an integer >= 1, got {value!r}")
@@ -200,14 +171,14 @@ class McCamera:
     height: int
 
     def __post_init__(self) -> None:
-        o, t, u = (_vec3(f"camera.{n}", getattr(self, n)) for n in ("origin", "target", "up"))
+        o, t, u = (checks.vector3(getattr(self, n), f"camera.{n}") for n in ("origin", "target", "up"))
         d = t - o
         if np.linalg.norm(d) == 0:
             raise InputError("camera.target must differ from camera.origin")
         if np.linalg.norm(np.cross(d / np.linalg.norm(d), u)) < 1e-6 * max(np.linalg.norm(u), 1e-300):
             raise InputError(f"camera.up {u.tolist()} must be non-zero and not parallel to the view "
                              f"direction {d.tolist()}")
-        fov = float(_finite_array("camera.fov_deg", self.fov_deg))
+        fov = float(checks.finite_array(self.fov_deg, "camera.fov_deg"))
         if not 0.0 < fov < 180.0:
             raise InputError(f"camera.fov_deg must be in (0, 180) degrees (vertical), got {fov}")
         for name, v in (("origin", o), ("target", t), ("up", u)):
@@ -218,46 +189,26 @@ class McCamera:
 
 
 def _check_light(light: Any, eta: float) -> dict[str, Any]:
-    if not isinstance(light, Mapping):
-        raise InputError(f"light must be a dict with a 'type' key ({', '.join(LIGHT_TYPES)}), got {light!r}")
-    kind = light.get("type")
-    if kind not in LIGHT_TYPES:
-        raise InputError(f"light['type'] = {kind!r} is not one of {', '.join(LIGHT_TYPES)}")
-    required, optional = LIGHT_TYPES[kind]
-    missing = [k for k in required if k not in light]
-    extra = sorted(set(light) - set(required) - set(optional) - {"type"})
-    if missing:
-        raise InputError(f"{kind} light needs the key(s) {', '.join(missing)}")
-    if extra:
-        raise InputError(f"{kind} light has unknown key(s) {', '.join(extra)}; "
-                         f"allowed: {', '.join(required + optional)}")
-    if kind == "directional":
+    """The Mitsuba emitter parameters of ``light`` (module docstring): ``type`` (``directional``,
+    ``constant`` or ``envmap``) and its values as arrays."""
+    if isinstance(light, DirectionalLight):
         if eta != 1.0:
             raise InputError(
                 f"a directional (delta) light cannot be reached through a smooth dielectric boundary "
                 f"(eta = {eta}) by next-event estimation, so Mitsuba would render the medium black; "
-                "use eta = 1 (index matched) or an environment light (constant or envmap)")
-        d = _vec3("light['direction']", light["direction"])
-        n = np.linalg.norm(d)
-        if n == 0:
-            raise InputError("light['direction'] must be non-zero (from the object towards the light)")
-        return {"type": "directional", "direction": d / n,
-                "irradiance": _rgb("light['irradiance']", light["irradiance"], "irradiance")}
-    if kind == "constant":
-        return {"type": "constant", "radiance": _rgb("light['radiance']", light["radiance"], "radiance")}
-    img = _finite_array("light['image']", light["image"])
-    if img.ndim != 3 or img.shape[2] != 3 or img.shape[0] < 2 or img.shape[1] < 2:
-        raise InputError(f"light['image'] must be a lat-long RGB image of shape (H, W, 3) with H, W >= 2, "
-                         f"got {img.shape}")
-    if (img < 0).any():
-        raise InputError("light['image'] has negative radiance values; pass values >= 0")
-    scale = float(_finite_array("light['scale']", light.get("scale", 1.0)))
-    if scale <= 0:
-        raise InputError(f"light['scale'] must be > 0, got {scale}")
-    frame = light.get("frame", "y_up")
-    if frame not in ENV_FRAMES:
-        raise InputError(f"light['frame'] = {frame!r} must be one of {', '.join(ENV_FRAMES)}")
-    return {"type": "envmap", "image": img, "scale": scale, "frame": frame}
+                "use eta = 1 (index matched) or an environment light")
+        return {"type": "directional", "direction": np.asarray(light.direction),
+                "irradiance": np.asarray(light.irradiance)}
+    if isinstance(light, EnvironmentLight):
+        img = light.image
+        if np.all(img == img[0, 0]):   # uniform: Mitsuba's constant emitter, sampled exactly
+            return {"type": "constant", "radiance": light.scale * img[0, 0]}
+        if img.shape[0] < 2 or img.shape[1] < 2:
+            raise InputError(f"light.image of an environment light must be at least 2 x 2 pixels for Mitsuba's "
+                             f"envmap, got {img.shape[0]} x {img.shape[1]}")
+        return {"type": "envmap", "image": img, "scale": light.scale}
+    raise InputError(f"light must be a DirectionalLight or an EnvironmentLight (glsldiff.physics.lights) for the "
+                     f"Monte Carlo reference, got {type(light).__name__}")
 
 
 def _check_volume(volume: Any) -> dict[str, Any]:
@@ -272,7 +223,7 @@ def _check_volume(volume: Any) -> dict[str, Any]:
                          f"{', '.join(_VOLUME_KEYS)}, filter")
     out: dict[str, Any] = {}
     for name in ("sigma_a", "sigma_s"):
-        a = _finite_array(f"volume['{name}']", volume[name])
+        a = checks.finite_array(volume[name], f"volume['{name}']")
         if a.ndim != 4 or a.shape[3] != 3 or min(a.shape) < 1:
             raise InputError(f"volume['{name}'] must have shape (nz, ny, nx, 3) [mm^-1], got {a.shape}")
         if (a < 0).any():
@@ -282,7 +233,8 @@ def _check_volume(volume: Any) -> dict[str, Any]:
     if out["sigma_a"].shape != out["sigma_s"].shape:
         raise InputError(f"volume['sigma_a'] {out['sigma_a'].shape} and volume['sigma_s'] "
                          f"{out['sigma_s'].shape} must have the same shape (nz, ny, nx, 3)")
-    lo, hi = _vec3("volume['bbox_min']", volume["bbox_min"]), _vec3("volume['bbox_max']", volume["bbox_max"])
+    lo = checks.vector3(volume["bbox_min"], "volume['bbox_min']")
+    hi = checks.vector3(volume["bbox_max"], "volume['bbox_max']")
     if not (hi > lo).all():
         raise InputError(f"volume['bbox_max'] {hi.tolist()} must exceed volume['bbox_min'] {lo.tolist()} "
                          "on every axis (mm)")
@@ -294,7 +246,7 @@ def _check_volume(volume: Any) -> dict[str, Any]:
 
 
 def _check_eta(eta: Any) -> float:
-    e = float(_finite_array("eta", eta))
+    e = float(checks.finite_array(eta, "eta"))
     if e <= 0:
         raise InputError(f"eta must be a relative index of refraction > 0 (1 = index matched), got {e}")
     return e
@@ -338,7 +290,7 @@ def _mitsuba(variant: str) -> Any:
         raise InputError(f"variant {variant!r} is not supported; use one of {', '.join(RGB_VARIANTS)} "
                          "(RGB rendering; spectral variants would upsample the coefficients)")
     try:
-        import mitsuba as mi
+        import mitsuba as mi  # heavy optional dependency (the dev extra), loaded only to render
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise BackendError("the Monte Carlo reference needs Mitsuba 3: pip install mitsuba") from exc
     if variant not in mi.variants():  # pragma: no cover - depends on the wheel
@@ -393,22 +345,19 @@ def _shape(mi: Any, mesh: Mesh, medium: Any, eta: float) -> Any:
 
 
 def _emitter(mi: Any, light: dict[str, Any]) -> dict[str, Any]:
+    """Mitsuba emitter dict of checked light parameters (:func:`_check_light`)."""
     if light["type"] == "directional":
         return {"type": "directional", "direction": (-light["direction"]).tolist(),
                 "irradiance": {"type": "rgb", "value": light["irradiance"].tolist()}}
     if light["type"] == "constant":
         return {"type": "constant", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}
-    img = light["image"]
-    out: dict[str, Any] = {"type": "envmap", "scale": light["scale"]}
-    if light["frame"] == "z_up":
-        img = _z_up_to_mitsuba(img)
-        out["to_world"] = mi.ScalarTransform4f([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]])
-    out["bitmap"] = mi.Bitmap(np.ascontiguousarray(img, dtype=np.float32))
-    return out
+    return {"type": "envmap", "scale": light["scale"],
+            "to_world": mi.ScalarTransform4f([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]),
+            "bitmap": mi.Bitmap(np.ascontiguousarray(_z_up_to_mitsuba(light["image"]), dtype=np.float32))}
 
 
 def _z_up_to_mitsuba(img: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A ``z_up`` (glsldiff) lat-long map as the bitmap of a Mitsuba ``envmap`` whose
+    """A glsldiff (z-up) lat-long map as the bitmap of a Mitsuba ``envmap`` whose
     ``to_world`` sends local (x, y, z) to world (y, z, x) (module docstring): columns mirrored,
     rows resampled linearly in polar angle from glsldiff's row centres theta = pi (i + 0.5) / H
     to Mitsuba's theta = pi j / (H - 1) (clamped to the first and last rows at the poles)."""
@@ -430,7 +379,7 @@ def _sensor(mi: Any, cam: McCamera, spp: int, seed: int, sampler: str) -> dict[s
 
 
 def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None, eta: float,
-                   camera: McCamera, light: Mapping[str, Any], spp: int = 256, seed: int = 0,
+                   camera: McCamera, light: Light, spp: int = 256, seed: int = 0,
                    volume: Mapping[str, Any] | None = None, max_depth: int = -1,
                    variant: str = "scalar_rgb", *, rr_depth: int = _NO_ROULETTE,
                    sampler: str = "independent", channels: str = "auto"
@@ -449,7 +398,8 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
     camera
         :class:`McCamera` (vertical field of view), outside the mesh.
     light
-        Light dict, see the module docstring (directional / constant / envmap).
+        A :class:`~glsldiff.physics.lights.DirectionalLight` or
+        :class:`~glsldiff.physics.lights.EnvironmentLight` (module docstring).
     spp, seed
         Samples per pixel and the sampler's seed; equal arguments give equal images.
     volume
@@ -516,7 +466,8 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
     if volume is None:
         if sigma_a is None or sigma_s is None:
             raise InputError("sigma_a and sigma_s are required for a homogeneous medium (volume=None)")
-        sa, ss = _rgb("sigma_a", sigma_a, "mm^-1"), _rgb("sigma_s", sigma_s, "mm^-1")
+        sa = np.array(checks.rgb(sigma_a, "sigma_a", "mm^-1"))
+        ss = np.array(checks.rgb(sigma_s, "sigma_s", "mm^-1"))
         coeffs: dict[str, Any] = {"sigma_a": sa, "sigma_s": ss}
         st = sa + ss
     else:
@@ -559,7 +510,7 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
 
 
 def render_scattering_orders(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None,
-                             eta: float, camera: McCamera, light: Mapping[str, Any], spp: int = 256,
+                             eta: float, camera: McCamera, light: Light, spp: int = 256,
                              seed: int = 0, volume: Mapping[str, Any] | None = None,
                              variant: str = "scalar_rgb", *, rr_depth: int = _NO_ROULETTE,
                              channels: str = "auto"
@@ -604,7 +555,7 @@ def render_scattering_orders(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: Arr
 
 
 def render_subsurface(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None, eta: float,
-                      camera: McCamera, light: Mapping[str, Any], spp: int = 256, seed: int = 0,
+                      camera: McCamera, light: Light, spp: int = 256, seed: int = 0,
                       volume: Mapping[str, Any] | None = None, variant: str = "scalar_rgb", *,
                       rr_depth: int = _NO_ROULETTE, channels: str = "auto"
                       ) -> tuple[dict[str, NDArray[np.float32]], dict[str, Any]]:
@@ -636,7 +587,7 @@ def render_subsurface(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike 
 
 
 def single_scattering_share(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None,
-                            eta: float, camera: McCamera, light: Mapping[str, Any], spp: int = 256,
+                            eta: float, camera: McCamera, light: Light, spp: int = 256,
                             seed: int = 0, volume: Mapping[str, Any] | None = None,
                             variant: str = "scalar_rgb", *, rr_depth: int = _NO_ROULETTE,
                             channels: str = "auto") -> tuple[NDArray[np.float32], dict[str, Any]]:

@@ -5,12 +5,12 @@ Each case is rendered twice with the same mesh, camera, light and material: by
 scattering) and by Mitsuba 3's ``volpath`` (:mod:`glsldiff.validation.mitsuba`).
 
 Lights: a directional light (irradiance 1 on a surface facing it), or an environment
-(:data:`ENVIRONMENTS`, radiance about 1): the same lat-long map (:func:`environment_map`) is
-written as OpenEXR for the renderer (``LightSpec("environment")``: order-2 spherical harmonics,
-Fresnel transmission folded in, per-node visibility) and handed to Mitsuba's ``envmap`` in
-the renderer's z-up convention (``frame = "z_up"``, tested against
-:func:`glsldiff.render.lighting.latlong_directions`); the uniform one goes to Mitsuba as a
-``constant`` emitter.
+(:data:`ENVIRONMENTS`, radiance about 1): one :class:`~glsldiff.physics.lights.EnvironmentLight`
+of the lat-long map (:func:`environment_map`) goes to both renderers: to the diffusion
+renderer (order-2 spherical harmonics, Fresnel transmission folded in, per-node visibility)
+and to Mitsuba's ``envmap`` in the renderer's z-up convention (tested against
+:func:`glsldiff.physics.sh.latlong_directions`); the uniform one becomes Mitsuba's
+``constant`` emitter (:mod:`glsldiff.validation.mitsuba` converts the light).
 
 Boundary: ``eta = 1`` is index matched (Mitsuba ``null`` BSDF); the Monte Carlo image is then
 split into scattering orders (:func:`~glsldiff.validation.mitsuba.render_scattering_orders`) and its
@@ -46,8 +46,17 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import binary_erosion
 
+from glsldiff.core import io
 from glsldiff.core.errors import InputError
-from glsldiff.render.scene import CameraSpec, LightSpec, MaterialSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
+from glsldiff.mesh import box_mesh
+from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, Light
+from glsldiff.physics.optics import dipole_total_reflectance
+from glsldiff.physics.sh import latlong_directions
+from glsldiff.render.camera import frame_camera
+from glsldiff.render.materials import node_material
+from glsldiff.render.renderer import Renderer
+from glsldiff.render.scene import CameraSpec, MaterialSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
+from glsldiff.validation.mitsuba import McCamera, render_scattering_orders, render_subsurface
 
 #: Environment lights a case may name (:func:`environment_map`).
 ENVIRONMENTS = ("constant", "sky")
@@ -95,7 +104,7 @@ CASES = {c.name: c for c in (
 
 def environment_map(name: str, height: int = 64, width: int = 128) -> NDArray[np.float64]:
     """Lat-long radiance map ``(height, width, 3)`` of environment ``name`` in the convention of
-    :class:`glsldiff.render.lighting.EnvironmentLight` (row 0 is the zenith +z).
+    :class:`glsldiff.physics.lights.EnvironmentLight` (row 0 is the zenith +z).
 
     ``"constant"``: 1 everywhere. ``"sky"``: ``0.05 + a (1 + z)^2 + b (1 + y)`` for the unit
     direction (x, y, z), a = (0.20, 0.22, 0.25) and b = (0.15, 0.12, 0.08) per RGB channel: a
@@ -105,8 +114,6 @@ def environment_map(name: str, height: int = 64, width: int = 128) -> NDArray[np
     differs from Monte Carlo is the diffusion model (and the map's pixel sampling), not the
     light's band limit.
     """
-    from glsldiff.render.lighting import latlong_directions
-
     if name not in ENVIRONMENTS:
         raise InputError(f"unknown environment {name!r}; valid: {', '.join(ENVIRONMENTS)}")
     if name == "constant":
@@ -116,27 +123,20 @@ def environment_map(name: str, height: int = 64, width: int = 128) -> NDArray[np
     return 0.05 + np.array([0.20, 0.22, 0.25]) * (1.0 + z) ** 2 + np.array([0.15, 0.12, 0.08]) * (1.0 + y)
 
 
-def _light_spec(case: Case, env_path: Path | None) -> LightSpec:
+def _light(case: Case) -> Light:
+    """The case's light, the same for the renderer and for
+    :func:`glsldiff.validation.mitsuba.render_mitsuba`."""
     if isinstance(case.light, str):
-        return LightSpec("environment", path=str(env_path), scale=1.0)
-    return LightSpec("directional", direction=case.light, irradiance=(1.0, 1.0, 1.0), shadows=True)
+        return EnvironmentLight(environment_map(case.light))
+    return DirectionalLight(case.light, (1.0, 1.0, 1.0))
 
 
-def _mc_light(case: Case) -> dict[str, Any]:
-    """The case's light for :func:`glsldiff.validation.mitsuba.render_mitsuba`."""
-    if case.light == "constant":
-        return {"type": "constant", "radiance": 1.0}
-    if isinstance(case.light, str):
-        return {"type": "envmap", "image": environment_map(case.light), "frame": "z_up"}
-    return {"type": "directional", "direction": case.light, "irradiance": (1.0, 1.0, 1.0)}
-
-
-def _scene(case: Case, mesh_path: str | None, size: int, env_path: Path | None = None) -> Scene:
+def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
     return Scene(mesh=MeshSpec(mesh_path or case.mesh, case.size_mm),
                  polygrid=PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1)),
                  material=MaterialSpec(preset=None, sigma_a=(case.sigma_a,) * 3, sigma_s_prime=(case.sigma_s,) * 3,
                                        eta=case.eta, procedural=case.procedural),
-                 lights=(_light_spec(case, env_path),),
+                 lights=(_light(case),),
                  camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2))
 
 
@@ -156,10 +156,9 @@ def _standard_error(parts: Sequence[NDArray], mask: NDArray) -> float:
 
 
 def _slab_file(folder: Path, size: float) -> str:
-    from glsldiff.mesh import box_mesh
+    import trimesh   # optional dependency (the mesh extra): PLY export
 
     m = box_mesh((size, size, size / 3.0), origin=(-size / 2, -size / 2, -size / 3.0))
-    import trimesh
 
     path = folder / "slab.ply"
     trimesh.Trimesh(m.vertices, m.faces, process=False).export(path)
@@ -169,8 +168,6 @@ def _slab_file(folder: Path, size: float) -> str:
 def _volume(scene: Scene, pg: Any, cells: int = 48) -> dict[str, Any]:
     """The scene's procedural material on a regular grid spanning the nodes' bounding box
     (the same unit box :mod:`glsldiff.render.materials` evaluates it in), for Mitsuba."""
-    from glsldiff.render.materials import node_material
-
     lo, hi = pg.positions.min(axis=0), pg.positions.max(axis=0)
     axes = [np.linspace(lo[i], hi[i], cells) for i in range(3)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
@@ -187,10 +184,8 @@ def _mc_render(case: Case, mesh: Any, cam: Any, spp: int, seed: int,
     """Mitsuba images of one case: ``"subsurface"`` (all scattering orders) and ``"full"``;
     with eta = 1 also the scattering orders ``"single"`` and ``"multiple"``, else
     ``"reflection"`` (module docstring); and the seconds taken."""
-    from glsldiff.validation.mitsuba import render_scattering_orders, render_subsurface
-
     sa, ss = (None, None) if volume else ((case.sigma_a,) * 3, (case.sigma_s,) * 3)
-    args = (mesh, sa, ss, case.eta, cam, _mc_light(case), spp, seed, volume)
+    args = (mesh, sa, ss, case.eta, cam, _light(case), spp, seed, volume)
     if case.eta != 1.0:
         images, info = render_subsurface(*args)
     else:
@@ -214,21 +209,15 @@ def mc_split(spp: int) -> tuple[int, int]:
 def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
              folder: Path | None = None) -> tuple[dict[str, Any], dict[str, NDArray]]:
     """One case: (row of numbers, images {"diffusion", "mc_subsurface", "mc_full"} and, with
-    eta = 1, "mc_multiple"). An environment map is written to ``folder`` (default: a temporary
-    folder) as ``validation_<case>_environment.exr``."""
-    from glsldiff.core import io
-    from glsldiff.validation.mitsuba import McCamera
-    from glsldiff.physics.optics import dipole_total_reflectance
-    from glsldiff.render.renderer import Renderer, frame_camera
-
+    eta = 1, "mc_multiple"). With ``folder``, an environment map is written there as
+    ``validation_<case>_environment.exr``."""
     env = isinstance(case.light, str)
     with tempfile.TemporaryDirectory() as tmp:
         mesh_path = _slab_file(Path(tmp), case.size_mm) if case.mesh == "slab" else None
-        env_path = (Path(folder or tmp) / f"validation_{case.name}_environment.exr") if env else None
-        if env_path is not None:
-            env_path.parent.mkdir(parents=True, exist_ok=True)
-            io.write_exr(env_path, environment_map(case.light))
-        scene = _scene(case, mesh_path, size, env_path)
+        if env and folder is not None:   # the map both renderers get, for the record
+            folder.mkdir(parents=True, exist_ok=True)
+            io.write_exr(folder / f"validation_{case.name}_environment.exr", environment_map(case.light))
+        scene = _scene(case, mesh_path, size)
         d = np.asarray(case.camera_dir, float)
         with Renderer() as r:
             _, rep1 = r.render(scene)             # set-up, passes 1-3 (camera framed automatically)
@@ -284,8 +273,6 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256) ->
     """Run ``cases``; write validation.csv, and per case a PNG (diffusion | MC multiple scattering
     (eta = 1) or MC subsurface, all orders (eta != 1) | MC full image, surface reflection and
     background included), the images as EXR and the environment map (if any)."""
-    from glsldiff.core import io
-
     unknown = [c for c in cases if c not in CASES]
     if unknown:
         raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}")

@@ -1,4 +1,5 @@
-"""glsldiff.render.lighting: pass 1, transmitted irradiance at boundary nodes (Wang et al. 2008 sec. 5).
+"""glsldiff.render.pass1 (and its shadow maps, glsldiff.render.shadows): transmitted irradiance
+at boundary nodes (Wang et al. 2008 sec. 5).
 
 Expected values are computed here independently: Fresnel from its own s/p formula, shadow
 regions from box geometry, hemispherical integrals by trapezoid quadrature, visibility by
@@ -12,9 +13,12 @@ import moderngl
 import numpy as np
 import pytest
 
-from glsldiff.render import lighting as L
 from glsldiff import mesh as M
 from glsldiff.core.errors import InputError
+from glsldiff.physics.lights import (DirectionalLight, EnvironmentLight, PointLight, ProjectorLight, SpotLight,
+                                     casts_shadows, projector_factor)
+from glsldiff.physics.sh import fibonacci_directions, sh_irradiance, sh_project
+from glsldiff.render.pass1 import incident_light, visibility
 
 pytest.importorskip("trimesh")
 pytest.importorskip("pymeshlab")
@@ -105,9 +109,9 @@ def test_directional_sphere_closed_form_and_far_side(ctx, sphere):
     p, n = sphere.vertices, sphere.vertex_normals
     w = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)
     irr = np.array([1.0, 2.0, 3.0])
-    light = L.DirectionalLight(direction=(2.0, 4.0, 6.0), irradiance=irr)  # normalised inside
+    light = DirectionalLight(direction=(2.0, 4.0, 6.0), irradiance=irr)  # normalised inside
     assert np.allclose(light.direction, w)
-    E, info = L.incident_light(sphere, p, n, [light], eta=ETA, ctx=ctx)
+    E, info = incident_light(sphere, p, n, [light], eta=ETA, ctx=ctx)
     assert E.shape == (len(p), 3) and E.dtype == np.float64
     cos = n @ w
     ref = (np.clip(cos, 0, None) * fresnel_t(ETA, cos))[:, None] * irr
@@ -121,7 +125,7 @@ def test_directional_sphere_closed_form_and_far_side(ctx, sphere):
     # the shadow map itself: nodes on the surface and 0.3 mm inside, with and without normals
     for pts in (p, p - 0.3 * n):
         for nn in (None, n):
-            v = L.visibility(sphere, pts, light, ctx=ctx, normals=nn)
+            v = visibility(sphere, pts, light, ctx=ctx, normals=nn)
             assert v.shape == (len(p),) and v.min() >= 0 and v.max() <= 1
             assert np.all(v[cos > 0.15] == 1.0), "lit side must be lit (no shadow acne)"
             assert np.all(v[cos < -0.15] == 0.0), "far side must be in shadow"
@@ -134,7 +138,7 @@ def test_box_casts_shadow(ctx, two_boxes, slab_top, kind):
     I = np.array([3.0, 2.0, 1.0])
     if kind == "directional":
         w = np.array([0.3, 0.0, 1.0]) / math.hypot(0.3, 1.0)
-        light = L.DirectionalLight(w, I)
+        light = DirectionalLight(w, I)
         # shadow of the box 8..12 x 8..12 at heights 15..17 shifted by -0.3 (z - 10) in x
         lo_x, hi_x, lo_y, hi_y = 8.0 - 2.1, 12.0 - 1.5, 8.0, 12.0
         cos = np.full(len(pts), w[2])
@@ -142,13 +146,13 @@ def test_box_casts_shadow(ctx, two_boxes, slab_top, kind):
     else:
         pos = np.array([10.0, 10.0, 40.0])
         if kind == "point":
-            light = L.PointLight(pos, I)
+            light = PointLight(pos, I)
         elif kind == "spot_cube":  # wide cone: six cube views
-            light = L.SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=80.0, falloff_deg=70.0)
+            light = SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=80.0, falloff_deg=70.0)
         elif kind == "projector":  # a white image whose frustum covers the slab (half width 17 mm)
-            light = L.ProjectorLight(pos, (0.0, 0.0, -1.0), np.ones((3, 4, 3)), I, fov_deg=60.0)
+            light = ProjectorLight(pos, (0.0, 0.0, -1.0), np.ones((3, 4, 3)), I, fov_deg=60.0)
         else:
-            light = L.SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=40.0, falloff_deg=35.0)
+            light = SpotLight(pos, (0.0, 0.0, -1.0), I, cone_deg=40.0, falloff_deg=35.0)
         # central projection from 30 mm above the slab: the box top (z = 17) casts the widest
         half = 2.0 * 30.0 / 23.0
         lo_x = lo_y = 10.0 - half
@@ -157,7 +161,7 @@ def test_box_casts_shadow(ctx, two_boxes, slab_top, kind):
         r2 = (d**2).sum(axis=1)
         cos = d[:, 2] / np.sqrt(r2)
         expected = (cos * fresnel_t(ETA, cos) / r2)[:, None] * I  # all inside the falloff angle
-    E, info = L.incident_light(two_boxes, pts, nrm, [light], eta=ETA, ctx=ctx, shadow_map_size=512)
+    E, info = incident_light(two_boxes, pts, nrm, [light], eta=ETA, ctx=ctx, shadow_map_size=512)
     m = 0.35  # mm from the shadow edge
     inside = (x > lo_x + m) & (x < hi_x - m) & (y > lo_y + m) & (y < hi_y - m)
     outside = (x < lo_x - m) | (x > hi_x + m) | (y < lo_y - m) | (y > hi_y + m)
@@ -174,12 +178,12 @@ def test_visibility_matches_ray_casting(ctx, torus):
     rng = np.random.default_rng(3)
     idx = rng.choice(len(torus.vertices), 400, replace=False)
     p, n = torus.vertices[idx], torus.vertex_normals[idx]
-    cases = [L.DirectionalLight((1.0, 0.2, 0.25), 1.0), L.DirectionalLight((1.0, 0.2, 0.1), 1.0),
-             L.PointLight((25.0, 3.0, 6.0), 1.0), L.PointLight((0.0, 0.0, 1.0), 1.0)]  # last: in the hole
+    cases = [DirectionalLight((1.0, 0.2, 0.25), 1.0), DirectionalLight((1.0, 0.2, 0.1), 1.0),
+             PointLight((25.0, 3.0, 6.0), 1.0), PointLight((0.0, 0.0, 1.0), 1.0)]  # last: in the hole
     lit = shadowed = 0
     for light in cases:
-        v = L.visibility(torus, p, light, ctx=ctx, shadow_map_size=512, normals=n)
-        if isinstance(light, L.DirectionalLight):
+        v = visibility(torus, p, light, ctx=ctx, shadow_map_size=512, normals=n)
+        if isinstance(light, DirectionalLight):
             w = np.broadcast_to(np.asarray(light.direction), p.shape)
         else:
             d = np.asarray(light.position) - p
@@ -189,7 +193,7 @@ def test_visibility_matches_ray_casting(ctx, torus):
         truth = np.ones(len(sel), dtype=bool)
         for k, i in enumerate(sel):
             o = p[i] + 1e-4 * n[i]
-            if isinstance(light, L.DirectionalLight):
+            if isinstance(light, DirectionalLight):
                 truth[k] = not ray_hits(torus, o[None], w[i])[0]
             else:  # only hits before the light count
                 dist = np.linalg.norm(np.asarray(light.position) - o)
@@ -224,7 +228,7 @@ def test_point_light_inverse_square(ctx, two_boxes):
     I = np.array([1.0, 10.0, 100.0])
     vals = []
     for h in (5.0, 10.0, 20.0):
-        E, info = L.incident_light(two_boxes, p[:1], n[:1], [L.PointLight((3.0, 4.0, 10.0 + h), I)],
+        E, info = incident_light(two_boxes, p[:1], n[:1], [PointLight((3.0, 4.0, 10.0 + h), I)],
                                    eta=ETA, ctx=ctx, shadow_map_size=256)
         vals.append(E[0])
         np.testing.assert_allclose(E[0], I * fresnel_t(ETA, 1.0) / h**2, rtol=1e-12)
@@ -233,7 +237,7 @@ def test_point_light_inverse_square(ctx, two_boxes):
     # oblique: cos and 1/r^2 together, shadows off
     pos = np.array([13.0, -2.0, 18.0])
     q = np.array([[5.0, 6.0, 10.0], [15.0, 15.0, 10.0]])
-    E, info = L.incident_light(two_boxes, q, n[:2], [L.PointLight(pos, I, shadows=False)], eta=ETA)
+    E, info = incident_light(two_boxes, q, n[:2], [PointLight(pos, I, shadows=False)], eta=ETA)
     d = pos - q
     r = np.linalg.norm(d, axis=1)
     cos = d[:, 2] / r
@@ -246,10 +250,10 @@ def test_spot_cutoff_and_falloff(ctx, two_boxes):
     x = np.linspace(3.0, 19.9, 200)
     p = np.c_[x, np.full_like(x, 3.0), np.full_like(x, 10.0)]
     n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
-    spot = L.SpotLight(pos, (0.0, 0.0, -1.0), (1.0, 1.0, 1.0), cone_deg=38.0, falloff_deg=28.0)
-    point = L.PointLight(pos, (1.0, 1.0, 1.0))
-    Es, _ = L.incident_light(two_boxes, p, n, [spot], eta=ETA, ctx=ctx, shadow_map_size=256)
-    Ep, _ = L.incident_light(two_boxes, p, n, [point], eta=ETA, ctx=ctx, shadow_map_size=256)
+    spot = SpotLight(pos, (0.0, 0.0, -1.0), (1.0, 1.0, 1.0), cone_deg=38.0, falloff_deg=28.0)
+    point = PointLight(pos, (1.0, 1.0, 1.0))
+    Es, _ = incident_light(two_boxes, p, n, [spot], eta=ETA, ctx=ctx, shadow_map_size=256)
+    Ep, _ = incident_light(two_boxes, p, n, [point], eta=ETA, ctx=ctx, shadow_map_size=256)
     d = p - pos
     ang = np.degrees(np.arccos(-d[:, 2] / np.linalg.norm(d, axis=1)))
     assert ang.min() < 27.0 and ang.max() > 39.0
@@ -286,26 +290,26 @@ def test_projector_pixel_irradiance_on_a_plane(ctx):
     img = rng.uniform(0.0, 2.0, (5, 7, 3))
     I = np.array([300.0, 200.0, 100.0])
     pos = np.array([2.0, -3.0, 40.0])
-    light = L.ProjectorLight(pos, (0.1, 0.2, -1.0), img, I, up=(0.0, 1.0, 0.3), fov_deg=35.0, shadows=False)
+    light = ProjectorLight(pos, (0.1, 0.2, -1.0), img, I, up=(0.0, 1.0, 0.3), fov_deg=35.0, shadows=False)
     # the plane z = 0, tilted against the axis: project the pixel rays onto it
     centres = _pixel_points(light, 1.0) - pos                   # ray directions (H, W, 3)
     p = (pos + centres * (-pos[2] / centres[..., 2])[..., None]).reshape(-1, 3)
     n = np.tile([0.0, 0.0, 1.0], (len(p), 1))
-    E, info = L.incident_light(M.box_mesh((1.0, 1.0, 1.0)), p, n, [light], eta=ETA)   # no shadow map
+    E, info = incident_light(M.box_mesh((1.0, 1.0, 1.0)), p, n, [light], eta=ETA)   # no shadow map
     d = pos - p
     r2 = (d**2).sum(axis=1)
     cos = d[:, 2] / np.sqrt(r2)
     expected = (cos * fresnel_t(ETA, cos) / r2)[:, None] * I * img.reshape(-1, 3)
     np.testing.assert_allclose(E, expected, rtol=1e-9)
     assert info[0]["light"] == "projector" and info[0]["shadow_map"] == "none (shadows off)"
-    np.testing.assert_allclose(L.projector_factor(light, p), img.reshape(-1, 3), rtol=1e-9)
+    np.testing.assert_allclose(projector_factor(light, p), img.reshape(-1, 3), rtol=1e-9)
     # half way between two pixel centres (same row): the mean of the two pixels
     mid = 0.5 * (_pixel_points(light, 25.0)[2, 3] + _pixel_points(light, 25.0)[2, 4])
-    np.testing.assert_allclose(L.projector_factor(light, mid[None])[0], 0.5 * (img[2, 3] + img[2, 4]), rtol=1e-9)
+    np.testing.assert_allclose(projector_factor(light, mid[None])[0], 0.5 * (img[2, 3] + img[2, 4]), rtol=1e-9)
 
 
 def test_projector_is_dark_outside_its_frustum_and_behind_it(ctx):
-    light = L.ProjectorLight((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), np.ones((4, 8, 3)), 1.0, fov_deg=40.0,
+    light = ProjectorLight((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), np.ones((4, 8, 3)), 1.0, fov_deg=40.0,
                              shadows=False)
     t = math.tan(math.radians(20.0))
     # on the axis, just inside / outside the top edge and the (2x wider) side edge, and behind
@@ -314,11 +318,11 @@ def test_projector_is_dark_outside_its_frustum_and_behind_it(ctx):
                   [0.0, 0.0, 0.0]])
     n = np.tile([0.0, 0.0, -1.0], (len(p), 1))
     n[5] = (0.0, 0.0, 1.0)                                   # the point behind faces the projector
-    E, info = L.incident_light(M.box_mesh((1.0, 1.0, 1.0)), p, n, [light], eta=ETA)
+    E, info = incident_light(M.box_mesh((1.0, 1.0, 1.0)), p, n, [light], eta=ETA)
     lit = np.array([True, True, False, True, False, False, False])
     assert np.all(E[lit] > 0) and np.all(E[~lit] == 0.0), E
     assert info[0]["facing"] == int(lit.sum())
-    np.testing.assert_array_equal(L.projector_factor(light, p)[:, 0] > 0, lit)
+    np.testing.assert_array_equal(projector_factor(light, p)[:, 0] > 0, lit)
 
 
 def test_projector_image_orientation(ctx):
@@ -333,25 +337,25 @@ def test_projector_image_orientation(ctx):
     p = np.array([[30.0, 3.0, 0.0], [30.0, -3.0, 0.0], [30.0, 0.0, 3.0], [30.0, 0.0, -3.0]])
     n = np.tile([-1.0, 0.0, 0.0], (4, 1))
     mesh = M.box_mesh((1.0, 1.0, 1.0))
-    E_left, _ = L.incident_light(mesh, p, n, [L.ProjectorLight(image=left, **kw)], eta=ETA)
-    E_top, _ = L.incident_light(mesh, p, n, [L.ProjectorLight(image=top, **kw)], eta=ETA)
+    E_left, _ = incident_light(mesh, p, n, [ProjectorLight(image=left, **kw)], eta=ETA)
+    E_top, _ = incident_light(mesh, p, n, [ProjectorLight(image=top, **kw)], eta=ETA)
     assert E_left[0, 0] > 0 and E_left[1, 0] == 0.0        # +y (left) lit, -y dark
     assert E_top[2, 0] > 0 and E_top[3, 0] == 0.0          # +z (up) lit, -z dark
 
 
 def test_projector_shadow_uses_the_spot_machinery(ctx, two_boxes, slab_top):
     """The frustum-covering spot: same shadow map, so the same visibility as that spot light."""
-    light = L.ProjectorLight((10.0, 10.0, 40.0), (0.0, 0.0, -1.0), np.ones((2, 4, 3)), 1.0, fov_deg=40.0)
+    light = ProjectorLight((10.0, 10.0, 40.0), (0.0, 0.0, -1.0), np.ones((2, 4, 3)), 1.0, fov_deg=40.0)
     spot = light.spot
-    assert isinstance(spot, L.SpotLight) and spot.cone_deg == spot.falloff_deg
+    assert isinstance(spot, SpotLight) and spot.cone_deg == spot.falloff_deg
     t = math.tan(math.radians(20.0))
     assert math.isclose(math.tan(math.radians(spot.cone_deg)), t * math.hypot(1.0, 2.0))
     pts, nrm = slab_top
-    v = L.visibility(two_boxes, pts, light, ctx=ctx, normals=nrm, shadow_map_size=256)
-    np.testing.assert_array_equal(v, L.visibility(two_boxes, pts, spot, ctx=ctx, normals=nrm,
+    v = visibility(two_boxes, pts, light, ctx=ctx, normals=nrm, shadow_map_size=256)
+    np.testing.assert_array_equal(v, visibility(two_boxes, pts, spot, ctx=ctx, normals=nrm,
                                                   shadow_map_size=256))
     assert (v == 0).sum() > 40 and (v == 1).sum() > 1000
-    assert L.casts_shadows(light) and not L.casts_shadows(L.ProjectorLight((0, 0, 1), (0, 0, -1),
+    assert casts_shadows(light) and not casts_shadows(ProjectorLight((0, 0, 1), (0, 0, -1),
                                                                            np.ones((1, 1, 3)), 1.0,
                                                                            shadows=False))
 
@@ -362,8 +366,8 @@ def test_projector_shadow_uses_the_spot_machinery(ctx, two_boxes, slab_top):
 def test_environment_constant_on_sphere(ctx, sphere, vis, eta):
     Lrad = np.array([0.5, 1.0, 2.0])
     img = np.ones((24, 48, 3)) * Lrad
-    light = L.EnvironmentLight(img, scale=2.0, visibility=vis, directions=32)
-    E, info = L.incident_light(sphere, sphere.vertices, sphere.vertex_normals, [light], eta=eta, ctx=ctx,
+    light = EnvironmentLight(img, scale=2.0, visibility=vis, directions=32)
+    E, info = incident_light(sphere, sphere.vertices, sphere.vertex_normals, [light], eta=eta, ctx=ctx,
                                shadow_map_size=256)
     expected = 2.0 * Lrad * hemispherical(eta)  # pi L (1 - external hemispherical Fresnel)
     if eta == 1.0:
@@ -377,13 +381,13 @@ def test_incident_irradiance_without_interface(ctx, sphere):
     """``eta=None``: the irradiance arriving at the surface (no Fresnel factor), as a diffuse
     surface reflectance needs: E0 cos for a directional light, pi L for a constant sky."""
     p, n = sphere.vertices, sphere.vertex_normals
-    light = L.DirectionalLight(direction=(0.0, 0.0, 1.0), irradiance=(1.0, 2.0, 3.0))
-    E, _ = L.incident_light(sphere, p, n, [light], eta=None, ctx=ctx)
+    light = DirectionalLight(direction=(0.0, 0.0, 1.0), irradiance=(1.0, 2.0, 3.0))
+    E, _ = incident_light(sphere, p, n, [light], eta=None, ctx=ctx)
     cos = n[:, 2]
     lit = cos > 0.1
     np.testing.assert_allclose(E[lit], cos[lit, None] * np.array([1.0, 2.0, 3.0]), rtol=1e-12)
-    env = L.EnvironmentLight(np.full((24, 48, 3), 0.5), visibility=False)
-    E, _ = L.incident_light(sphere, p, n, [env], eta=None, ctx=ctx)
+    env = EnvironmentLight(np.full((24, 48, 3), 0.5), visibility=False)
+    E, _ = incident_light(sphere, p, n, [env], eta=None, ctx=ctx)
     np.testing.assert_allclose(E, math.pi * 0.5, rtol=0.01)
 
 
@@ -392,30 +396,17 @@ def test_environment_linear_map_convention(ctx, sphere):
     and on +z with Fresnel: 2 pi int (1 + 0.2 t) t F_t dt."""
     img = latlong(48, 96, lambda x, y, z: 1.0 + 0.5 * x + 0.3 * y + 0.2 * z)
     n = sphere.vertex_normals
-    E, _ = L.incident_light(sphere, sphere.vertices, n, [L.EnvironmentLight(img, visibility=False)],
+    E, _ = incident_light(sphere, sphere.vertices, n, [EnvironmentLight(img, visibility=False)],
                             eta=1.0, ctx=ctx)
     ref = math.pi + 2.0 * math.pi / 3.0 * (n @ np.array([0.5, 0.3, 0.2]))
     np.testing.assert_allclose(E[:, 1], ref, rtol=2e-3)
-    c = L.sh_project(img)
-    up = L.sh_irradiance(c, [[0.0, 0.0, 1.0]], eta=ETA)
+    c = sh_project(img)
+    up = sh_irradiance(c, [[0.0, 0.0, 1.0]], eta=ETA)
     np.testing.assert_allclose(up[0], hemispherical(ETA, lambda t: 1.0 + 0.2 * t), rtol=2e-3)
     # order 0 keeps only the mean
-    E0, _ = L.incident_light(sphere, sphere.vertices, n,
-                             [L.EnvironmentLight(img, order=0, visibility=False)], eta=1.0)
+    E0, _ = incident_light(sphere, sphere.vertices, n,
+                             [EnvironmentLight(img, order=0, visibility=False)], eta=1.0)
     np.testing.assert_allclose(E0, math.pi, rtol=2e-3)
-
-
-def test_sh_projection_is_orthonormal():
-    d, omega = L.latlong_directions(64, 128)
-    np.testing.assert_allclose(omega.sum(), 4.0 * math.pi, rtol=1e-12)
-    Y = L.sh_basis(d.reshape(-1, 3), 2)
-    gram = (Y * omega.reshape(-1, 1)).T @ Y
-    np.testing.assert_allclose(gram, np.eye(9), atol=2e-3)
-    # Y_1,-1, Y_10, Y_11 = sqrt(3 / 4 pi) (y, z, x)
-    u = np.array([[0.6, 0.0, 0.8]])
-    np.testing.assert_allclose(L.sh_basis(u, 1)[0], [1 / math.sqrt(4 * math.pi)] +
-                               list(math.sqrt(3 / (4 * math.pi)) * np.array([0.0, 0.8, 0.6])), rtol=1e-12)
-    np.testing.assert_allclose(L.transfer_coefficients(2), [math.pi, 2 * math.pi / 3, math.pi / 4], rtol=1e-10)
 
 
 def test_environment_visibility_on_torus(ctx, torus):
@@ -423,8 +414,8 @@ def test_environment_visibility_on_torus(ctx, torus):
     img = np.ones((16, 32, 3))
     p, n = torus.vertices, torus.vertex_normals
     K = 48
-    E0, _ = L.incident_light(torus, p, n, [L.EnvironmentLight(img, visibility=False)], eta=ETA, ctx=ctx)
-    E1, info = L.incident_light(torus, p, n, [L.EnvironmentLight(img, directions=K)], eta=ETA, ctx=ctx,
+    E0, _ = incident_light(torus, p, n, [EnvironmentLight(img, visibility=False)], eta=ETA, ctx=ctx)
+    E1, info = incident_light(torus, p, n, [EnvironmentLight(img, directions=K)], eta=ETA, ctx=ctx,
                                 shadow_map_size=256)
     rho = np.hypot(p[:, 0], p[:, 1])
     inner = np.flatnonzero(rho < 6.1)
@@ -434,11 +425,11 @@ def test_environment_visibility_on_torus(ctx, torus):
     ratio = E1[inner, 0] / E0[inner, 0]
     assert ratio.max() < 0.8, "the inner ring sees the opposite side of the torus"
     assert 0.0 < info[0]["mean_visibility"] < 1.0
-    ao = L.visibility(torus, p, L.EnvironmentLight(img, directions=K), ctx=ctx, shadow_map_size=256,
+    ao = visibility(torus, p, EnvironmentLight(img, directions=K), ctx=ctx, shadow_map_size=256,
                       normals=n)
     assert np.all(ao[outer] == 1.0) and ao[inner].max() < 0.8
     # independent: the same K Fibonacci directions, visibility by ray casting
-    dirs = L.fibonacci_directions(K)
+    dirs = fibonacci_directions(K)
     assert np.allclose(np.linalg.norm(dirs, axis=1), 1.0) and abs(dirs.mean(axis=0)).max() < 0.05
     for i in inner[::6]:
         cos = dirs @ n[i]
@@ -461,66 +452,27 @@ def test_lights_add_up_and_release_gl_objects(ctx, sphere, monkeypatch):
             return obj
         monkeypatch.setattr(moderngl.Context, name, wrap)
     p, n = sphere.vertices, sphere.vertex_normals
-    lights = [L.DirectionalLight((0, 0, 1), 1.0), L.PointLight((0, 30, 0), 50.0),
-              L.SpotLight((30, 0, 0), (-1, 0, 0), 80.0, cone_deg=20, falloff_deg=10),
-              L.ProjectorLight((0, -30, 0), (0, 1, 0), np.full((4, 6, 3), 0.5), 80.0, up=(0, 0, 1)),
-              L.EnvironmentLight(np.full((8, 16, 3), 0.1), directions=8)]
-    E, info = L.incident_light(sphere, p, n, lights, eta=ETA, ctx=ctx, shadow_map_size=128)
+    lights = [DirectionalLight((0, 0, 1), 1.0), PointLight((0, 30, 0), 50.0),
+              SpotLight((30, 0, 0), (-1, 0, 0), 80.0, cone_deg=20, falloff_deg=10),
+              ProjectorLight((0, -30, 0), (0, 1, 0), np.full((4, 6, 3), 0.5), 80.0, up=(0, 0, 1)),
+              EnvironmentLight(np.full((8, 16, 3), 0.1), directions=8)]
+    E, info = incident_light(sphere, p, n, lights, eta=ETA, ctx=ctx, shadow_map_size=128)
     assert [i["light"] for i in info] == ["directional", "point", "spot", "projector", "environment"]
     assert created and all(isinstance(o.mglo, moderngl.InvalidObject) for o in created), \
         "every GL object created by incident_light must be released"
     monkeypatch.undo()
-    parts = [L.incident_light(sphere, p, n, [li], eta=ETA, ctx=ctx, shadow_map_size=128)[0] for li in lights]
+    parts = [incident_light(sphere, p, n, [li], eta=ETA, ctx=ctx, shadow_map_size=128)[0] for li in lights]
     np.testing.assert_allclose(E, sum(parts), rtol=1e-12, atol=0)
-    assert all(L.casts_shadows(li) for li in lights)
-    assert not L.casts_shadows(L.PointLight((0, 0, 0), 1.0, shadows=False))
-    assert not L.casts_shadows(L.EnvironmentLight(np.ones((2, 4, 3)), visibility=False))
-    empty, info = L.incident_light(sphere, np.zeros((0, 3)), np.zeros((0, 3)), lights, eta=ETA, ctx=ctx)
+    assert all(casts_shadows(li) for li in lights)
+    assert not casts_shadows(PointLight((0, 0, 0), 1.0, shadows=False))
+    assert not casts_shadows(EnvironmentLight(np.ones((2, 4, 3)), visibility=False))
+    empty, info = incident_light(sphere, np.zeros((0, 3)), np.zeros((0, 3)), lights, eta=ETA, ctx=ctx)
     assert empty.shape == (0, 3) and len(info) == 5
-
-
-# ---- bad input -------------------------------------------------------------------------------------------
-@pytest.mark.parametrize("make, field", [
-    (lambda: L.DirectionalLight((0, 0, 0), 1.0), "direction"),
-    (lambda: L.DirectionalLight((0, 0, 1), (1.0, -1.0, 1.0)), "irradiance"),
-    (lambda: L.DirectionalLight((0, 0, 1), (1.0, np.nan, 1.0)), "irradiance"),
-    (lambda: L.DirectionalLight((0, 1), 1.0), "direction"),
-    (lambda: L.PointLight((0, 0, np.inf), 1.0), "position"),
-    (lambda: L.PointLight((0, 0, 1), (1.0, np.inf, 0.0)), "intensity"),
-    (lambda: L.PointLight((0, 0, 1), -2.0), "intensity"),
-    (lambda: L.SpotLight((0, 0, 1), (0, 0, 0), 1.0), "direction"),
-    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=0.0, falloff_deg=0.0), "cone_deg"),
-    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=180.0), "cone_deg"),
-    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=20.0, falloff_deg=30.0), "falloff_deg"),
-    (lambda: L.SpotLight((0, 0, 1), (0, 0, -1), 1.0, cone_deg=20.0, falloff_deg=-1.0), "falloff_deg"),
-    (lambda: L.EnvironmentLight(np.ones((4, 8))), "image"),
-    (lambda: L.EnvironmentLight(np.full((4, 8, 3), np.nan)), "image"),
-    (lambda: L.EnvironmentLight(-np.ones((4, 8, 3))), "image"),
-    (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), scale=-1.0), "scale"),
-    (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), order=9), "order"),
-    (lambda: L.EnvironmentLight(np.ones((4, 8, 3)), directions=0), "directions"),
-    (lambda: L.sh_project(np.ones((4, 8, 4))), "image"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, fov_deg=0.0), "fov_deg"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, fov_deg=180.0), "fov_deg"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, up=(0, 0, 2)), "parallel"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 1, 0), np.ones((2, 2, 3)), 1.0), "parallel"),  # default up
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), 1.0, up=(0, 0, 0)), "up"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), -np.ones((2, 2, 3)), 1.0), "image.*negative"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2)), 1.0), "image.*shape"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 4)), 1.0), "image.*shape"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.full((2, 2, 3), np.inf), 1.0), "image"),
-    (lambda: L.ProjectorLight((0, 0, 1), (0, 0, -1), np.ones((2, 2, 3)), -1.0), "intensity"),
-    (lambda: L.projector_factor(L.SpotLight((0, 0, 1), (0, 0, -1), 1.0), np.zeros((1, 3))), "ProjectorLight"),
-])
-def test_bad_light_parameters(make, field):
-    with pytest.raises(InputError, match=field) as exc:
-        make()
-    assert "\n" not in str(exc.value)
 
 
 def test_bad_incident_light_arguments(ctx, sphere):
     p, n = sphere.vertices[:10], sphere.vertex_normals[:10]
-    sun = [L.DirectionalLight((0, 0, 1), 1.0)]
+    sun = [DirectionalLight((0, 0, 1), 1.0)]
     cases = [
         (dict(eta=0.0), "eta"), (dict(eta=-1.3), "eta"), (dict(eta=np.nan), "eta"),
         (dict(normals=n[:9]), "normals"), (dict(normals=np.zeros((10, 3))), "normals"),
@@ -531,8 +483,8 @@ def test_bad_incident_light_arguments(ctx, sphere):
     for change, field in cases:
         args = dict(mesh=sphere, points=p, normals=n, lights=sun, eta=ETA, ctx=ctx) | change
         with pytest.raises(InputError, match=field):
-            L.incident_light(**args)
+            incident_light(**args)
     with pytest.raises(InputError, match="normals"):
-        L.visibility(sphere, p, sun[0], ctx=ctx, normals=n[:3])
+        visibility(sphere, p, sun[0], ctx=ctx, normals=n[:3])
     with pytest.raises(InputError, match="light"):
-        L.visibility(sphere, p, "sun", ctx=ctx)
+        visibility(sphere, p, "sun", ctx=ctx)

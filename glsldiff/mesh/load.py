@@ -1,0 +1,311 @@
+"""Loading closed meshes through pymeshlab: read (any format pymeshlab reads, or a built-in
+sample), optionally repair (duplicate vertices and faces, degenerate faces, unreferenced
+vertices, non-manifold edges and vertices, incoherent orientation, small holes), check the
+topology and orient the faces outward. What the repair changed is counted in
+:attr:`glsldiff.mesh.types.Mesh.repairs`. Coordinates are taken as mm.
+
+pymeshlab is an optional dependency (``pip install 'glsldiff[mesh]'``): it is imported only
+where a mesh is read or checked.
+"""
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff.core.checks import choice, real
+from glsldiff.core.errors import InputError
+from glsldiff.mesh.types import (Mesh, check_face_indices, n_directed_edges, signed_volume, unique_edges,
+                                 vertex_labels)
+
+log = logging.getLogger(__name__)
+
+#: Built-in sample meshes (shipped with pymeshlab's tests).
+SAMPLE_MESHES: dict[str, str] = {
+    "bunny": "bunny.obj",
+    "cow": "cow.obj",
+    "bone": "bone.ply",
+    "airplane": "airplane.obj",
+}
+#: Largest hole (in boundary edges) that ``repair=True`` closes.
+MAX_HOLE_EDGES = 30
+COMPONENT_MODES = ("error", "largest")
+
+
+def sample_mesh_path(name: str) -> Path:
+    """Path of a built-in sample mesh: ``'bunny'``, ``'cow'``, ``'bone'`` or ``'airplane'``."""
+    if name not in SAMPLE_MESHES:
+        raise InputError(f"unknown sample mesh {name!r}; valid names: {', '.join(SAMPLE_MESHES)} "
+                         "(or pass the path of a mesh file)")
+    try:
+        import pymeshlab  # optional dependency (the mesh extra); it ships the sample meshes
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise InputError(f"sample mesh {name!r} ships with pymeshlab, which is not installed; "
+                         "install it with: pip install 'glsldiff[mesh]'") from exc
+    path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / SAMPLE_MESHES[name]
+    if not path.is_file():  # pragma: no cover - broken install
+        raise InputError(f"sample mesh {name!r}: {path} is missing from the pymeshlab install; "
+                         "reinstall pymeshlab or pass a mesh file path")
+    return path
+
+
+def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: bool = True,
+              component: str = "error") -> Mesh:
+    """Load, repair and validate a closed mesh file (any format pymeshlab reads).
+
+    Parameters
+    ----------
+    source
+        File path, or a sample name (see :func:`sample_mesh_path`).
+    size_mm
+        If given, scale uniformly (about the origin) so that the longest bounding-box
+        extent is ``size_mm`` mm; ``None`` keeps the file's units, taken as mm.
+    repair
+        Remove duplicate/degenerate/unreferenced elements, fix non-manifold edges and
+        vertices and incoherent orientation, and close holes of up to
+        :data:`MAX_HOLE_EDGES` edges (see :func:`mesh_from_arrays`).
+    component
+        ``'error'``: several connected components raise InputError; ``'largest'``: keep
+        the component of largest volume (counted as ``removed_components``).
+    """
+    if isinstance(source, str) and source in SAMPLE_MESHES and not Path(source).exists():
+        path, name = sample_mesh_path(source), source
+    else:
+        path = Path(source)
+        name = path.name
+        if not path.is_file():
+            raise InputError(f"mesh file {str(path)!r} does not exist; pass an existing file "
+                             f"or one of the sample names {', '.join(SAMPLE_MESHES)}")
+    ms = _meshset()
+    try:
+        with _quiet():
+            ms.load_new_mesh(str(path))
+    except Exception as exc:  # pymeshlab.PyMeshLabException and friends
+        raise InputError(f"mesh file {str(path)!r} could not be read by pymeshlab ({exc}); "
+                         "check the file format (obj, ply, stl, off, ...)") from exc
+    return _finish(ms, name, size_mm, repair, component)
+
+
+def mesh_from_arrays(vertices: ArrayLike, faces: ArrayLike, size_mm: float | None = None,
+                     repair: bool = True, component: str = "error", name: str = "") -> Mesh:
+    """Build a validated :class:`Mesh` from vertex ``(V, 3)`` mm and face ``(F, 3)`` arrays.
+
+    Same pipeline as :func:`load_mesh`. With ``repair=True`` pymeshlab removes duplicate
+    vertices, duplicate faces, degenerate (zero-area) faces and unreferenced vertices,
+    repairs non-manifold edges (removing faces) and vertices (splitting them), makes the
+    orientation coherent and closes holes of at most :data:`MAX_HOLE_EDGES` edges. The
+    result must then be closed, two-manifold and (unless ``component='largest'``) one
+    connected component with non-zero volume; its faces are flipped if they point inward.
+    """
+    label = name or "mesh"
+    v = np.asarray(vertices)
+    f = np.asarray(faces)
+    if v.ndim != 2 or v.shape[1] != 3 or not np.issubdtype(v.dtype, np.number):
+        raise InputError(f"{label}: vertices must be a numeric (V, 3) array, got shape {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3 or not (np.issubdtype(f.dtype, np.integer) or f.size == 0):
+        raise InputError(f"{label}: faces must be an integer (F, 3) array of vertex indices, "
+                         f"got shape {f.shape} dtype {f.dtype}")
+    if len(f) == 0 or len(v) == 0:
+        raise InputError(f"{label}: the mesh is empty ({len(v)} vertices, {len(f)} faces); "
+                         "pass a closed triangle surface")
+    v = np.asarray(v, dtype=np.float64)
+    _check_finite(v, label)
+    check_face_indices(f, len(v), label)
+    return _finish(_meshset(v, f, label), name, size_mm, repair, component)
+
+
+def _meshset(v: NDArray[np.float64] | None = None, f: NDArray[np.int64] | None = None,
+             name: str = "") -> Any:
+    """An empty pymeshlab MeshSet, or one holding the mesh ``(v, f)``."""
+    try:
+        import pymeshlab  # optional dependency (the mesh extra)
+    except ImportError as exc:  # pragma: no cover - depends on the environment
+        raise InputError("loading meshes needs pymeshlab; install it with: "
+                         "pip install 'glsldiff[mesh]'") from exc
+    ms = pymeshlab.MeshSet(verbose=False)
+    if v is not None and f is not None:
+        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=np.asarray(f, dtype=np.int32)), name)
+    return ms
+
+
+@contextlib.contextmanager
+def _quiet() -> Iterator[None]:
+    """Send what native code writes to stdout/stderr (pymeshlab warnings) to the log."""
+    try:
+        fds = (sys.__stdout__.fileno(), sys.__stderr__.fileno())  # type: ignore[union-attr]
+    except (AttributeError, ValueError, OSError):  # no real file descriptors: do nothing
+        yield
+        return
+    try:
+        libc: Any = ctypes.CDLL(None)
+    except OSError:  # pragma: no cover - no C library handle (Windows)
+        libc = None
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    saved = [os.dup(fd) for fd in fds]
+    with tempfile.TemporaryFile() as tmp:
+        try:
+            for fd in fds:
+                os.dup2(tmp.fileno(), fd)
+            yield
+        finally:
+            if libc is not None:
+                with contextlib.suppress(Exception):
+                    libc.fflush(None)
+            for fd, s in zip(fds, saved):
+                os.dup2(s, fd)
+                os.close(s)
+            tmp.seek(0)
+            text = tmp.read().decode(errors="replace").strip()
+            if text:
+                log.debug("pymeshlab output: %s", text)
+
+
+def _check_finite(v: NDArray[np.float64], label: str) -> None:
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        raise InputError(f"{label}: {int(bad.sum())} vertices have non-finite coordinates "
+                         f"(e.g. vertex {int(np.flatnonzero(bad)[0])}); fix or remove them")
+
+
+def _counts(ms: Any) -> tuple[int, int]:
+    m = ms.current_mesh()
+    return m.vertex_number(), m.face_number()
+
+
+def _arrays(ms: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    m = ms.current_mesh()
+    return (np.array(m.vertex_matrix(), dtype=np.float64),
+            np.array(m.face_matrix(), dtype=np.int64).reshape(-1, 3))
+
+
+def _repair(ms: Any) -> dict[str, int]:
+    """Run the pymeshlab repair filters; return the non-zero change counts."""
+    rep: dict[str, int] = {}
+
+    def add(key: str, n: int) -> None:
+        rep[key] = rep.get(key, 0) + abs(int(n))
+
+    def step(filt: str, v_key: str | None, f_key: str | None, **kw: Any) -> None:
+        v0, f0 = _counts(ms)
+        getattr(ms, filt)(**kw)
+        v1, f1 = _counts(ms)
+        if v_key:
+            add(v_key, v0 - v1)
+        if f_key:
+            add(f_key, f0 - f1)
+
+    with _quiet():
+        # merging duplicates also drops faces that then repeat a vertex (degenerate)
+        step("meshing_remove_duplicate_vertices", "duplicate_vertices", "degenerate_faces")
+        step("meshing_remove_duplicate_faces", None, "duplicate_faces")
+        step("meshing_remove_null_faces", None, "degenerate_faces")
+        step("meshing_remove_unreferenced_vertices", "unreferenced_vertices", None)
+        step("meshing_repair_non_manifold_edges", None, "nonmanifold_edge_faces")
+        step("meshing_repair_non_manifold_vertices", "split_nonmanifold_vertices", None)
+        step("meshing_remove_unreferenced_vertices", "unreferenced_vertices", None)
+        f_before = _arrays(ms)[1]
+        ms.meshing_re_orient_faces_coherently()
+        f_after = _arrays(ms)[1]
+        if f_before.shape == f_after.shape:
+            changed = int((f_before != f_after).any(axis=1).sum())
+            # pymeshlab may flip the majority; the outward flip below undoes that globally
+            add("reoriented_faces", min(changed, len(f_after) - changed))
+        holes0 = int(ms.get_topological_measures()["number_holes"])
+        step("meshing_close_holes", None, "hole_faces_added", maxholesize=MAX_HOLE_EDGES)
+        if rep["hole_faces_added"]:
+            add("closed_holes", max(holes0 - int(ms.get_topological_measures()["number_holes"]), 0))
+            step("meshing_remove_null_faces", None, "degenerate_faces")
+    return {k: n for k, n in rep.items() if n}
+
+
+def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: str) -> Mesh:
+    label = f"mesh {name!r}" if name else "mesh"
+    choice(component, f"{label}: component", COMPONENT_MODES)
+    if size_mm is not None:
+        real(size_mm, f"{label}: size_mm (mm; None keeps the file's units)", lo=0.0, lo_open=True)
+    v, f = _arrays(ms)
+    if len(f) == 0:
+        raise InputError(f"{label} has no faces ({len(v)} vertices); pass a closed triangle "
+                         "surface")
+    _check_finite(v, label)
+    repairs = _repair(ms) if repair else {}
+    v, f = _arrays(ms)
+    if len(f) == 0:
+        raise InputError(f"{label}: no faces left after removing degenerate/duplicate ones")
+
+    # components
+    _, labels = vertex_labels(f, len(v))
+    face_comp = labels[f[:, 0]]
+    comps = np.unique(face_comp)
+    if len(comps) > 1 and component == "largest":
+        vols = np.array([abs(signed_volume(v, f[face_comp == c])) for c in comps])
+        sizes = np.array([np.count_nonzero(face_comp == c) for c in comps])
+        best = comps[np.lexsort((-sizes, -vols))[0]]
+        f = f[face_comp == best]
+        used = np.unique(f)
+        remap = np.full(len(v), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        v, f = v[used], remap[f]
+        repairs["removed_components"] = len(comps) - 1
+        log.info("%s: kept the largest of %d components (%d faces)", label, len(comps), len(f))
+
+    _check_topology(v, f, label, repair, n_components=len(comps) if component == "error" else 1)
+    vol = signed_volume(v, f)
+    ext = v.max(axis=0) - v.min(axis=0)
+    if not abs(vol) > 1e-9 * float(ext.max()) ** 3:
+        raise InputError(f"{label} encloses zero volume ({vol:.3g} mm^3 for extents "
+                         f"{np.round(ext, 6).tolist()} mm); pass a solid, not a flat or "
+                         "double-sided sheet")
+    if vol < 0:
+        f = f[:, ::-1].copy()
+        repairs["flipped_orientation"] = 1
+    if size_mm is not None:
+        v = v * (float(size_mm) / float(ext.max()))
+    if repairs:
+        log.info("%s: repairs %s", label, repairs)
+    return Mesh(v, f, name=name, repairs=repairs)
+
+
+def _check_topology(v: NDArray[np.float64], f: NDArray[np.int64], label: str, repair: bool,
+                    n_components: int = 1) -> None:
+    """Raise one InputError listing every problem: open, non-manifold, incoherent, several
+    components."""
+    ms = _meshset(v, f)
+    with _quiet():
+        topo = ms.get_topological_measures()
+    problems = []
+    if topo["boundary_edges"] > 0:
+        problems.append(f"it is open: {topo['boundary_edges']} boundary edges in "
+                        f"{max(topo['number_holes'], 1)} hole(s)")
+    if topo["non_two_manifold_edges"] > 0 or topo["non_two_manifold_vertices"] > 0:
+        problems.append(f"it is not two-manifold: {topo['non_two_manifold_edges']} non-manifold "
+                        f"edges, {topo['non_two_manifold_vertices']} non-manifold vertices")
+    _, counts = unique_edges(f)
+    if not problems and n_directed_edges(f) != 2 * len(counts):
+        problems.append("its faces are not coherently oriented")
+    fixes = []
+    if problems and repair:
+        fixes.append(f"repair=True could not fix it (it closes only holes of up to "
+                     f"{MAX_HOLE_EDGES} edges); repair the surface in a mesh editor "
+                     "(e.g. MeshLab: close holes, remove non-manifold edges)")
+    elif problems:
+        fixes.append(f"pass repair=True (closes holes of up to {MAX_HOLE_EDGES} edges, "
+                     "repairs non-manifold elements and face orientation)")
+    if n_components > 1:
+        problems.append(f"it has {n_components} connected components")
+        fixes.append("pass component='largest' to keep the largest one, or split the file")
+    if problems:
+        raise InputError(f"{label}: {'; '.join(problems)}; glsldiff needs one closed "
+                         f"two-manifold surface: {'; '.join(fixes)}")
+

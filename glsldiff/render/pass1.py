@@ -1,0 +1,264 @@
+"""Pass 1 of the renderer: light transmitted into the object at its boundary nodes.
+
+Wang et al. 2008, section 5: before the diffusion pass, the incident light at every boundary
+node is computed "using shadow buffers for directional and point lights, and ambient
+occlusion or precomputed radiance transfer for environment lighting". :func:`incident_light`
+returns, per boundary node x with outward unit normal n, the transmitted irradiance (in the
+units of ``DirectionalLight.irradiance``, of ``PointLight.intensity`` per mm^2, or of the
+environment's radiance times sr)
+
+    E_t(x) = sum over lights of  L_i(w) (n . w)^+ F_t(eta, n . w) V(x, w)      (dw integrated
+                                                                              for environments)
+
+with w the unit direction from x towards the light, F_t = 1 - Fresnel reflectance of the smooth
+interface (:func:`glsldiff.physics.optics.fresnel_transmittance`, eta = n_inside / n_outside) and V the
+visibility. This is the source q of the boundary condition (Wang et al. eq. 2). The lights are
+those of :mod:`glsldiff.physics.lights` (their falloff: :func:`~glsldiff.physics.lights.incidence`);
+V comes from the shadow maps of :mod:`glsldiff.render.shadows`.
+
+Environment light
+-----------------
+The unshadowed term is the spherical-harmonics irradiance with the Fresnel factor folded into
+the kernel (:func:`glsldiff.physics.sh.sh_irradiance` of :attr:`EnvironmentLight.sh`).
+With ``visibility=True`` (the paper's ambient occlusion), ``directions`` directions w_k on a
+Fibonacci sphere each get an orthographic shadow map (at most ``ENV_SHADOW_MAP_MAX`` texels
+square), and
+
+    E_t(x) = E_sh(x) * sum_k w_k V(x, w_k) / sum_k w_k,
+    w_k = max(L_sh(w_k), 0) (n . w_k)^+ F_t(eta, n . w_k)      (per colour channel),
+
+i.e. the paper's sum ``sum_k L_sh(w_k) (n.w_k)^+ F_t V (4 pi / K)`` normalised by the same sum
+with V = 1. The normalisation makes an unoccluded (convex) surface reproduce E_sh exactly
+instead of carrying the quadrature error of K directions (several percent for K = 64); the
+ratio tends to the plain sum as K grows. Where every weight of a channel vanishes the
+cosine-Fresnel weighted visible fraction is used instead.
+
+GL objects are created per call and released before it returns. Units: mm, radiance and
+irradiance in the caller's units.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Sequence
+
+import moderngl
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff import gl
+from glsldiff.core import checks
+from glsldiff.core.errors import InputError
+from glsldiff.physics.lights import (EnvironmentLight, KINDS, Light, casts_shadows, check_light, incidence,
+                                     light_kind, to_light)
+from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.sh import fibonacci_directions, sh_evaluate, sh_irradiance
+from glsldiff.render.shadows import DepthRenderer
+
+__all__ = ["incident_light", "visibility", "ENV_SHADOW_MAP_MAX"]
+
+ENV_SHADOW_MAP_MAX = 512   # shadow maps of environment directions are at most this size
+
+
+def _mesh_arrays(mesh: Any) -> None:
+    v = getattr(mesh, "vertices", None)
+    f = getattr(mesh, "faces", None)
+    if v is None or f is None:
+        raise InputError(f"mesh must be a glsldiff.mesh.Mesh (vertices, faces), got {type(mesh).__name__}")
+    v, f = np.asarray(v), np.asarray(f)
+    if v.ndim != 2 or v.shape[1] != 3 or len(v) < 3 or f.ndim != 2 or f.shape[1] != 3 or len(f) == 0:
+        raise InputError(f"mesh must have (V, 3) vertices and (F, 3) faces, got {v.shape} and {f.shape}")
+    if not np.isfinite(v).all():
+        raise InputError("mesh.vertices must be finite")
+
+
+def _size(shadow_map_size: Any) -> int:
+    return checks.integer(shadow_map_size, "shadow_map_size", 8, 8192)
+
+
+def _light_list(lights: Any) -> list[Light]:
+    if isinstance(lights, tuple(KINDS.values())):
+        lights = [lights]
+    try:
+        out = list(lights)
+    except TypeError:
+        raise InputError(f"lights must be a sequence of lights, got {type(lights).__name__}") from None
+    return [check_light(light, f"lights[{i}]") for i, light in enumerate(out)]
+
+
+def _ft(eta: float | None, cos: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Fresnel transmittance for cosines clipped to [0, 1] (0 where cos <= 0); 1 for
+    ``eta=None`` (the incident irradiance, no interface)."""
+    if eta is None:
+        return np.where(cos > 0.0, 1.0, 0.0)
+    c = np.clip(cos, 0.0, 1.0)
+    return np.where(cos > 0.0, np.asarray(fresnel_transmittance(eta, c)), 0.0)
+
+
+def _context(ctx: moderngl.Context | None) -> moderngl.Context:
+    c = ctx if ctx is not None else gl.get_context()
+    gl.make_current(c)
+    return c
+
+
+def visibility(mesh: Any, points: ArrayLike, light: Light, ctx: moderngl.Context | None = None,
+               shadow_map_size: int = 1024, normals: ArrayLike | None = None) -> NDArray[np.float64]:
+    """Shadow-map visibility ``(N,)`` in [0, 1] of ``points`` (N, 3) mm for one light (1 = lit).
+
+    Renders a shadow map whatever the light's ``shadows`` flag says. ``normals`` (N, 3),
+    optional, set the slope part of the bias (:mod:`glsldiff.render.shadows`). For an
+    :class:`EnvironmentLight` the result is the ambient-occlusion fraction over its
+    ``directions`` (weighted by ``(n . w)^+`` when normals are given, else unweighted), with
+    shadow maps of at most ``ENV_SHADOW_MAP_MAX`` texels. For a projector it is the shadowing
+    alone (points outside the frustum count as lit); its image is
+    :func:`glsldiff.physics.lights.projector_factor`.
+    """
+    _mesh_arrays(mesh)
+    p = checks.points(points)
+    n = None if normals is None else checks.unit_rows(normals, "normals", len(p))
+    check_light(light)
+    size = _size(shadow_map_size)
+    if len(p) == 0:
+        return np.ones(0)
+    c = _context(ctx)
+    with DepthRenderer(c, mesh) as r:
+        q = p - r.centre
+        if isinstance(light, EnvironmentLight):
+            dirs = fibonacci_directions(light.directions)
+            num, den = np.zeros(len(p)), np.zeros(len(p))
+            for w in dirs:
+                wt = np.ones(len(p)) if n is None else np.maximum(n @ w, 0.0)
+                if not wt.any():
+                    continue
+                sm = r.shadow_map(light, min(size, ENV_SHADOW_MAP_MAX), direction=w)
+                num += wt * sm.lookup(q, np.broadcast_to(w, p.shape), n)
+                den += wt
+            return np.where(den > 0, num / np.maximum(den, 1e-300), 1.0)
+        sm = r.shadow_map(light, size)
+        return sm.lookup(q, to_light(light, p), n)
+
+
+def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Sequence[Light],
+                   eta: float | None, ctx: moderngl.Context | None = None,
+                   shadow_map_size: int = 1024) -> tuple[NDArray[np.float64], list[dict[str, Any]]]:
+    """Transmitted irradiance at boundary nodes (pass 1; formulas in the module docstring).
+
+    Parameters
+    ----------
+    mesh
+        The closed :class:`glsldiff.mesh.Mesh` that casts the shadows (mm).
+    points
+        ``(N, 3)`` node positions on or slightly inside the surface, mm.
+    normals
+        ``(N, 3)`` outward normals (normalised here; zero rows are refused).
+    lights
+        Lights of :mod:`glsldiff.physics.lights` (a single light is accepted too).
+    eta
+        Relative refractive index n_inside / n_outside, > 0; ``None``: the incident
+        irradiance (no Fresnel factor), e.g. for a diffuse surface reflectance.
+    ctx
+        GL context for the shadow maps; default :func:`glsldiff.gl.get_context` (only
+        created when some light needs a shadow map).
+    shadow_map_size
+        Texels per side of each shadow-map view (environment directions: at most
+        ``ENV_SHADOW_MAP_MAX``).
+
+    Returns
+    -------
+    E_t
+        ``(N, 3)`` float64 transmitted irradiance, RGB.
+    info
+        One dict per light: ``light`` (kind), ``shadow_map`` (e.g. ``"1024x1024"``,
+        ``"6 x 1024x1024 (cube)"``, ``"64 x 512x512"`` or ``"none (shadows off)"``),
+        ``seconds``, ``facing`` (points with n . w > 0, or with any lit direction; for a
+        projector also inside its frustum on a non-black pixel),
+        ``shadowed`` (facing points with visibility < 0.5), ``max`` (largest E_t of the
+        light, per channel), and for environments ``sh_order``, ``directions`` and (with
+        visibility) ``mean_visibility``, the cosine-Fresnel weighted visible fraction.
+    """
+    _mesh_arrays(mesh)
+    p = checks.points(points)
+    n = checks.unit_rows(normals, "normals", len(p))
+    eta_v = None if eta is None else checks.real(eta, "eta", 0.0, math.inf, lo_open=True, hi_open=True)
+    light_list = _light_list(lights)
+    size = _size(shadow_map_size)
+    total = np.zeros((len(p), 3))
+    infos: list[dict[str, Any]] = []
+    renderer: DepthRenderer | None = None
+    try:
+        for light in light_list:
+            t0 = time.perf_counter()
+            info: dict[str, Any] = {"light": light_kind(light)}
+            needs_map = casts_shadows(light) and len(p) > 0
+            if needs_map and renderer is None:
+                renderer = DepthRenderer(_context(ctx), mesh)
+            if isinstance(light, EnvironmentLight):
+                e = _environment(light, p, n, eta_v, renderer if needs_map else None, size, info)
+            else:
+                w = to_light(light, p)
+                cos = np.einsum("ij,ij->i", n, w)
+                scale, colour = incidence(light, p, cos.clip(0.0) * _ft(eta_v, cos))
+                facing = scale > 0
+                if needs_map:
+                    assert renderer is not None
+                    sm = renderer.shadow_map(light, size)
+                    vis = np.ones(len(p))
+                    idx = np.flatnonzero(facing)
+                    vis[idx] = sm.lookup(p[idx] - renderer.centre, w[idx], n[idx])
+                    scale = scale * vis
+                    info["shadow_map"] = sm.label
+                    info["shadowed"] = int((vis[facing] < 0.5).sum())
+                else:
+                    info["shadow_map"] = "none (shadows off)"
+                    info["shadowed"] = 0
+                info["facing"] = int(facing.sum())
+                e = scale[:, None] * np.atleast_2d(colour)
+            total += e
+            info["max"] = [float(x) for x in (e.max(axis=0) if len(e) else np.zeros(3))]
+            info["seconds"] = time.perf_counter() - t0
+            infos.append(info)
+    finally:
+        if renderer is not None:
+            renderer.release()
+    return total, infos
+
+
+def _environment(light: EnvironmentLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float | None,
+                 renderer: DepthRenderer | None, size: int, info: dict[str, Any]) -> NDArray[np.float64]:
+    coeffs = light.sh
+    info["sh_order"] = light.order
+    info["directions"] = light.directions if renderer is not None else 0
+    e_sh = sh_irradiance(coeffs, n, eta) if len(n) else np.zeros((0, 3))
+    if renderer is None:
+        info["shadow_map"] = "none (visibility off)"
+        info["facing"] = len(p)
+        info["shadowed"] = 0
+        return e_sh
+    dirs = fibonacci_directions(light.directions)
+    radiance = np.maximum(sh_evaluate(coeffs, dirs), 0.0)          # (K, 3)
+    num = np.zeros((len(p), 3))
+    den = np.zeros((len(p), 3))
+    num_g = np.zeros(len(p))
+    den_g = np.zeros(len(p))
+    env_size = min(size, ENV_SHADOW_MAP_MAX)
+    q = p - renderer.centre
+    for k, w in enumerate(dirs):
+        cos = n @ w
+        g = cos.clip(0.0) * _ft(eta, cos)
+        idx = np.flatnonzero(g > 0)
+        if idx.size == 0:
+            continue
+        sm = renderer.shadow_map(light, env_size, direction=w)
+        v = sm.lookup(q[idx], np.broadcast_to(w, (idx.size, 3)), n[idx])
+        wk = g[idx, None] * radiance[k][None, :]
+        num[idx] += wk * v[:, None]
+        den[idx] += wk
+        num_g[idx] += g[idx] * v
+        den_g[idx] += g[idx]
+    frac_g = np.where(den_g > 0, num_g / np.maximum(den_g, 1e-300), 1.0)
+    frac = np.where(den > 0, num / np.maximum(den, 1e-300), frac_g[:, None])
+    info["shadow_map"] = f"{light.directions} x {env_size}x{env_size}"
+    info["facing"] = int((den_g > 0).sum())
+    info["shadowed"] = int((frac_g < 0.5).sum())
+    info["mean_visibility"] = float(frac_g.mean()) if len(frac_g) else 1.0
+    return e_sh * frac

@@ -1,0 +1,49 @@
+"""What one :meth:`glsldiff.render.renderer.Renderer.render` call did: which stages ran and
+why, times in seconds (t1/t2/t3: passes 1-3), the solver's report, and notes."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass
+class RenderReport:
+    """What one :meth:`Renderer.render` call did, with times in seconds."""
+
+    passes: list[dict[str, Any]] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+    renderer: str = ""
+    solver: Any = None
+    nodes: int = 0
+    boundary_nodes: int = 0
+    clamped_vertices: int = 0
+    image_size: tuple[int, int] = (0, 0)
+    notes: list[str] = field(default_factory=list)
+
+    def ran(self, name: str) -> bool:
+        return any(p["pass"] == name and p["ran"] for p in self.passes)
+
+    @property
+    def frame_seconds(self) -> float:
+        """t1 + t2 + t3 (what ran this frame)."""
+        return sum(self.seconds.get(k, 0.0) for k in ("t1", "t2", "t3"))
+
+    def lines(self) -> list[str]:
+        out = [f"GL renderer: {self.renderer}",
+               f"polygrid: {self.nodes} active nodes, {self.boundary_nodes} boundary; image {self.image_size[0]}x"
+               f"{self.image_size[1]}"]
+        for p in self.passes:
+            state = f"ran     {p['seconds'] * 1e3:9.1f} ms" if p["ran"] else "skipped             "
+            out.append(f"  {p['pass']:<8} {state}  {p['why']}")
+        t = self.seconds
+        fs = self.frame_seconds
+        out.append(f"t1/t2/t3 = {t.get('t1', 0) * 1e3:.1f}/{t.get('t2', 0) * 1e3:.1f}/{t.get('t3', 0) * 1e3:.1f} ms, "
+                   f"frame {fs * 1e3:.1f} ms = {1.0 / fs if fs > 0 else math.inf:.2f} fps-equivalent"
+                   + (f" (setup {t['setup']:.2f} s)" if "setup" in t else ""))
+        if self.solver is not None:
+            out.append("solver: " + self.solver.summary())
+        if self.clamped_vertices:
+            out.append(f"exitant radiance clamped to 0 at {self.clamped_vertices} lit vertices (diffusion undershoot)")
+        out.extend(self.notes)
+        return out

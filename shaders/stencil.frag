@@ -1,0 +1,67 @@
+#version 330 core
+// One pass over the rows of one kind (ROW_BOUNDARY = 0: interior rows, 1: boundary rows), built
+// from the row functions of diffusion.glsl:
+//   RESIDUAL = 0: a Jacobi sweep, the row solved for its own node
+//     interior: x_p <- (sum_j a_j x_j + s f_p) / (sum_j a_j + sigma)
+//     boundary: x_p <- (d t_p q_p + 2 C kappa_p (t_p / t_j) x_j) / (d + 2 C kappa_p)
+//     (DAMPED mixes with the old value);
+//   RESIDUAL = 1: the residual r = rhs - row(x) in the units of the equation (not row-scaled)
+//     interior: r = f_p - (sum_j a_j (x_p - x_j) + sigma x_p) / s   (f = 0 unless HAS_RHS)
+//     boundary: r = q_p - (phi_p + 2 C kappa_p (phi_p - phi_j) / d)
+// Texture fetches of an interior sweep, paper stencil: six neighbours, T_w1, T_w2, kappa, mu.
+#include "diffusion.glsl"
+flat in ivec2 v_off0;
+flat in ivec2 v_off1;
+flat in ivec2 v_off2;
+flat in ivec2 v_off3;
+flat in ivec2 v_off4;
+flat in ivec2 v_off5;
+layout(location = 0) out vec4 f_color;
+
+// The new value of the node at p from its plain Jacobi value (damped when DAMPED).
+vec3 relaxed(ivec2 p, vec3 jacobi) {
+#if DAMPED
+    return mix(fetch(u_state, p), jacobi, u_omega);
+#else
+    return jacobi;
+#endif
+}
+
+void main() {
+    ivec2 p = ivec2(gl_FragCoord.xy);
+#if ROW_BOUNDARY
+    BoundaryRow row = boundary_row(p, p + v_off0);
+    vec3 q = fetch(u_q, p);
+    vec3 c = 2.0 * u_C * row.kappa;
+#if RESIDUAL
+    vec3 phi = fetch(u_state, p) / row.t;
+    f_color = vec4(q - (phi + c * (phi - row.x_j / row.t_j) / row.d), 0.0);
+#else
+    f_color = vec4(relaxed(p, (row.d * row.t * q + c * (row.t / row.t_j) * row.x_j) / (row.d + c)), 0.0);
+#endif
+#else
+    ivec2 nb[6] = ivec2[6](p + v_off0, p + v_off1, p + v_off2, p + v_off3, p + v_off4, p + v_off5);
+    InteriorRow row = interior_row(p, nb);
+#if RESIDUAL
+    vec3 x = fetch(u_state, p);
+    vec3 flux = vec3(0.0);
+    for (int j = 0; j < 6; ++j) flux += row.a[j] * (x - row.x[j]);
+    vec3 r = -(flux + row.sigma * x) / row.s;
+#if HAS_RHS
+    r += fetch(u_q, p);
+#endif
+    f_color = vec4(r, 0.0);
+#else
+    vec3 num = vec3(0.0);
+    vec3 den = vec3(0.0);
+    for (int j = 0; j < 6; ++j) {
+        num += row.a[j] * row.x[j];
+        den += row.a[j];
+    }
+#if HAS_RHS
+    num += row.s * fetch(u_q, p);
+#endif
+    f_color = vec4(relaxed(p, num / (den + row.sigma)), 0.0);
+#endif
+#endif
+}
