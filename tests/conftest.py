@@ -31,6 +31,8 @@ import pytest
 
 from glsldiff import gl
 from glsldiff.core.errors import BackendError
+from glsldiff.grids.polygrid import build_polygrid
+from glsldiff.mesh import sphere_mesh
 
 BACKENDS = ("egl", "osmesa")
 
@@ -153,3 +155,10 @@ def _smooth_kappa(shape: tuple[int, int, int], seed: int, k0: float = 0.01,
 def smooth_kappa():
     """The :func:`_smooth_kappa` generator (smooth log-normal-ish kappa with exact contrast)."""
     return _smooth_kappa
+
+
+# ---- built grids shared by several test files (session scope: built once per run) ----------
+@pytest.fixture(scope="session")
+def sphere_polygrid():
+    """The polygrid of a 10 mm icosphere (subdivisions 4): n = 6 nodes per cube edge, 5 mm cubes."""
+    return build_polygrid(sphere_mesh(10.0, subdivisions=4), n=6, cube_size=5.0)

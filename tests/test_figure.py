@@ -14,7 +14,7 @@ FRONT = figure.View(azimuth_deg=0.0, elevation_deg=0.0)  # camera on +z, image r
 
 
 @pytest.fixture(scope="module")
-def sphere():
+def icosphere():
     """Icosphere of radius 10 mm."""
     m = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
     return np.asarray(m.vertices), np.asarray(m.faces)
@@ -43,8 +43,8 @@ def _greenness(img):
     return f[..., 1] - np.maximum(f[..., 0], f[..., 2])
 
 
-def test_sphere_with_boundary_and_interior_nodes(bctx, sphere, lattice):
-    v, f = sphere
+def test_sphere_with_boundary_and_interior_nodes(bctx, icosphere, lattice):
+    v, f = icosphere
     img = figure.render_nodes(v, f, [(v, (0.9, 0.1, 0.1)), (lattice, (0.1, 0.2, 0.9))],
                               size=(160, 140), point_size_px=4.0, ctx=bctx)
     assert img.shape == (140, 160, 3) and img.dtype == np.uint8
@@ -62,8 +62,8 @@ def test_sphere_with_boundary_and_interior_nodes(bctx, sphere, lattice):
     assert np.all(bare[covered].max(axis=1) < 250), "the surface must be visibly non-white"
 
 
-def test_node_behind_surface_is_dimmed(ctx, sphere):
-    v, f = sphere
+def test_node_behind_surface_is_dimmed(ctx, icosphere):
+    v, f = icosphere
     in_front = np.array([[-4.0, 0.0, 11.0]])  # outside the sphere, between it and the camera
     inside = np.array([[4.0, 0.0, 0.0]])      # behind the camera-facing surface
     pts = [(in_front, RED), (inside, RED)]
@@ -81,8 +81,8 @@ def test_node_behind_surface_is_dimmed(ctx, sphere):
     assert _redness(opaque)[:, 60:].max() < 20, "an opaque surface hides the inner node"
 
 
-def test_image_orientation(ctx, sphere):
-    v, f = sphere
+def test_image_orientation(ctx, icosphere):
+    v, f = icosphere
     pts = [(np.array([[0.0, 5.0, 11.0]]), RED), (np.array([[5.0, 0.0, 11.0]]), GREEN)]
     img = figure.render_nodes(v, f, pts, size=(100, 100), view=FRONT, point_size_px=6.0, ctx=ctx)
     rows, cols = np.nonzero(_redness(img) > 150)
@@ -94,8 +94,8 @@ def test_image_orientation(ctx, sphere):
     assert abs(cx - (cols.mean() + 0.5)) < 1.0 and abs(cy - (rows.mean() + 0.5)) < 1.0
 
 
-def test_clip_planes(ctx, sphere, lattice):
-    v, f = sphere
+def test_clip_planes(ctx, icosphere, lattice):
+    v, f = icosphere
     size = (120, 120)
     full = figure.render_nodes(v, f, [(lattice, BLUE)], size=size, view=FRONT, ctx=ctx)
     cols = np.nonzero(_blueness(full) > 60)[1]
@@ -120,8 +120,8 @@ def test_clip_planes(ctx, sphere, lattice):
     assert tuple(cut[60, 90]) == (255, 255, 255) and tuple(cut[60, 30]) != (255, 255, 255)
 
 
-def test_lines_are_thin_and_coloured(ctx, sphere):
-    v, f = sphere
+def test_lines_are_thin_and_coloured(ctx, icosphere):
+    v, f = icosphere
     seg = np.array([[[-6.0, 0.0, 10.5], [6.0, 0.0, 10.5]]])
     img = figure.render_nodes(v, f, [], size=(100, 100), view=FRONT, lines=[(seg, GREEN)],
                               line_width_px=2.0, ctx=ctx)
@@ -142,8 +142,8 @@ def test_camera_fits_the_mesh(view):
     assert ndc.max() > 0.9, "tight fit: some vertex lies near the border"
 
 
-def test_gl_state_restored(bctx, sphere, lattice):
-    v, f = sphere
+def test_gl_state_restored(bctx, icosphere, lattice):
+    v, f = icosphere
     previous = bctx.fbo if bctx.fbo is not None else bctx.detect_framebuffer(0)
     rb = bctx.renderbuffer((17, 9))
     mine = bctx.framebuffer(color_attachments=[rb])
@@ -190,10 +190,10 @@ def test_bad_input(ctx, change, match):
         figure.render_nodes(ctx=ctx, **args)
 
 
-def test_save_png(ctx, sphere, lattice, tmp_path):
+def test_save_png(ctx, icosphere, lattice, tmp_path):
     from PIL import Image
 
-    v, f = sphere
+    v, f = icosphere
     pts = [(v, RED), (lattice, BLUE)]
     path = figure.save_nodes_png(tmp_path / "sub" / "nodes.png", v, f, pts, size=(64, 48))
     assert path == tmp_path / "sub" / "nodes.png"

@@ -30,15 +30,15 @@ from glsldiff.oracle.solvers import solve_direct
 from glsldiff.system.report import CURRENT
 
 @pytest.fixture(scope="module")
-def torus():
+def torus_polygrid():
     """A mapped (distorted) polygrid of genus 1 (about 12k nodes); two levels, n = 6 and 3 (n = 2 has no
     interior nodes at this cube size)."""
     return build_polygrid(torus_mesh(20.0, 8.0, 32, 16), n=6, cube_size=8.0)
 
 
 @pytest.fixture(scope="module")
-def hier(torus):
-    return Hierarchy.build(torus, 2)
+def hier(torus_polygrid):
+    return Hierarchy.build(torus_polygrid, 2)
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,7 @@ def any_hier(request):
     return request.getfixturevalue("hier" if request.param == "polygrid" else "slab_hier")
 
 
-def _problem(grid, stencil="paper", hetero=False):
+def _lit_problem(grid, stencil="paper", hetero=False):
     """Smooth directional light on the polygrid's normals, or on the regular grid's z- face and
     (weaker) x+ face; kappa 0.3 mm (log-normal per node when ``hetero``), mu per channel."""
     rng = np.random.default_rng(3)
@@ -154,7 +154,7 @@ def test_regular_hierarchy_levels(slab_hier):
     """The coarse regular level's direct solution, prolonged, is a useful initial guess (within
     25 % of the fine solution; the first-order boundary rows at h = 2 mm cost most of it), and the
     restricted source stays on the boundary."""
-    p = _problem(slab_hier.grids[0])
+    p = _lit_problem(slab_hier.grids[0])
     probs = level_problems(slab_hier, p)
     phi_f, _ = solve_direct(probs[0])
     phi_c, _ = solve_direct(probs[1])
@@ -166,26 +166,26 @@ def test_regular_hierarchy_levels(slab_hier):
     np.testing.assert_allclose(slab_hier.restrict_q(p.q, 2), probs[2].q)
 
 
-def test_mapped_hierarchy_levels(torus, hier):
+def test_mapped_hierarchy_levels(torus_polygrid, hier):
     """Coarse level of a mapped polygrid: boundary nodes on the fine surface, weights valid,
     and its direct solution prolonged is a useful initial guess (within 25 % of the fine one)."""
     cg = hier.grids[1]
-    assert cg.n == torus.n // 2 and cg.weights.min() > 0
+    assert cg.n == torus_polygrid.n // 2 and cg.weights.min() > 0
     d_b = hier.depth(1)[cg.lattice.boundary]
     assert np.median(d_b) < 0.5 * cg.lattice.h
-    p = _problem(torus)
+    p = _lit_problem(torus_polygrid)
     fine, coarse = level_problems(hier, p)
     phi_f, _ = solve_direct(fine)
     phi_c, _ = solve_direct(coarse)
     guess = hier.prolong_phi(phi_c, 1)
-    assert relative_l2(guess[torus.active], phi_f[torus.active]) < 0.25
+    assert relative_l2(guess[torus_polygrid.active], phi_f[torus_polygrid.active]) < 0.25
 
 
 # ---------------------------------------------------------------- GLSL passes vs CPU
 @pytest.mark.parametrize("stencil", ["paper", "conservative"])
 def test_prolong_pass_matches_cpu(ctx, any_hier, stencil):
     hier = any_hier
-    p = _problem(hier.grids[0], stencil, hetero=True)
+    p = _lit_problem(hier.grids[0], stencil, hetero=True)
     with MultilevelDiffusion(hier, p, "hierarchical", ctx=ctx) as s:
         coarse = s.levels[1]
         rng = np.random.default_rng(0)
@@ -204,7 +204,7 @@ def test_prolong_pass_matches_cpu(ctx, any_hier, stencil):
 def test_damped_correction_pass_matches_cpu(ctx, any_hier):
     """Multigrid prolongation adds alpha * P e to the fine state (alpha = coarse_correction)."""
     hier = any_hier
-    p = _problem(hier.grids[0], "conservative", hetero=True)
+    p = _lit_problem(hier.grids[0], "conservative", hetero=True)
     with MultilevelDiffusion(hier, p, "multigrid", ctx=ctx, coarse_correction=0.7) as s:
         fine, coarse = s.levels[:2]
         rng = np.random.default_rng(3)
@@ -221,7 +221,7 @@ def test_damped_correction_pass_matches_cpu(ctx, any_hier):
 @pytest.mark.parametrize("stencil", ["paper", "conservative"])
 def test_residual_and_restrict_passes_match_cpu(ctx, any_hier, stencil):
     hier = any_hier
-    p = _problem(hier.grids[0], stencil, hetero=True)
+    p = _lit_problem(hier.grids[0], stencil, hetero=True)
     with MultilevelDiffusion(hier, p, "multigrid", ctx=ctx) as s:
         fine = s.finest
         rng = np.random.default_rng(1)
@@ -248,7 +248,7 @@ def test_residual_and_restrict_passes_match_cpu(ctx, any_hier, stencil):
 def test_damped_sweep_with_interior_rhs_matches_cpu(ctx, any_hier):
     """A coarse multigrid level: one damped sweep with f at interior and g at boundary rows."""
     cg = any_hier.grids[1]
-    p = _problem(cg, hetero=True)
+    p = _lit_problem(cg, hetero=True)
     rng = np.random.default_rng(2)
     rhs = rng.uniform(-1.0, 1.0, (cg.size, 3)) * (cg.graph.kind != INACTIVE)[:, None]
     with GlslDiffusion(p, ctx, damping=0.7, interior_rhs=True) as s:
@@ -263,17 +263,17 @@ def test_damped_sweep_with_interior_rhs_matches_cpu(ctx, any_hier):
         np.testing.assert_allclose(sysc.from_volume(s.unknown()), want, rtol=1e-5, atol=1e-6)
 
 
-def test_material_8bit_matches_decoded_cpu(ctx, torus):
+def test_material_8bit_matches_decoded_cpu(ctx, torus_polygrid):
     """'paper' precision: one sweep sees exactly the decoded 8-bit material (fp16 state)."""
     rng = np.random.default_rng(4)
-    kappa = 0.05 * 1e4 ** rng.uniform(0, 1, torus.shape + (3,))  # contrast 1e4
-    mu = rng.uniform(0.0, 0.5, torus.shape + (3,))
-    p = DiffusionProblem(torus, kappa, mu, 1.0, stencil="conservative")
-    k8, m8 = quantize.decode(p.kappa.reshape(-1, 3), p.mu.reshape(-1, 3), torus.active.reshape(-1))
-    assert np.max(np.abs(np.log(k8 / p.kappa.reshape(-1, 3)))[torus.active.reshape(-1)]) <= np.log(1e4) / 510 + 1e-12
-    p8 = DiffusionProblem(torus, k8.reshape(kappa.shape), m8.reshape(mu.shape), 1.0, stencil="conservative")
+    kappa = 0.05 * 1e4 ** rng.uniform(0, 1, torus_polygrid.shape + (3,))  # contrast 1e4
+    mu = rng.uniform(0.0, 0.5, torus_polygrid.shape + (3,))
+    p = DiffusionProblem(torus_polygrid, kappa, mu, 1.0, stencil="conservative")
+    k8, m8 = quantize.decode(p.kappa.reshape(-1, 3), p.mu.reshape(-1, 3), torus_polygrid.active.reshape(-1))
+    assert np.max(np.abs(np.log(k8 / p.kappa.reshape(-1, 3)))[torus_polygrid.active.reshape(-1)]) <= np.log(1e4) / 510 + 1e-12
+    p8 = DiffusionProblem(torus_polygrid, k8.reshape(kappa.shape), m8.reshape(mu.shape), 1.0, stencil="conservative")
     with GlslDiffusion(p, ctx, "paper") as s:
-        x_vol = rng.uniform(0.2, 1.0, torus.shape + (3,))
+        x_vol = rng.uniform(0.2, 1.0, torus_polygrid.shape + (3,))
         s.set_initial(x_vol)
         s8 = assemble(p8)
         x = s8.from_volume(s.unknown())
@@ -288,7 +288,7 @@ def test_material_8bit_matches_decoded_cpu(ctx, torus):
 def test_multilevel_solves_match_direct(ctx, any_hier, scheme, stencil):
     """Every schedule on both grid types converges to the direct solution (2e-5)."""
     hier = any_hier
-    p = _problem(hier.grids[0], stencil)
+    p = _lit_problem(hier.grids[0], stencil)
     ref, _ = solve_direct(p)
     with MultilevelDiffusion(hier, p, scheme, ctx=ctx) as s:
         phi, rep = s.solve(tol=1e-6, maxiter=20000 if scheme != "multigrid" else 100)
@@ -300,7 +300,7 @@ def test_multilevel_solves_match_direct(ctx, any_hier, scheme, stencil):
 
 def test_hierarchical_start_saves_fine_sweeps(ctx, any_hier):
     hier = any_hier
-    p = _problem(hier.grids[0])
+    p = _lit_problem(hier.grids[0])
     with MultilevelDiffusion(hier, p, "single", ctx=ctx) as s:
         _, single = s.solve(tol=1e-5)
     with MultilevelDiffusion(hier, p, "hierarchical", ctx=ctx) as s:
@@ -315,7 +315,7 @@ def test_adaptive_pins_deep_nodes(ctx, any_hier):
     boundary values stay within a few percent of the full solve."""
     hier = any_hier
     pg = hier.grids[0]
-    p = _problem(pg)
+    p = _lit_problem(pg)
     ref, _ = solve_direct(p)
     h = pg.lattice.h if isinstance(pg, Polygrid) else pg.h
     depths = [3.0 * h] + [None] * (hier.levels - 1)
@@ -341,7 +341,7 @@ def test_adaptive_drops_unused_blocks(ctx):
     every block kept (the nodes no level holds get the coarse value copied down)."""
     pg = box_polygrid((3, 3, 3), 6, size=6.0)
     h2 = Hierarchy.build(pg, 2)
-    p = _problem(pg)
+    p = _lit_problem(pg)
     depths = [pg.lattice.h, None]
     out = {}
     for drop in (True, False):
@@ -364,7 +364,7 @@ def test_frame_coherence_saves_sweeps(ctx, hier):
     """After a small light move, the previous frame's solution reaches a figure-15 error of
     1e-3 with under half the node updates of a cold hierarchical start."""
     pg = hier.grids[0]
-    p = _problem(pg)
+    p = _lit_problem(pg)
     l2 = np.array([0.3, 0.2, 0.93]) + np.array([0.05, -0.03, 0.0])
     q2 = np.maximum(pg.normals @ (l2 / np.linalg.norm(l2)), 0.0)[:, None] * np.array([1.0, 0.7, 0.4])
     p2 = p.with_q(q2)
@@ -406,7 +406,7 @@ def test_paper_precision_stiff_cases_stay_finite(ctx, hier, case):
 
 
 def test_bad_options(ctx, hier):
-    p = _problem(hier.grids[0])
+    p = _lit_problem(hier.grids[0])
     with pytest.raises(InputError, match="scheme"):
         MultilevelDiffusion(hier, p, "vcycle", ctx=ctx)
     with pytest.raises(InputError, match="depths"):

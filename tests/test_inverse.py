@@ -13,6 +13,7 @@ from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import ScaledProblem, minimize
 from glsldiff.inverse.synthetic import bssrdf_error, region_patterns, synthetic_measurements
 from glsldiff.physics.procedural import synthetic_volume
+from glsldiff.commands.cli import main
 
 
 def _random_problem(model: ForwardModel, M: int, seed: int) -> tuple[np.ndarray, ...]:
@@ -253,8 +254,6 @@ def test_region_patterns_tile_the_face() -> None:
 
 # ---- command line ---------------------------------------------------------------------
 def test_cli_synth_and_fit(tmp_path, capsys) -> None:
-    from glsldiff.commands.cli import main
-
     meas = tmp_path / "m.npz"
     assert main(["synth", str(meas), "--size", "10", "10", "5", "--n", "2", "--noise", "0.005"]) == 0
     out = tmp_path / "mat.npz"
@@ -275,11 +274,18 @@ def test_cli_synth_and_fit(tmp_path, capsys) -> None:
 
 
 def test_cli_fit_fails_before_work_on_unwritable_output(tmp_path, capsys) -> None:
-    from glsldiff.commands.cli import main
-
     assert main(["fit", str(tmp_path / "nothing.npz"), "-o", str(tmp_path / "no" / "dir" / "m.npz")]) == 2
     err = capsys.readouterr().err
     assert "does not exist" in err and "no/dir" in err and err.count("\n") == 1
     assert main(["fit", str(tmp_path / "nothing.npz"), "-o", str(tmp_path / "m.npz")]) == 2
     assert "measurements file" in capsys.readouterr().err
     assert not (tmp_path / "m.npz").exists()
+
+
+def test_cli_bench_fit_tiny(tmp_path, capsys) -> None:
+    """`glsldiff bench fit` runs end to end (a tiny volume, 3 evaluations) and writes its files."""
+    out = tmp_path / "bf"
+    assert main(["bench", "fit", "--size", "12", "12", "4", "--n", "1", "--methods", "lbfgs",
+                 "--max-evals", "3", "--skip", "lambda", "backends", "--out", str(out)]) == 0
+    assert "figure 11" in capsys.readouterr().out
+    assert (out / "fit.png").exists()

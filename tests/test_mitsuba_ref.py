@@ -18,9 +18,9 @@ from glsldiff.mesh import box_mesh  # noqa: E402
 from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, PointLight  # noqa: E402
 from glsldiff.physics.sh import latlong_directions  # noqa: E402
 from glsldiff.validation.mitsuba import (  # noqa: E402
-    McCamera, _probe_variant, render_mitsuba, render_scattering_orders, render_subsurface,
-    single_scattering_share,
+    McCamera, render_mitsuba, render_scattering_orders, render_subsurface, single_scattering_share,
 )
+from glsldiff.validation.mitsuba_scene import probe_variant  # noqa: E402
 
 CONST = EnvironmentLight(np.full((2, 4, 3), 2.0))   # uniform: Mitsuba's constant emitter
 
@@ -225,7 +225,7 @@ def test_orders_need_index_matching(cube, cam):
 
 def test_jit_variant_probe(cube, cam):
     """A JIT variant that cannot run here (llvm_ad_rgb with LLVM 15) is a BackendError, not a crash."""
-    if not _probe_variant("llvm_ad_rgb"):
+    if not probe_variant("llvm_ad_rgb"):
         pytest.skip("llvm_ad_rgb works on this machine")
     with pytest.raises(BackendError, match="llvm_ad_rgb"):
         render_mitsuba(cube, 0.01, 1.0, 1.0, cam, CONST, spp=1, variant="llvm_ad_rgb")

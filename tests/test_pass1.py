@@ -78,7 +78,7 @@ def latlong(height, width, fn):
 
 # ---- meshes ---------------------------------------------------------------------------------
 @pytest.fixture(scope="module")
-def sphere():
+def offset_sphere():
     return M.sphere_mesh(10.0, 4, center=(3.0, -2.0, 5.0))
 
 
@@ -105,13 +105,13 @@ def slab_top():
 
 
 # ---- directional light -------------------------------------------------------------------------
-def test_directional_sphere_closed_form_and_far_side(ctx, sphere):
-    p, n = sphere.vertices, sphere.vertex_normals
+def test_directional_sphere_closed_form_and_far_side(ctx, offset_sphere):
+    p, n = offset_sphere.vertices, offset_sphere.vertex_normals
     w = np.array([1.0, 2.0, 3.0]) / math.sqrt(14.0)
     irr = np.array([1.0, 2.0, 3.0])
     light = DirectionalLight(direction=(2.0, 4.0, 6.0), irradiance=irr)  # normalised inside
     assert np.allclose(light.direction, w)
-    E, info = incident_light(sphere, p, n, [light], eta=ETA, ctx=ctx)
+    E, info = incident_light(offset_sphere, p, n, [light], eta=ETA, ctx=ctx)
     assert E.shape == (len(p), 3) and E.dtype == np.float64
     cos = n @ w
     ref = (np.clip(cos, 0, None) * fresnel_t(ETA, cos))[:, None] * irr
@@ -125,7 +125,7 @@ def test_directional_sphere_closed_form_and_far_side(ctx, sphere):
     # the shadow map itself: nodes on the surface and 0.3 mm inside, with and without normals
     for pts in (p, p - 0.3 * n):
         for nn in (None, n):
-            v = visibility(sphere, pts, light, ctx=ctx, normals=nn)
+            v = visibility(offset_sphere, pts, light, ctx=ctx, normals=nn)
             assert v.shape == (len(p),) and v.min() >= 0 and v.max() <= 1
             assert np.all(v[cos > 0.15] == 1.0), "lit side must be lit (no shadow acne)"
             assert np.all(v[cos < -0.15] == 0.0), "far side must be in shadow"
@@ -363,11 +363,11 @@ def test_projector_shadow_uses_the_spot_machinery(ctx, two_boxes, slab_top):
 # ---- environment light ---------------------------------------------------------------------------
 @pytest.mark.parametrize("vis", [False, True])
 @pytest.mark.parametrize("eta", [1.0, ETA])
-def test_environment_constant_on_sphere(ctx, sphere, vis, eta):
+def test_environment_constant_on_sphere(ctx, offset_sphere, vis, eta):
     Lrad = np.array([0.5, 1.0, 2.0])
     img = np.ones((24, 48, 3)) * Lrad
     light = EnvironmentLight(img, scale=2.0, visibility=vis, directions=32)
-    E, info = incident_light(sphere, sphere.vertices, sphere.vertex_normals, [light], eta=eta, ctx=ctx,
+    E, info = incident_light(offset_sphere, offset_sphere.vertices, offset_sphere.vertex_normals, [light], eta=eta, ctx=ctx,
                                shadow_map_size=256)
     expected = 2.0 * Lrad * hemispherical(eta)  # pi L (1 - external hemispherical Fresnel)
     if eta == 1.0:
@@ -377,26 +377,26 @@ def test_environment_constant_on_sphere(ctx, sphere, vis, eta):
     assert info[0]["shadow_map"] == ("32 x 256x256" if vis else "none (visibility off)")
 
 
-def test_incident_irradiance_without_interface(ctx, sphere):
+def test_incident_irradiance_without_interface(ctx, offset_sphere):
     """``eta=None``: the irradiance arriving at the surface (no Fresnel factor), as a diffuse
     surface reflectance needs: E0 cos for a directional light, pi L for a constant sky."""
-    p, n = sphere.vertices, sphere.vertex_normals
+    p, n = offset_sphere.vertices, offset_sphere.vertex_normals
     light = DirectionalLight(direction=(0.0, 0.0, 1.0), irradiance=(1.0, 2.0, 3.0))
-    E, _ = incident_light(sphere, p, n, [light], eta=None, ctx=ctx)
+    E, _ = incident_light(offset_sphere, p, n, [light], eta=None, ctx=ctx)
     cos = n[:, 2]
     lit = cos > 0.1
     np.testing.assert_allclose(E[lit], cos[lit, None] * np.array([1.0, 2.0, 3.0]), rtol=1e-12)
     env = EnvironmentLight(np.full((24, 48, 3), 0.5), visibility=False)
-    E, _ = incident_light(sphere, p, n, [env], eta=None, ctx=ctx)
+    E, _ = incident_light(offset_sphere, p, n, [env], eta=None, ctx=ctx)
     np.testing.assert_allclose(E, math.pi * 0.5, rtol=0.01)
 
 
-def test_environment_linear_map_convention(ctx, sphere):
+def test_environment_linear_map_convention(ctx, offset_sphere):
     """L = 1 + 0.5 x + 0.3 y + 0.2 z: E(n) = pi + 2 pi / 3 (0.5 n_x + 0.3 n_y + 0.2 n_z) at eta 1,
     and on +z with Fresnel: 2 pi int (1 + 0.2 t) t F_t dt."""
     img = latlong(48, 96, lambda x, y, z: 1.0 + 0.5 * x + 0.3 * y + 0.2 * z)
-    n = sphere.vertex_normals
-    E, _ = incident_light(sphere, sphere.vertices, n, [EnvironmentLight(img, visibility=False)],
+    n = offset_sphere.vertex_normals
+    E, _ = incident_light(offset_sphere, offset_sphere.vertices, n, [EnvironmentLight(img, visibility=False)],
                             eta=1.0, ctx=ctx)
     ref = math.pi + 2.0 * math.pi / 3.0 * (n @ np.array([0.5, 0.3, 0.2]))
     np.testing.assert_allclose(E[:, 1], ref, rtol=2e-3)
@@ -404,7 +404,7 @@ def test_environment_linear_map_convention(ctx, sphere):
     up = sh_irradiance(c, [[0.0, 0.0, 1.0]], eta=ETA)
     np.testing.assert_allclose(up[0], hemispherical(ETA, lambda t: 1.0 + 0.2 * t), rtol=2e-3)
     # order 0 keeps only the mean
-    E0, _ = incident_light(sphere, sphere.vertices, n,
+    E0, _ = incident_light(offset_sphere, offset_sphere.vertices, n,
                              [EnvironmentLight(img, order=0, visibility=False)], eta=1.0)
     np.testing.assert_allclose(E0, math.pi, rtol=2e-3)
 
@@ -441,7 +441,7 @@ def test_environment_visibility_on_torus(ctx, torus):
 
 
 # ---- mixed, info, GL hygiene ------------------------------------------------------------------------
-def test_lights_add_up_and_release_gl_objects(ctx, sphere, monkeypatch):
+def test_lights_add_up_and_release_gl_objects(ctx, offset_sphere, monkeypatch):
     created = []
     for name in ("texture", "framebuffer", "buffer", "program", "vertex_array"):
         orig = getattr(moderngl.Context, name)
@@ -451,27 +451,27 @@ def test_lights_add_up_and_release_gl_objects(ctx, sphere, monkeypatch):
             created.append(obj)
             return obj
         monkeypatch.setattr(moderngl.Context, name, wrap)
-    p, n = sphere.vertices, sphere.vertex_normals
+    p, n = offset_sphere.vertices, offset_sphere.vertex_normals
     lights = [DirectionalLight((0, 0, 1), 1.0), PointLight((0, 30, 0), 50.0),
               SpotLight((30, 0, 0), (-1, 0, 0), 80.0, cone_deg=20, falloff_deg=10),
               ProjectorLight((0, -30, 0), (0, 1, 0), np.full((4, 6, 3), 0.5), 80.0, up=(0, 0, 1)),
               EnvironmentLight(np.full((8, 16, 3), 0.1), directions=8)]
-    E, info = incident_light(sphere, p, n, lights, eta=ETA, ctx=ctx, shadow_map_size=128)
+    E, info = incident_light(offset_sphere, p, n, lights, eta=ETA, ctx=ctx, shadow_map_size=128)
     assert [i["light"] for i in info] == ["directional", "point", "spot", "projector", "environment"]
     assert created and all(isinstance(o.mglo, moderngl.InvalidObject) for o in created), \
         "every GL object created by incident_light must be released"
     monkeypatch.undo()
-    parts = [incident_light(sphere, p, n, [li], eta=ETA, ctx=ctx, shadow_map_size=128)[0] for li in lights]
+    parts = [incident_light(offset_sphere, p, n, [li], eta=ETA, ctx=ctx, shadow_map_size=128)[0] for li in lights]
     np.testing.assert_allclose(E, sum(parts), rtol=1e-12, atol=0)
     assert all(casts_shadows(li) for li in lights)
     assert not casts_shadows(PointLight((0, 0, 0), 1.0, shadows=False))
     assert not casts_shadows(EnvironmentLight(np.ones((2, 4, 3)), visibility=False))
-    empty, info = incident_light(sphere, np.zeros((0, 3)), np.zeros((0, 3)), lights, eta=ETA, ctx=ctx)
+    empty, info = incident_light(offset_sphere, np.zeros((0, 3)), np.zeros((0, 3)), lights, eta=ETA, ctx=ctx)
     assert empty.shape == (0, 3) and len(info) == 5
 
 
-def test_bad_incident_light_arguments(ctx, sphere):
-    p, n = sphere.vertices[:10], sphere.vertex_normals[:10]
+def test_bad_incident_light_arguments(ctx, offset_sphere):
+    p, n = offset_sphere.vertices[:10], offset_sphere.vertex_normals[:10]
     sun = [DirectionalLight((0, 0, 1), 1.0)]
     cases = [
         (dict(eta=0.0), "eta"), (dict(eta=-1.3), "eta"), (dict(eta=np.nan), "eta"),
@@ -481,10 +481,10 @@ def test_bad_incident_light_arguments(ctx, sphere):
         (dict(shadow_map_size=100.5), "shadow_map_size"), (dict(mesh="bunny"), "mesh"),
     ]
     for change, field in cases:
-        args = dict(mesh=sphere, points=p, normals=n, lights=sun, eta=ETA, ctx=ctx) | change
+        args = dict(mesh=offset_sphere, points=p, normals=n, lights=sun, eta=ETA, ctx=ctx) | change
         with pytest.raises(InputError, match=field):
             incident_light(**args)
     with pytest.raises(InputError, match="normals"):
-        visibility(sphere, p, sun[0], ctx=ctx, normals=n[:3])
+        visibility(offset_sphere, p, sun[0], ctx=ctx, normals=n[:3])
     with pytest.raises(InputError, match="light"):
-        visibility(sphere, p, "sun", ctx=ctx)
+        visibility(offset_sphere, p, "sun", ctx=ctx)

@@ -14,6 +14,7 @@ pytest.importorskip("pymeshlab")
 pytest.importorskip("trimesh")
 
 from glsldiff import mesh as M  # noqa: E402
+from glsldiff.grids import cubeset as C
 from glsldiff.grids import polycube as P  # noqa: E402
 from glsldiff.core.errors import InputError  # noqa: E402
 
@@ -184,7 +185,7 @@ def test_explicit_bad_size():
      dict(components=1, euler=-2, genus=2)),
 ])
 def test_surface_topology(cubes, want):
-    topo = P.surface_topology(cubes)
+    topo = C.surface_topology(cubes)
     for k, v in want.items():
         assert getattr(topo, k) == v, (k, topo)
 
@@ -195,13 +196,13 @@ def test_manifold_repair_random():
         occ = rng.random((5, 5, 5)) < rng.uniform(0.2, 0.8)
         frac = rng.random((5, 5, 5))
         fixed, _, off = P._make_manifold(occ, frac)
-        assert P._topology_of(fixed).manifold
+        assert C.topology_of(fixed).manifold
         assert (fixed[off:off + 5, off:off + 5, off:off + 5] >= occ).all()  # only adds cubes
 
 
 def test_manifold_table_counts():
     # configurations whose cube surface is not a disk at the centre vertex
-    bad = ~P._MANIFOLD
-    assert bad.sum() == 256 - P._MANIFOLD.sum()
-    assert not P._MANIFOLD[0b1001] and not P._MANIFOLD[0b10000001]  # edge / vertex contact
-    assert P._MANIFOLD[0] and P._MANIFOLD[255] and P._MANIFOLD[1] and P._MANIFOLD[0b11]
+    bad = ~C.MANIFOLD
+    assert bad.sum() == 256 - C.MANIFOLD.sum()
+    assert not C.MANIFOLD[0b1001] and not C.MANIFOLD[0b10000001]  # edge / vertex contact
+    assert C.MANIFOLD[0] and C.MANIFOLD[255] and C.MANIFOLD[1] and C.MANIFOLD[0b11]

@@ -36,7 +36,7 @@ def _to_nodes(lat: Lattice, vol: np.ndarray) -> np.ndarray:
     return vol[c[:, 2], c[:, 1], c[:, 0]].reshape(lat.shape + vol.shape[3:])
 
 
-def _smooth_kappa(shape, contrast=4.0):
+def _sine_kappa(shape, contrast=4.0):
     z, y, x = np.meshgrid(*[np.linspace(0, 1, s) for s in shape], indexing="ij")
     base = 0.5 + 0.5 * np.sin(3 * x + 2 * y) * np.cos(2 * z)
     k = 0.3 * contrast ** base
@@ -193,7 +193,7 @@ def test_decompose_empty():
 
 
 # ---------------------------------------------------------------- GLSL vs CPU
-def _problem(pg: Polygrid, stencil="paper", seed=0, q_scale=1.0):
+def _sine_problem(pg: Polygrid, stencil="paper", seed=0, q_scale=1.0):
     rng = np.random.default_rng(seed)
     p = pg.positions.reshape(pg.shape + (3,))
     lo, hi = pg.positions.min(0), pg.positions.max(0)
@@ -211,7 +211,7 @@ def test_sweeps_equal_numpy_jacobi(ctx, stencil, geometry):
     """GLSL sweeps (quads/lines/points, both passes) equal x + D^-1 (b - A x) of the oracle."""
     lat = Lattice.build(_scanline(L_SHAPE if geometry == "L" else RING), 5, 2.0)
     pg = lattice_polygrid(lat) if geometry == "L" else _distorted(lat, 0.25)
-    p = _problem(pg, stencil)
+    p = _sine_problem(pg, stencil)
     s = assemble(p)
     rng = np.random.default_rng(1)
     x = rng.uniform(0.5, 1.0, s.b.shape)
@@ -231,7 +231,7 @@ def test_box_equals_regular_grid(ctx, stencil):
     n, cubes, size = 5, (3, 2, 2), 2.5
     pg = box_polygrid(cubes, n, size)
     g = RegularGrid(cubes[0] * n, cubes[1] * n, cubes[2] * n, h=size / n)
-    kappa = _smooth_kappa(g.shape)
+    kappa = _sine_kappa(g.shape)
     mu = np.full(g.shape + (3,), 0.1)
     qv = g.face_volume({"z-": np.random.default_rng(0).uniform(0.5, 1.5, g.face_shape("z-") + (3,)), "x+": 0.3})
     pr = DiffusionProblem(g, kappa, mu, qv, stencil=stencil)
@@ -253,7 +253,7 @@ def test_distorted_polygrid_matches_direct(ctx):
     """Distorted ring (appendix-B weights from non-orthogonal stencils): GLSL = direct to 1e-4."""
     lat = Lattice.build(_scanline(RING), 6, 3.0)
     pg = _distorted(lat, 0.3)
-    p = _problem(pg, "paper")
+    p = _sine_problem(pg, "paper")
     phi_d, _ = solve_direct(p)
     phi_g, rep = solve_glsl(p, ctx, tol=5e-7)
     assert relative_l2(phi_g[pg.active], phi_d[pg.active]) <= 1e-4
@@ -263,7 +263,7 @@ def test_distorted_polygrid_matches_direct(ctx):
 def test_fp16_polygrid(ctx):
     lat = Lattice.build(_scanline(L_SHAPE), 5, 2.0)
     pg = lattice_polygrid(lat)
-    p = _problem(pg)
+    p = _sine_problem(pg)
     phi_d, _ = solve_direct(p)
     phi_h, rep = solve_glsl(p, ctx, precision="fp16", tol=1e-6, maxiter=3000)
     err = relative_l2(phi_h[pg.active], phi_d[pg.active])

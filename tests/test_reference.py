@@ -24,7 +24,7 @@ STENCILS = [("paper", "arithmetic"), ("conservative", "arithmetic"), ("conservat
 STENCIL_IDS = ["paper", "conservative-arith", "conservative-harm"]
 
 
-def _problem(stencil: str, face_mean: str = "arithmetic", shape=(7, 6, 8), h=0.25, seed=0,
+def _random_problem(stencil: str, face_mean: str = "arithmetic", shape=(7, 6, 8), h=0.25, seed=0,
              white: bool | None = None) -> DiffusionProblem:
     """A heterogeneous RGB problem. Conservative: node-wise (white) random kappa, 100x contrast;
     paper: mildly varying kappa (the paper's stencil needs it, see test_extreme)."""
@@ -104,7 +104,7 @@ def _jacobi_rho(p: DiffusionProblem) -> float:
 @pytest.mark.parametrize("stencil, face_mean", STENCILS, ids=STENCIL_IDS)
 def test_assembly_matches_loop_assembly(stencil, face_mean):
     """assemble() equals the docstring equations assembled node by node (all three channels)."""
-    p = _problem(stencil, face_mean, shape=(5, 4, 6))
+    p = _random_problem(stencil, face_mean, shape=(5, 4, 6))
     s = assemble(p)
     for c in range(3):
         A, b = _channel(s, c)
@@ -117,7 +117,7 @@ def test_assembly_matches_loop_assembly(stencil, face_mean):
 
 def test_paper_interior_row():
     """Paper stencil, interior node i: diagonal 6 + h^2 mu_i/kappa_i, -1 at its six neighbours, 0 elsewhere."""
-    p = _problem("paper")
+    p = _random_problem("paper")
     g = p.grid
     s = assemble(p)
     A0, _ = _channel(s, 0)
@@ -138,7 +138,7 @@ def test_paper_interior_row():
 def test_conservative_rows_are_diagonally_dominant(face_mean):
     """Conservative stencil, white 100x kappa: off-diagonals <= 0 and |a_ii| >= sum_j |a_ij|, strictly
     on boundary rows and where mu > 0 (an irreducibly diagonally dominant Z-matrix: an M-matrix)."""
-    p = _problem("conservative", face_mean)
+    p = _random_problem("conservative", face_mean)
     s = assemble(p)
     A = s.A.tocsr()
     off = A - sp.diags(A.diagonal())
@@ -167,7 +167,7 @@ def test_constant_kappa_stencils_agree():
 @pytest.mark.parametrize("stencil, face_mean", STENCILS, ids=STENCIL_IDS)
 def test_direct_residual(stencil, face_mean):
     """The LU solution satisfies A x = b to round-off (report residual and ||Ax-b||/||b|| < 1e-12)."""
-    p = _problem(stencil, face_mean, shape=(12, 10, 9))
+    p = _random_problem(stencil, face_mean, shape=(12, 10, 9))
     phi, rep = solve_direct(p)
     s = assemble(p)
     x = s.from_volume(p.from_phi(phi))
@@ -183,7 +183,7 @@ def test_direct_residual(stencil, face_mean):
 def test_amg_solver_matches_direct(stencil, face_mean):
     """solve_amg (pyamg smoothed aggregation + GMRES, the large-grid reference) equals the LU solve."""
     pytest.importorskip("pyamg")
-    p = _problem(stencil, face_mean, shape=(12, 10, 9))
+    p = _random_problem(stencil, face_mean, shape=(12, 10, 9))
     phi, rep = solve_amg(p, tol=1e-12)
     assert rep.converged and rep.residual < 1e-9
     assert relative_l2(phi, solve_direct(p)[0]) < 1e-9
@@ -192,7 +192,7 @@ def test_amg_solver_matches_direct(stencil, face_mean):
 @pytest.mark.parametrize("stencil, face_mean", STENCILS, ids=STENCIL_IDS)
 def test_direct_solver_reuse_with_new_q(stencil, face_mean):
     """DirectSolver.solve(q2) on one factorisation equals a fresh solve of the problem with q2."""
-    p = _problem(stencil, face_mean)
+    p = _random_problem(stencil, face_mean)
     g = p.grid
     q2 = {"y+": np.random.default_rng(9).random(g.face_shape("y+") + (3,)), "x-": 2.0}
     solver = DirectSolver(p)
@@ -207,7 +207,7 @@ def test_direct_solver_reuse_with_new_q(stencil, face_mean):
 @pytest.mark.parametrize("stencil, face_mean", STENCILS, ids=STENCIL_IDS)
 def test_solution_is_linear_in_q(stencil, face_mean):
     """phi(a q1 + b q2) = a phi(q1) + b phi(q2) (the operator is linear, q enters only b)."""
-    p = _problem(stencil, face_mean)
+    p = _random_problem(stencil, face_mean)
     g = p.grid
     rng = np.random.default_rng(5)
     q1 = {"z-": rng.random(g.face_shape("z-") + (3,))}
@@ -224,7 +224,7 @@ def test_solution_is_linear_in_q(stencil, face_mean):
 def test_exitant_radiance_equals_boundary_flux(stencil):
     """L = F_t (phi - q)/(2 pi) on each face equals -(C/pi) F_t kappa_b (phi_b - phi_j)/h, the
     boundary condition's flux form (problem.exitant_radiance docstring, paper eq. 3)."""
-    p = _problem(stencil)
+    p = _random_problem(stencil)
     g = p.grid
     phi, rep = solve_direct(p)
     ft = float(fresnel_transmittance(p.eta, 1.0))
@@ -243,7 +243,7 @@ def test_exitant_radiance_equals_boundary_flux(stencil):
 def test_numpy_jacobi_converges_to_direct(stencil, face_mean):
     """numpy Jacobi with tol 1e-11 reaches the direct solution to < 1e-8 relative L2; the history
     starts with the zero initial guess (residual exactly 1) and ends with the reported residual."""
-    p = _problem(stencil, face_mean)
+    p = _random_problem(stencil, face_mean)
     ref, _ = solve_direct(p)
     phi, rep = jacobi(p, tol=1e-11, maxiter=20000)
     assert rep.converged and rep.status == "converged" and rep.residual <= 1e-11
@@ -260,7 +260,7 @@ def test_numpy_jacobi_converges_to_direct(stencil, face_mean):
 def test_numpy_jacobi_matches_pyamg_jacobi(stencil, face_mean, sweeps):
     """N sweeps of reference.jacobi equal N sweeps of pyamg's Jacobi relaxation on the same system."""
     relaxation = pytest.importorskip("pyamg.relaxation.relaxation")
-    p = _problem(stencil, face_mean)
+    p = _random_problem(stencil, face_mean)
     s = assemble(p)
     x = np.zeros_like(s.b)
     relaxation.jacobi(s.A.tocsr(), x, s.b.copy(), iterations=sweeps, omega=1.0)
@@ -275,7 +275,7 @@ def test_jacobi_convergence_factor_is_spectral_radius(stencil, face_mean):
     """pyamg-style check on the residual history (check_every=1, initial residual included, so
     len(res) = sweeps + 1): the average factor (r_n/r_0)^(1/n) is below rho(I - D^-1 A) and the
     last-50-sweep factor equals it (1e-3)."""
-    p = _problem(stencil, face_mean)
+    p = _random_problem(stencil, face_mean)
     rho = _jacobi_rho(p)
     res: list[float] = []
     _, rep = jacobi(p, tol=1e-12, maxiter=5000, check_every=1, residuals=res)
@@ -295,7 +295,7 @@ def test_jacobi_warm_start_and_zero_source(stencil):
     """x0 = the direct solution already satisfies tol: converged after 0 sweeps, x0 returned
     (history: the initial guess only; measured residual 9e-16 / 3e-16); q = 0 gives phi = 0
     after 0 sweeps with residual 0."""
-    p = _problem(stencil)
+    p = _random_problem(stencil)
     ref, _ = solve_direct(p)
     phi, rep = jacobi(p, x0=ref, tol=1e-10, check_every=5)
     assert rep.converged and rep.status == "converged" and rep.sweeps == 0
@@ -309,7 +309,7 @@ def test_jacobi_warm_start_and_zero_source(stencil):
 def test_jacobi_zero_budget_returns_initial_guess():
     """maxiter=0 must not relax: the result is the initial guess (zero, or x0 at the active
     nodes), sweeps == 0, status 'budget' with the initial residual as the only history entry."""
-    p = _problem("conservative")
+    p = _random_problem("conservative")
     phi, rep = jacobi(p, maxiter=0)
     assert rep.sweeps == 0
     assert np.all(phi == 0.0), f"one sweep was applied: max phi = {phi.max():.3g}"
@@ -325,7 +325,7 @@ def test_uniform_interface_fills_residuals_and_calls_back():
     """Every oracle solver takes the pyamg-style arguments (glsldiff.system.report): ``residuals``
     gets the history (initial residual first, the report's history), ``callback(x)`` sees the
     unknown vector, ``x0`` starts the iteration; direct: one residual, one callback."""
-    p = _problem("conservative")
+    p = _random_problem("conservative")
     s = assemble(p)
     ref, _ = solve_direct(p)
     seen: list[np.ndarray] = []

@@ -10,8 +10,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import BOUNDARY, INACTIVE
 from glsldiff.physics.material import coefficients, preset
 from glsldiff.physics.procedural import marble_volume
-from glsldiff.mesh import sphere_mesh
-from glsldiff.grids.polygrid import box_polygrid, build_polygrid
+from glsldiff.grids.polygrid import box_polygrid
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.grids.lattice import STEPS
 from glsldiff.render.shellmap import FACE_FRAMES, map_shell, map_surface, shell_coordinates
@@ -43,11 +42,6 @@ def box():
     return box_polygrid((3, 3, 3), 4, size=2.0)  # 12^3 nodes, h = 0.5 mm
 
 
-@pytest.fixture(scope="module")
-def sphere():
-    return build_polygrid(sphere_mesh(10.0, subdivisions=4), n=6, cube_size=5.0)
-
-
 # ---------------------------------------------------------------- depth layering
 def test_depth_layering_on_a_box(box):
     """Box: depth is the exact distance to the boundary-node planes, and every shell node
@@ -75,22 +69,22 @@ def test_depth_layering_on_a_box(box):
     np.testing.assert_allclose(kappa.reshape(-1, 3)[b], np.broadcast_to(kprof[0], (b.size, 3)), rtol=1e-12)
 
 
-def test_depth_layering_on_a_mesh_sphere(sphere):
+def test_depth_layering_on_a_mesh_sphere(sphere_polygrid):
     """Sphere mesh: the mesh depth is R - |p| up to the icosphere's facets; the nodes depth
     is an upper bound within one lattice step; node values follow the profile of their depth."""
     h = 0.5
     kb, mb, st, sa, _ = _z_block(8)  # shell 4 mm of a 10 mm sphere
-    kappa, mu, info = map_shell(sphere, kb, mb, h, core=(0.2, (0.01, 0.02, 0.03)))
+    kappa, mu, info = map_shell(sphere_polygrid, kb, mb, h, core=(0.2, (0.01, 0.02, 0.03)))
     assert info["depth_from"] == "mesh" and info["mesh_queries"] > 0
-    act = sphere.active.ravel()
+    act = sphere_polygrid.active.ravel()
     depth = info["depth"].ravel()
-    radial = 10.0 - np.linalg.norm(sphere.positions, axis=1)
+    radial = 10.0 - np.linalg.norm(sphere_polygrid.positions, axis=1)
     inside = act & (depth < info["thickness_mm"])
     sag = 0.05  # icosphere (subdivisions 4) facets lie up to ~0.02 mm inside the sphere
     assert np.all(np.abs(depth[inside] - radial[inside]) < sag)
-    nodes = shell_coordinates(sphere, depth_from="nodes")["depth"]
+    nodes = shell_coordinates(sphere_polygrid, depth_from="nodes")["depth"]
     assert np.all(nodes[act] >= depth[act] - 1e-9)
-    assert np.max(nodes[inside] - depth[inside]) < sphere.lattice.h
+    assert np.max(nodes[inside] - depth[inside]) < sphere_polygrid.lattice.h
     assert np.max(nodes[inside] - depth[inside]) > 0.05  # the mesh query changes something
 
     shell = act & (depth <= 7 * h)
@@ -192,12 +186,12 @@ def test_v_is_up_on_side_faces_and_y_on_top():
         np.testing.assert_allclose(_sigma_t(kappa, nodes), want, rtol=1e-12)
 
 
-def test_shell_coordinates_use_the_nodes_own_polycube_position(sphere):
+def test_shell_coordinates_use_the_nodes_own_polycube_position(sphere_polygrid):
     """(u, v) are the node's own lattice position in its face's frame (not its nearest
     boundary node's), so a lattice column below a face shares the face's (u, v); boundary
     nodes take their own face; the frames are right-handed seen from outside."""
-    geo = shell_coordinates(sphere, depth_from="nodes")
-    lat = sphere.lattice
+    geo = shell_coordinates(sphere_polygrid, depth_from="nodes")
+    lat = sphere_polygrid.lattice
     lp = lat.lattice_positions
     ua, us, va = FACE_FRAMES[geo["face"]].T
     rows = np.arange(lp.shape[0])

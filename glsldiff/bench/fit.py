@@ -20,6 +20,8 @@ from glsldiff.inverse.synthetic import bssrdf_error, synthetic_measurements
 from glsldiff.physics.procedural import synthetic_volume
 from glsldiff.core.io import write_csv
 from glsldiff.core.tables import print_table
+from glsldiff import gl
+from glsldiff.inverse.glsl import GlslForwardModel
 
 CHANNEL = 1
 
@@ -104,8 +106,6 @@ def lambda_study(case: Case, lams: list[float], n: int, max_evals: int, noise: f
 def backend_study(case: Case, n: int, noise: float, repeats: int = 3) -> list[dict]:
     """Seconds per objective+gradient evaluation: SuperLU (one factor, all 2M right-hand
     sides) vs GLSL Jacobi (3 conditions per solve, warm-started), and their gradient gap."""
-    from glsldiff import gl
-    from glsldiff.inverse.glsl import GlslForwardModel
 
     meas = case.measurements(n, noise)
     Q, Y, W = meas.channel(CHANNEL)

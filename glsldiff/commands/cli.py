@@ -14,6 +14,21 @@ from typing import Sequence
 
 from glsldiff.core.errors import GlsldiffError, InputError
 from glsldiff.core.tables import print_table
+from glsldiff import gl
+from glsldiff.bench import demo
+from glsldiff.bench import forward as forward_bench
+from glsldiff.bench import polygrid as polygrid_study
+from glsldiff.bench.convergence import convergence_bench
+from glsldiff.bench.sphere import sphere_study
+from glsldiff.commands.inverse import add_parsers
+from glsldiff.core import io
+from glsldiff.figures import polygrid_figure
+from glsldiff.grids.polygrid import build_polygrid
+from glsldiff.mesh import load_mesh
+from glsldiff.render.output import check_output, save
+from glsldiff.render.renderer import Renderer
+from glsldiff.render.scene import default_scene, load_scene
+from glsldiff.validation.validate import validate
 
 
 def _add_gl(p: argparse.ArgumentParser) -> None:
@@ -22,8 +37,6 @@ def _add_gl(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from glsldiff import gl
-    from glsldiff.bench import demo
 
     cfg = demo.DemoConfig(nx=args.size[0], ny=args.size[1], nz=args.size[2], h=args.h,
                           tol=args.tol, precision=args.precision, out=Path(args.out), seed=args.seed)
@@ -37,9 +50,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from glsldiff.render.output import check_output, save
-    from glsldiff.render.renderer import Renderer
-    from glsldiff.render.scene import default_scene, load_scene
 
     out = check_output(args.out)   # before any work
     scene = load_scene(args.scene) if args.scene else default_scene()
@@ -60,7 +70,6 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    from glsldiff.validation.validate import validate
 
     rows = validate(args.cases, Path(args.out), size=args.size, spp=args.spp)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
@@ -73,9 +82,8 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from glsldiff.bench import forward as bench
 
-    rows = bench.forward(sizes=args.sizes, out=Path(args.out), max_direct_nodes=args.max_direct_nodes,
+    rows = forward_bench.forward(sizes=args.sizes, out=Path(args.out), max_direct_nodes=args.max_direct_nodes,
                          seconds=args.seconds, precisions=args.precision, schemes=args.schemes,
                          levels=args.levels, tol=args.tol)
     print_table("glsldiff bench forward", rows)
@@ -84,11 +92,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_polygrid(args: argparse.Namespace) -> int:
-    from glsldiff.core import io
-    from glsldiff.mesh import load_mesh
-    from glsldiff.figures import polygrid_figure
-    from glsldiff.grids.polygrid import build_polygrid
-    from glsldiff.bench import polygrid as polygrid_study
 
     mesh = load_mesh(args.mesh, size_mm=args.size_mm, component=args.component)
     pg = build_polygrid(mesh, n=args.n, cube_size=args.cube_size,
@@ -116,7 +119,6 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_sphere(args: argparse.Namespace) -> int:
-    from glsldiff.bench.sphere import sphere_study
 
     rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
                         out=Path(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed)
@@ -130,7 +132,6 @@ def cmd_bench_sphere(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_convergence(args: argparse.Namespace) -> int:
-    from glsldiff.bench.convergence import convergence_bench
 
     summary, _, extra = convergence_bench(args.models, Path(args.out), target=args.target, hole_n=args.hole_n,
                                           bunny_n=args.bunny_n, maxiter=args.max_sweeps)
@@ -143,7 +144,6 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-    from glsldiff import gl
 
     for backend in ("egl", "osmesa"):
         try:
@@ -254,7 +254,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_gl(b)
     b.set_defaults(func=cmd_bench_convergence)
 
-    from glsldiff.commands.inverse import add_parsers
     add_parsers(sub, bsub)
 
     p = sub.add_parser("info", help="report the available GL backends and renderers")

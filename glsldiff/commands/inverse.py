@@ -11,6 +11,14 @@ import numpy as np
 from glsldiff.core.tables import print_table
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import check_output
+from glsldiff.bench import fit as fit_bench
+from glsldiff.core.io import write_csv, write_exr, write_npz
+from glsldiff.inverse.figures import depth_slices
+from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
+from glsldiff.inverse.measurements import load_measurements, save_measurements
+from glsldiff.inverse.reflectance import diffuse_reflectance
+from glsldiff.inverse.synthetic import bssrdf_error, synthetic_measurements
+from glsldiff.physics.procedural import synthetic_volume
 
 
 def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersAction) -> None:
@@ -73,10 +81,6 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-    from glsldiff.inverse.measurements import save_measurements
-    from glsldiff.inverse.synthetic import synthetic_measurements
-    from glsldiff.physics.procedural import synthetic_volume
-    from glsldiff.core.io import write_npz
 
     out = check_output(args.out)
     truth = check_output(out.with_name(out.stem + "_truth.npz"))
@@ -108,11 +112,6 @@ def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -
 def cmd_fit(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from glsldiff.inverse.figures import depth_slices
-    from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
-    from glsldiff.inverse.measurements import load_measurements
-    from glsldiff.inverse.synthetic import bssrdf_error
-    from glsldiff.core.io import write_csv
 
     out = check_output(args.out)
     options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,
@@ -163,9 +162,6 @@ def cmd_fit(args: argparse.Namespace) -> int:
 
 
 def cmd_reflectance(args: argparse.Namespace) -> int:
-    from glsldiff.inverse.measurements import load_measurements
-    from glsldiff.inverse.reflectance import diffuse_reflectance
-    from glsldiff.core.io import write_exr
 
     out = check_output(args.out)
     if out.suffix.lower() != ".exr":
@@ -187,9 +183,8 @@ def cmd_reflectance(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_fit(args: argparse.Namespace) -> int:
-    from glsldiff.inverse import bench
 
     if args.gl:
         os.environ["GLSLDIFF_GL"] = args.gl
-    bench.run(args)
+    fit_bench.run(args)
     return 0

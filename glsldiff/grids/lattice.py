@@ -36,7 +36,7 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.core.checks import real, vector3
 from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import BOUNDARY, INACTIVE, INTERIOR, NEIGHBOURS
-from glsldiff.grids.polycube import cube_coordinates
+from glsldiff.grids.cubeset import cube_coordinates
 
 # lattice step per neighbour slot, (x, y, z) order, matching NEIGHBOURS
 STEPS = np.array([[-1, 0, 0], [1, 0, 0], [0, -1, 0], [0, 1, 0], [0, 0, -1], [0, 0, 1]], dtype=np.int64)

@@ -1,7 +1,5 @@
 """Monte Carlo reference renderer (Mitsuba 3 ``volpath``) for validating the diffusion renderer.
 
-(Over 400 lines: one cohesive reference, whose measured Mitsuba conventions are documented here.)
-
 :func:`render_mitsuba` renders a closed :class:`~glsldiff.mesh.Mesh` filled with a homogeneous
 or a gridded heterogeneous medium (isotropic phase function) under a directional or an
 environment light (:mod:`glsldiff.physics.lights`), with Mitsuba 3's volumetric path tracer.
@@ -106,21 +104,20 @@ objects, terminates with probability 1.
 """
 from __future__ import annotations
 
-import functools
 import logging
-import subprocess
-import sys
 import time
-from dataclasses import dataclass
 from typing import Any, Mapping
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core import checks
-from glsldiff.core.errors import BackendError, InputError
+from glsldiff.core.errors import InputError
 from glsldiff.mesh import Mesh
-from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, Light
+from glsldiff.physics.lights import Light
+from glsldiff.validation.mitsuba_scene import (RGB_VARIANTS, SAMPLERS, McCamera, check_eta, check_light,
+                                               check_volume, emitter_dict, load_mitsuba, medium_dict,
+                                               positive_int, sensor_dict, shape_dict)
 
 __all__ = ["McCamera", "render_mitsuba", "render_scattering_orders", "render_subsurface",
            "single_scattering_share", "RGB_VARIANTS"]
@@ -129,253 +126,9 @@ log = logging.getLogger(__name__)
 
 #: Extinction [mm^-1] of the opaque, purely absorbing interior of :func:`render_subsurface`.
 OPAQUE_SIGMA_A = 1.0e4
-#: Mitsuba variants usable here (RGB rendering: spectral variants would upsample coefficients).
-RGB_VARIANTS = ("scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb")
-_VOLUME_KEYS = ("sigma_a", "sigma_s", "bbox_min", "bbox_max")
-_VOLUME_FILTERS = ("trilinear", "nearest")
 _NO_ROULETTE = 1_000_000
-_SAMPLERS = ("independent", "ldsampler")
 _CHANNEL_MODES = ("auto", "split", "rgb")
 
-
-# ---------------------------------------------------------------------------------------
-# Input checks
-# ---------------------------------------------------------------------------------------
-def _positive_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise InputError(f"{name} must be an integer >= 1, got {value!r}")
-    return int(value)
-
-
-@dataclass(frozen=True)
-class McCamera:
-    """Pinhole camera for :func:`render_mitsuba`.
-
-    Attributes
-    ----------
-    origin, target
-        Eye and look-at points, mm.
-    up
-        Up direction (need not be orthogonal to the view direction, must not be parallel).
-    fov_deg
-        *Vertical* field of view in degrees, 0 < fov < 180 (Mitsuba ``fov_axis = "y"``).
-    width, height
-        Image size in pixels.
-    """
-
-    origin: tuple[float, float, float]
-    target: tuple[float, float, float]
-    up: tuple[float, float, float]
-    fov_deg: float
-    width: int
-    height: int
-
-    def __post_init__(self) -> None:
-        o, t, u = (checks.vector3(getattr(self, n), f"camera.{n}") for n in ("origin", "target", "up"))
-        d = t - o
-        if np.linalg.norm(d) == 0:
-            raise InputError("camera.target must differ from camera.origin")
-        if np.linalg.norm(np.cross(d / np.linalg.norm(d), u)) < 1e-6 * max(np.linalg.norm(u), 1e-300):
-            raise InputError(f"camera.up {u.tolist()} must be non-zero and not parallel to the view "
-                             f"direction {d.tolist()}")
-        fov = float(checks.finite_array(self.fov_deg, "camera.fov_deg"))
-        if not 0.0 < fov < 180.0:
-            raise InputError(f"camera.fov_deg must be in (0, 180) degrees (vertical), got {fov}")
-        for name, v in (("origin", o), ("target", t), ("up", u)):
-            object.__setattr__(self, name, tuple(float(x) for x in v))
-        object.__setattr__(self, "fov_deg", fov)
-        object.__setattr__(self, "width", _positive_int("camera.width", self.width))
-        object.__setattr__(self, "height", _positive_int("camera.height", self.height))
-
-
-def _check_light(light: Any, eta: float) -> dict[str, Any]:
-    """The Mitsuba emitter parameters of ``light`` (module docstring): ``type`` (``directional``,
-    ``constant`` or ``envmap``) and its values as arrays."""
-    if isinstance(light, DirectionalLight):
-        if eta != 1.0:
-            raise InputError(
-                f"a directional (delta) light cannot be reached through a smooth dielectric boundary "
-                f"(eta = {eta}) by next-event estimation, so Mitsuba would render the medium black; "
-                "use eta = 1 (index matched) or an environment light")
-        return {"type": "directional", "direction": np.asarray(light.direction),
-                "irradiance": np.asarray(light.irradiance)}
-    if isinstance(light, EnvironmentLight):
-        img = light.image
-        if np.all(img == img[0, 0]):   # uniform: Mitsuba's constant emitter, sampled exactly
-            return {"type": "constant", "radiance": light.scale * img[0, 0]}
-        if img.shape[0] < 2 or img.shape[1] < 2:
-            raise InputError(f"light.image of an environment light must be at least 2 x 2 pixels for Mitsuba's "
-                             f"envmap, got {img.shape[0]} x {img.shape[1]}")
-        return {"type": "envmap", "image": img, "scale": light.scale}
-    raise InputError(f"light must be a DirectionalLight or an EnvironmentLight (glsldiff.physics.lights) for the "
-                     f"Monte Carlo reference, got {type(light).__name__}")
-
-
-def _check_volume(volume: Any) -> dict[str, Any]:
-    if not isinstance(volume, Mapping):
-        raise InputError(f"volume must be a dict with keys {', '.join(_VOLUME_KEYS)}, got {type(volume).__name__}")
-    missing = [k for k in _VOLUME_KEYS if k not in volume]
-    extra = sorted(set(volume) - set(_VOLUME_KEYS) - {"filter"})
-    if missing:
-        raise InputError(f"volume is missing the key(s) {', '.join(missing)}")
-    if extra:
-        raise InputError(f"volume has unknown key(s) {', '.join(extra)}; allowed: "
-                         f"{', '.join(_VOLUME_KEYS)}, filter")
-    out: dict[str, Any] = {}
-    for name in ("sigma_a", "sigma_s"):
-        a = checks.finite_array(volume[name], f"volume['{name}']")
-        if a.ndim != 4 or a.shape[3] != 3 or min(a.shape) < 1:
-            raise InputError(f"volume['{name}'] must have shape (nz, ny, nx, 3) [mm^-1], got {a.shape}")
-        if (a < 0).any():
-            raise InputError(f"volume['{name}'] has {int((a < 0).sum())} negative values; coefficients "
-                             "are >= 0 mm^-1")
-        out[name] = a
-    if out["sigma_a"].shape != out["sigma_s"].shape:
-        raise InputError(f"volume['sigma_a'] {out['sigma_a'].shape} and volume['sigma_s'] "
-                         f"{out['sigma_s'].shape} must have the same shape (nz, ny, nx, 3)")
-    lo = checks.vector3(volume["bbox_min"], "volume['bbox_min']")
-    hi = checks.vector3(volume["bbox_max"], "volume['bbox_max']")
-    if not (hi > lo).all():
-        raise InputError(f"volume['bbox_max'] {hi.tolist()} must exceed volume['bbox_min'] {lo.tolist()} "
-                         "on every axis (mm)")
-    filt = volume.get("filter", "trilinear")
-    if filt not in _VOLUME_FILTERS:
-        raise InputError(f"volume['filter'] = {filt!r} must be one of {', '.join(_VOLUME_FILTERS)}")
-    out.update(bbox_min=lo, bbox_max=hi, filter=filt)
-    return out
-
-
-def _check_eta(eta: Any) -> float:
-    e = float(checks.finite_array(eta, "eta"))
-    if e <= 0:
-        raise InputError(f"eta must be a relative index of refraction > 0 (1 = index matched), got {e}")
-    return e
-
-
-# ---------------------------------------------------------------------------------------
-# Mitsuba variant handling
-# ---------------------------------------------------------------------------------------
-_PROBE = """
-import mitsuba as mi
-mi.set_variant({variant!r})
-s = mi.load_dict({{"type": "scene", "integrator": {{"type": "volpath"}},
-    "sensor": {{"type": "perspective", "film": {{"type": "hdrfilm", "width": 2, "height": 2}}}},
-    "env": {{"type": "constant"}}, "ball": {{"type": "sphere", "center": [0, 0, 4],
-    "bsdf": {{"type": "null"}}, "interior": {{"type": "homogeneous"}}}}}})
-mi.render(s, spp=1)
-"""
-
-
-@functools.lru_cache(maxsize=None)
-def _probe_variant(variant: str) -> str:
-    """'' if ``variant`` renders in a child process, else the reason it does not.
-
-    JIT variants are probed out of process because a failing LLVM back end (Debian 12's
-    LLVM 15 with Mitsuba 3.9's ``llvm_ad_rgb``) aborts the whole interpreter.
-    """
-    try:
-        r = subprocess.run([sys.executable, "-c", _PROBE.format(variant=variant)], capture_output=True,
-                           text=True, timeout=300)
-    except (OSError, subprocess.TimeoutExpired) as exc:
-        return str(exc)
-    if r.returncode == 0:
-        return ""
-    tail = (r.stderr or r.stdout).strip().splitlines()
-    return f"exit status {r.returncode}: {tail[0] if tail else 'no output'}"
-
-
-def _mitsuba(variant: str) -> Any:
-    """Import mitsuba and switch to ``variant`` (global Mitsuba state)."""
-    if variant not in RGB_VARIANTS:
-        raise InputError(f"variant {variant!r} is not supported; use one of {', '.join(RGB_VARIANTS)} "
-                         "(RGB rendering; spectral variants would upsample the coefficients)")
-    try:
-        import mitsuba as mi  # heavy optional dependency (the dev extra), loaded only to render
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise BackendError("the Monte Carlo reference needs Mitsuba 3: pip install mitsuba") from exc
-    if variant not in mi.variants():  # pragma: no cover - depends on the wheel
-        raise BackendError(f"this Mitsuba build lacks the variant {variant!r} (has {', '.join(mi.variants())})")
-    if not variant.startswith("scalar"):
-        reason = _probe_variant(variant)
-        if reason:
-            raise BackendError(
-                f"Mitsuba variant {variant!r} does not run here ({reason}); use variant='scalar_rgb', or "
-                "for llvm_ad_rgb install a newer LLVM (e.g. libllvm19) and set DRJIT_LIBLLVM_PATH")
-    if mi.variant() != variant:
-        mi.set_variant(variant)
-    return mi
-
-
-# ---------------------------------------------------------------------------------------
-# Scene assembly
-# ---------------------------------------------------------------------------------------
-def _medium(mi: Any, c: dict[str, Any], gridded: bool) -> Any:
-    """Mitsuba medium from checked coefficients: RGB (3,) arrays, or a checked volume dict."""
-    st = c["sigma_a"] + c["sigma_s"]
-    albedo = np.divide(c["sigma_s"], st, out=np.zeros_like(st), where=st > 0)
-    if not gridded:
-        scale = float(st.max()) or 1.0  # Mitsuba's 'rgb' inputs must lie in [0, 1]: scale them
-        return mi.load_dict({"type": "homogeneous", "sample_emitters": True,
-                             "albedo": {"type": "rgb", "value": albedo.tolist()},
-                             "sigma_t": {"type": "rgb", "value": (st / scale).tolist()},
-                             "scale": scale, "phase": {"type": "isotropic"}})
-    lo, hi = c["bbox_min"], c["bbox_max"]
-    to_world = mi.ScalarTransform4f().translate(lo.tolist()).scale((hi - lo).tolist())
-
-    def grid(data: NDArray) -> dict[str, Any]:
-        return {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(data, dtype=np.float32)),
-                "to_world": to_world, "filter_type": c["filter"], "wrap_mode": "clamp", "raw": True}
-
-    return mi.load_dict({"type": "heterogeneous", "sample_emitters": True, "scale": 1.0,
-                         "albedo": grid(albedo), "sigma_t": grid(st), "phase": {"type": "isotropic"}})
-
-
-def _shape(mi: Any, mesh: Mesh, medium: Any, eta: float) -> Any:
-    props = mi.Properties()
-    bsdf = {"type": "null"} if eta == 1.0 else {"type": "dielectric", "int_ior": eta, "ext_ior": 1.0}
-    props["bsdf"] = mi.load_dict(bsdf)
-    props["interior"] = medium
-    shape = mi.Mesh(mesh.name or "mesh", len(mesh.vertices), len(mesh.faces), props=props)
-    params = mi.traverse(shape)
-    params["vertex_positions"] = type(params["vertex_positions"])(
-        np.ascontiguousarray(mesh.vertices, dtype=np.float32).ravel())
-    params["faces"] = type(params["faces"])(np.ascontiguousarray(mesh.faces, dtype=np.uint32).ravel())
-    params.update()  # no vertex normals: flat face normals (matters for refraction at box edges)
-    return shape
-
-
-def _emitter(mi: Any, light: dict[str, Any]) -> dict[str, Any]:
-    """Mitsuba emitter dict of checked light parameters (:func:`_check_light`)."""
-    if light["type"] == "directional":
-        return {"type": "directional", "direction": (-light["direction"]).tolist(),
-                "irradiance": {"type": "rgb", "value": light["irradiance"].tolist()}}
-    if light["type"] == "constant":
-        return {"type": "constant", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}
-    return {"type": "envmap", "scale": light["scale"],
-            "to_world": mi.ScalarTransform4f([[0, 0, 1, 0], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]),
-            "bitmap": mi.Bitmap(np.ascontiguousarray(_z_up_to_mitsuba(light["image"]), dtype=np.float32))}
-
-
-def _z_up_to_mitsuba(img: NDArray[np.float64]) -> NDArray[np.float64]:
-    """A glsldiff (z-up) lat-long map as the bitmap of a Mitsuba ``envmap`` whose
-    ``to_world`` sends local (x, y, z) to world (y, z, x) (module docstring): columns mirrored,
-    rows resampled linearly in polar angle from glsldiff's row centres theta = pi (i + 0.5) / H
-    to Mitsuba's theta = pi j / (H - 1) (clamped to the first and last rows at the poles)."""
-    h = img.shape[0]
-    x = np.interp(np.arange(h) * np.pi / (h - 1), (np.arange(h) + 0.5) * np.pi / h, np.arange(h, dtype=float))
-    i0 = np.minimum(np.floor(x).astype(int), h - 2)
-    f = (x - i0)[:, None, None]
-    return ((1.0 - f) * img[i0] + f * img[i0 + 1])[:, ::-1]
-
-
-def _sensor(mi: Any, cam: McCamera, spp: int, seed: int, sampler: str) -> dict[str, Any]:
-    return {"type": "perspective", "fov": cam.fov_deg, "fov_axis": "y",
-            "near_clip": 1e-3, "far_clip": 1e7,
-            "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.origin), target=list(cam.target),
-                                                       up=list(cam.up)),
-            "sampler": {"type": sampler, "sample_count": spp, "seed": seed},
-            "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height,
-                     "pixel_format": "rgb", "component_format": "float32", "rfilter": {"type": "box"}}}
 
 
 def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None, eta: float,
@@ -445,19 +198,19 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
         raise InputError(f"mesh must be a glsldiff.mesh.Mesh, got {type(mesh).__name__}")
     if len(mesh.faces) == 0:
         raise InputError(f"mesh {mesh.name!r} has no faces")
-    eta = _check_eta(eta)
+    eta = check_eta(eta)
     if not isinstance(camera, McCamera):
         raise InputError(f"camera must be a McCamera, got {type(camera).__name__}")
-    lt = _check_light(light, eta)
-    spp = _positive_int("spp", spp)
+    lt = check_light(light, eta)
+    spp = positive_int("spp", spp)
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**32:
         raise InputError(f"seed must be an integer in [0, 2^32), got {seed!r}")
     if isinstance(max_depth, bool) or not isinstance(max_depth, (int, np.integer)) or \
             (max_depth < 1 and max_depth != -1):
         raise InputError(f"max_depth must be -1 (unlimited) or an integer >= 1, got {max_depth!r}")
-    rr_depth = _positive_int("rr_depth", rr_depth)
-    if sampler not in _SAMPLERS:
-        raise InputError(f"sampler must be one of {', '.join(_SAMPLERS)}, got {sampler!r}")
+    rr_depth = positive_int("rr_depth", rr_depth)
+    if sampler not in SAMPLERS:
+        raise InputError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
     if sampler == "ldsampler" and (spp < 4 or spp & (spp - 1) or spp.bit_length() % 2 == 0):
         raise InputError(f"spp = {spp} must be a power of 4 (4, 16, 64, 256, ...) with sampler='ldsampler' "
                          "(Mitsuba would silently round it up to one)")
@@ -471,19 +224,19 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
         coeffs: dict[str, Any] = {"sigma_a": sa, "sigma_s": ss}
         st = sa + ss
     else:
-        coeffs = _check_volume(volume)
+        coeffs = check_volume(volume)
         st = coeffs["sigma_a"] + coeffs["sigma_s"]
     grey = bool(np.all(st == st[..., :1]))
     split = channels == "split" or (channels == "auto" and not grey)
-    mi = _mitsuba(variant)
+    mi = load_mitsuba(variant)
 
     def render(c: dict[str, Any]) -> NDArray[np.float32]:
         scene = mi.load_dict({
             "type": "scene",
             "integrator": {"type": "volpath", "max_depth": int(max_depth), "rr_depth": rr_depth},
-            "sensor": _sensor(mi, camera, spp, int(seed), sampler),
-            "light": _emitter(mi, lt),
-            "object": _shape(mi, mesh, _medium(mi, c, volume is not None), eta),
+            "sensor": sensor_dict(mi, camera, spp, int(seed), sampler),
+            "light": emitter_dict(mi, lt),
+            "object": shape_dict(mi, mesh, medium_dict(mi, c, volume is not None), eta),
         })
         img = np.array(mi.render(scene, spp=spp, seed=int(seed)), dtype=np.float32)
         return img.reshape(camera.height, camera.width, -1)[..., :3]
@@ -541,7 +294,7 @@ def render_scattering_orders(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: Arr
     info
         The full render's info plus ``"seconds_total"`` for the three renders.
     """
-    if _check_eta(eta) != 1.0:
+    if check_eta(eta) != 1.0:
         raise InputError(f"scattering orders need an index-matched boundary (eta = 1), got eta = {eta}: "
                          "with a dielectric, volpath's max_depth also counts every refraction and "
                          "internal reflection, so it does not separate scattering orders")
