@@ -4,7 +4,7 @@ vertices, non-manifold edges and vertices, incoherent orientation, small holes),
 topology and orient the faces outward. What the repair changed is counted in
 :attr:`glsldiff.mesh.types.Mesh.repairs`. Coordinates are taken as mm.
 
-pymeshlab is an optional dependency (``pip install 'glsldiff[mesh]'``): it is imported only
+pymeshlab is a core dependency but a heavy import: it is imported only
 where a mesh is read or checked.
 """
 from __future__ import annotations
@@ -47,10 +47,10 @@ def sample_mesh_path(name: str) -> Path:
         raise InputError(f"unknown sample mesh {name!r}; valid names: {', '.join(SAMPLE_MESHES)} "
                          "(or pass the path of a mesh file)")
     try:
-        import pymeshlab  # optional dependency (the mesh extra); it ships the sample meshes
+        import pymeshlab  # heavy import; it ships the sample meshes
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise InputError(f"sample mesh {name!r} ships with pymeshlab, which is not installed; "
-                         "install it with: pip install 'glsldiff[mesh]'") from exc
+                         "install it with: pip install pymeshlab") from exc
     path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / SAMPLE_MESHES[name]
     if not path.is_file():  # pragma: no cover - broken install
         raise InputError(f"sample mesh {name!r}: {path} is missing from the pymeshlab install; "
@@ -127,10 +127,10 @@ def _meshset(v: NDArray[np.float64] | None = None, f: NDArray[np.int64] | None =
              name: str = "") -> Any:
     """An empty pymeshlab MeshSet, or one holding the mesh ``(v, f)``."""
     try:
-        import pymeshlab  # optional dependency (the mesh extra)
+        import pymeshlab  # heavy import, loaded only to read or repair a mesh
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise InputError("loading meshes needs pymeshlab; install it with: "
-                         "pip install 'glsldiff[mesh]'") from exc
+                         "pip install pymeshlab") from exc
     ms = pymeshlab.MeshSet(verbose=False)
     if v is not None and f is not None:
         ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=np.asarray(f, dtype=np.int32)), name)

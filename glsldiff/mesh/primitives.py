@@ -1,7 +1,7 @@
 """Primitive closed meshes (lengths in mm): icosphere, axis-aligned box, torus. Each goes
 through :func:`glsldiff.mesh.load.mesh_from_arrays`, so it is validated like a loaded file.
 
-trimesh (the ``mesh`` extra) builds the triangles.
+trimesh (a core dependency, imported where used: heavy import) builds the triangles.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from glsldiff.mesh.types import Mesh
 def sphere_mesh(radius_mm: float, subdivisions: int = 4,
                 center: ArrayLike = (0.0, 0.0, 0.0)) -> Mesh:
     """Icosphere of radius ``radius_mm`` mm (vertices on the sphere) around ``center`` mm."""
-    import trimesh  # optional dependency (the mesh extra)
+    import trimesh  # heavy import, loaded only where a mesh is built
 
     r = real(radius_mm, "sphere radius_mm (mm)", lo=0.0, lo_open=True)
     n = integer(subdivisions, "sphere subdivisions", 0, 7)
@@ -27,7 +27,7 @@ def sphere_mesh(radius_mm: float, subdivisions: int = 4,
 
 def box_mesh(extents_mm: ArrayLike, origin: ArrayLike = (0.0, 0.0, 0.0)) -> Mesh:
     """Axis-aligned box from ``origin`` to ``origin + extents_mm`` (mm), 12 triangles."""
-    import trimesh  # optional dependency (the mesh extra)
+    import trimesh  # heavy import, loaded only where a mesh is built
 
     ext = vector3(extents_mm, "box extents_mm")
     if not (ext > 0).all():
@@ -39,7 +39,7 @@ def box_mesh(extents_mm: ArrayLike, origin: ArrayLike = (0.0, 0.0, 0.0)) -> Mesh
 def torus_mesh(R: float, r: float, major_sections: int = 48, minor_sections: int = 24,
                center: ArrayLike = (0.0, 0.0, 0.0)) -> Mesh:
     """Torus (genus 1) around the z axis: ring radius ``R`` mm, tube radius ``r`` mm."""
-    import trimesh  # optional dependency (the mesh extra)
+    import trimesh  # heavy import, loaded only where a mesh is built
 
     R = real(R, "torus R (mm)", lo=0.0, lo_open=True)
     r = real(r, "torus r (mm)", lo=0.0, lo_open=True)

@@ -72,7 +72,7 @@ class Mesh:
     @cached_property
     def tm(self) -> "trimesh.Trimesh":
         """The mesh as ``trimesh.Trimesh`` (``process=False``: arrays kept as they are)."""
-        import trimesh  # optional dependency (the mesh extra)
+        import trimesh  # heavy import, loaded only where a mesh is built
 
         return trimesh.Trimesh(self.vertices, self.faces, process=False)
 

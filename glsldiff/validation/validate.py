@@ -156,7 +156,7 @@ def _standard_error(parts: Sequence[NDArray], mask: NDArray) -> float:
 
 
 def _slab_file(folder: Path, size: float) -> str:
-    import trimesh   # optional dependency (the mesh extra): PLY export
+    import trimesh   # heavy import, only for the PLY export
 
     m = box_mesh((size, size, size / 3.0), origin=(-size / 2, -size / 2, -size / 3.0))
 
