@@ -38,6 +38,7 @@ from glsldiff.physics.procedural import marble_volume
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.report import CURRENT
+from glsldiff.core.plotting import pyplot
 
 
 def figure15_error(phi_b: NDArray, ref_b: NDArray) -> float:
@@ -250,10 +251,7 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
 
 def plot(curves: list[dict[str, Any]], path: Path, target: float) -> None:
     """Figure 15: error against node updates (100K) and against GPU seconds, per model."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     models = sorted({r["model"] for r in curves})
     fig, axes = plt.subplots(len(models), 2, figsize=(10, 3.8 * len(models)), squeeze=False)

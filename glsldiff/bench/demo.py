@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 from numpy.typing import NDArray
 
 from glsldiff import gl
@@ -66,8 +67,6 @@ def front_image(report: SolveReport) -> NDArray[np.float64]:
 
 def run(cfg: DemoConfig, progress: bool = True) -> list[dict[str, object]]:
     """Solve all lightings, write the images, return the table rows."""
-    from tqdm import tqdm
-
     grid = RegularGrid(cfg.nx, cfg.ny, cfg.nz, cfg.h)
     kappa, mu = marble_volume(grid.shape, seed=cfg.seed)
     sources = region_sources(grid, cfg.regions, cfg.irradiance, cfg.eta)

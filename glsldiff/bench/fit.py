@@ -22,6 +22,7 @@ from glsldiff.core.io import write_csv
 from glsldiff.core.tables import print_table
 from glsldiff import gl
 from glsldiff.inverse.glsl import GlslForwardModel
+from glsldiff.core.plotting import pyplot
 
 CHANNEL = 1
 
@@ -134,10 +135,7 @@ def backend_study(case: Case, n: int, noise: float, repeats: int = 3) -> list[di
 
 
 def plot(rows: list[dict], curves: list[dict], lam_rows: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     panels = 3 if lam_rows else 2
     fig, ax = plt.subplots(1, panels + 1, figsize=(4.2 * (panels + 1), 3.6))

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from tqdm import tqdm
 
 from glsldiff import gl
 
@@ -42,6 +43,7 @@ from glsldiff.solve.jacobi import GlslDiffusion
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.system.report import RELAX_TOL, SolveReport
+from glsldiff.core.plotting import pyplot
 
 logger = logging.getLogger(__name__)
 
@@ -181,8 +183,6 @@ def forward(sizes: Sequence[str], out: Path, max_direct_nodes: int = 200_000,
     """Run the benchmark, write CSV + PNG, return the summary rows. ``schemes`` (e.g.
     ``("multigrid", "hierarchical")``) adds the multiresolution schedules on ``levels`` levels
     (fewer where the grid cannot be coarsened), solved to ``tol``."""
-    from tqdm import tqdm
-
     rows: list[dict[str, object]] = []
     curves: list[dict[str, object]] = []
     device = gl.describe(gl.get_context())
@@ -248,10 +248,7 @@ def forward(sizes: Sequence[str], out: Path, max_direct_nodes: int = 200_000,
 
 def plot(curves: list[dict[str, object]], path: Path, device: str) -> None:
     """Error against time, one panel per grid."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     grids = list(dict.fromkeys(c["grid"] for c in curves))
     fig, axes = plt.subplots(1, len(grids), figsize=(5 * len(grids), 4), squeeze=False)

@@ -31,6 +31,7 @@ from glsldiff.grids.graph import BOUNDARY, INTERIOR
 from glsldiff.oracle.assembly import assemble
 from glsldiff.oracle.solvers import solve_reference
 from glsldiff.solve.jacobi import solve_glsl
+from glsldiff.core.plotting import pyplot
 
 def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
     flat = phi.reshape(pg.size, 3)
@@ -118,10 +119,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
 
 def plot(rows: list[dict[str, object]], path: Path) -> None:
     """Error against spacing h (log-log), boundary and interior, per fallback."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(6, 4.2))
     styles = {("n", "boundary"): "o-", ("n", "interior"): "s-", ("cubes", "boundary"): "o--",

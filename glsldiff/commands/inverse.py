@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from glsldiff.core.tables import print_table
 from glsldiff.core.errors import InputError
@@ -110,8 +111,6 @@ def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
 
     out = check_output(args.out)
     options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,

@@ -29,17 +29,28 @@ def view_matrix(eye: ArrayLike, right: ArrayLike, up: ArrayLike, back: ArrayLike
     return m
 
 
+def orthonormal_frame(forward: ArrayLike, up: ArrayLike | None = None) -> tuple[NDArray, NDArray, NDArray]:
+    """Unit ``right = forward x up``, ``up' = right x forward`` and ``forward`` (a unit vector):
+    the right-handed camera frame of gluLookAt. Without ``up``, +z is used (+x when ``forward``
+    is within about 25 degrees of the z axis)."""
+    f = np.asarray(forward, dtype=np.float64)
+    if up is None:
+        up = np.array([0.0, 0.0, 1.0]) if abs(f[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    s = np.cross(f, up)
+    s /= np.linalg.norm(s)
+    return s, np.cross(s, f), f
+
+
 def _frame(eye: ArrayLike, target: ArrayLike, up: ArrayLike) -> tuple[NDArray, NDArray, NDArray]:
     """Unit forward ``f``, unit right ``s = f x up`` and ``u = s x f`` (OpenGL's gluLookAt)."""
     f = np.asarray(target, dtype=np.float64) - np.asarray(eye, dtype=np.float64)
     f /= np.linalg.norm(f)
     up = np.asarray(up, dtype=np.float64)
-    s = np.cross(f, up)
-    if np.linalg.norm(s) < 1e-9:
+    if np.linalg.norm(np.cross(f, up)) < 1e-9:
         raise InputError(f"camera up {up.tolist()} is parallel to the viewing direction (a scene's "
                          "[camera].up); choose another up vector")
-    s /= np.linalg.norm(s)
-    return f, s, np.cross(s, f)
+    s, u, _ = orthonormal_frame(f, up)
+    return f, s, u
 
 
 def look_at(eye: ArrayLike, target: ArrayLike, up: ArrayLike) -> Matrix:

@@ -23,11 +23,13 @@ def print_table(title: str, rows: Sequence[dict[str, object]]) -> None:
     """Print dict rows as a rich table; the columns are the union of the rows' keys."""
     table = Table(title=title)
     keys = list(dict.fromkeys(k for row in rows for k in row))
+    cells = [[format_cell(row[k]) if k in row else "" for k in keys] for row in rows]
     for key in keys:
         table.add_column(key, justify="right")
-    for row in rows:
-        table.add_row(*(format_cell(row[k]) if k in row else "" for k in keys))
+    for line in cells:
+        table.add_row(*line)
     console = Console()
-    if not console.is_terminal:
-        console = Console(width=200)
+    if not console.is_terminal:  # a file or pipe: wide enough that no cell is cut or wrapped
+        widths = [max([len(str(k))] + [len(c[i]) for c in cells]) for i, k in enumerate(keys)]
+        console = Console(width=max(80, sum(w + 3 for w in widths) + 1))
     console.print(table)

@@ -10,7 +10,7 @@ array maps one to one onto packed texels) with, per node, a kind:
   interior partner at distance ``d`` (mm) along the inward normal;
 * **inactive** (removed) nodes carry nothing and are read by no other node.
 
-:func:`glsldiff.oracle.solvers.assemble` turns a graph plus material into the sparse system;
+:func:`glsldiff.oracle.assembly.assemble` turns a graph plus material into the sparse system;
 the GLSL solvers apply the same rows as Jacobi sweeps.
 """
 from __future__ import annotations

@@ -9,16 +9,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core.io import atomic_path
+from glsldiff.core.plotting import pyplot
 
 
 def depth_slices(path: str | os.PathLike, kappa: NDArray, mu: NDArray, h: float,
                  depths: Sequence[int] | None = None, truth: tuple[NDArray, NDArray] | None = None) -> Path:
     """PNG of kappa (mm) and mu (mm^-1) at several depths (z-slices), channel 1 (green);
     with ``truth`` the true volume's slices are drawn in the row above each fitted row."""
-    import matplotlib  # heavy import (~0.3 s), only for this figure
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     nz = kappa.shape[0]
     if depths is None:

@@ -42,6 +42,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core import checks
 from glsldiff.core.checks import boolean, integer, radiance_map, real, rgb, unit_vector, vector3
+from glsldiff.core.camera import orthonormal_frame
 from glsldiff.core.errors import InputError
 from glsldiff.physics.sh import MAX_DIRECTIONS, MAX_SH_ORDER, sh_project
 
@@ -213,10 +214,7 @@ class ProjectorLight:
     @cached_property
     def frame(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
         """Unit ``right, up, forward`` of the projector (right-handed camera frame)."""
-        fwd = np.asarray(self.direction)
-        right = np.cross(fwd, self.up)
-        right /= np.linalg.norm(right)
-        return right, np.cross(right, fwd), fwd
+        return orthonormal_frame(self.direction, self.up)
 
     @cached_property
     def spot(self) -> SpotLight:

@@ -44,7 +44,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff import gl
-from glsldiff.core.camera import projection, view_matrix
+from glsldiff.core.camera import orthonormal_frame, projection, view_matrix
 from glsldiff.core.errors import InputError
 from glsldiff.physics.lights import DirectionalLight, Light, ProjectorLight, SpotLight
 
@@ -58,15 +58,6 @@ SPOT_SINGLE_VIEW_MAX_DEG = 60.0  # wider spots use a cube of six views
 _FAR = 1.0e30              # clear value of the shadow map (no surface)
 _FIT = 1.02                # orthographic window: bounding radius times this
 _SHADER_DEFINES = {"LIGHT_FAR": "1.0e30"}
-
-
-def _frame(forward: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``right, up`` completing ``forward`` to a right-handed camera frame (back = -forward)."""
-    ref = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    right = np.cross(forward, ref)
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    return right, up
 
 
 @dataclass(frozen=True)
@@ -204,7 +195,7 @@ class DepthRenderer:
     # ---- views ------------------------------------------------------------------------
     def directional_view(self, towards_light: NDArray[np.float64], size: int) -> list[View]:
         fwd = -np.asarray(towards_light, dtype=np.float64)
-        right, up = _frame(fwd)
+        right, up, _ = orthonormal_frame(fwd)
         R = self.radius
         return [View(eye=-2.0 * R * fwd, forward=fwd, right=right, up=up, near=0.5 * R, far=3.5 * R,
                      half=_FIT * R, ortho=True, tile=(0, 0))]
@@ -223,7 +214,7 @@ class DepthRenderer:
 
         if axis is not None and cone_deg is not None and cone_deg <= SPOT_SINGLE_VIEW_MAX_DEG:
             fwd = np.asarray(axis, dtype=np.float64)
-            right, up = _frame(fwd)
+            right, up, _ = orthonormal_frame(fwd)
             half = math.tan(math.radians(cone_deg)) * 1.02 + 2.0 / size
             return [View(eye, fwd, right, up, near(half), far, half, False, (0, 0))]
         views = []
@@ -231,7 +222,7 @@ class DepthRenderer:
         for k in range(6):
             fwd = np.zeros(3)
             fwd[k // 2] = -1.0 if k % 2 else 1.0
-            right, up = _frame(fwd)
+            right, up, _ = orthonormal_frame(fwd)
             views.append(View(eye, fwd, right, up, near(half), far, half, False, (k % 3, k // 3)))
         return views
 
