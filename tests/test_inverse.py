@@ -239,7 +239,7 @@ def test_measurements_roundtrip_and_file_errors(tmp_path) -> None:
     with pytest.raises(InputError, match="lacks"):
         load_measurements(tmp_path / "partial.npz")
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
-    with pytest.raises(InputError, match="cannot read"):
+    with pytest.raises(InputError, match="is not an .npz archive"):
         load_measurements(tmp_path / "junk.npz")
 
 

@@ -166,7 +166,6 @@ def plot(rows: list[dict], curves: list[dict], lam_rows: list[dict], path: Path)
 
 
 def run(args: argparse.Namespace) -> None:
-
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     case = Case(tuple(args.size), args.h, args.volume)

@@ -1,4 +1,4 @@
-"""The ``glsldiff`` command: ``demo`` (default job), ``bench forward|sphere|fit``, ``polygrid``,
+"""The ``glsldiff`` command: ``render``, ``validate``, ``demo``, ``bench forward|sphere|convergence|fit``, ``polygrid``,
 ``synth``, ``fit``, ``info``.
 
 Errors a user can cause are printed as one line without a traceback (exit code 2).
@@ -9,7 +9,6 @@ import argparse
 import logging
 import os
 import sys
-from pathlib import Path
 from typing import Sequence
 
 from glsldiff.core.errors import GlsldiffError, InputError
@@ -22,6 +21,7 @@ from glsldiff.bench.convergence import convergence_bench
 from glsldiff.bench.sphere import sphere_study
 from glsldiff.commands.inverse import add_parsers
 from glsldiff.core import io
+from glsldiff.core.io import check_output_folder
 from glsldiff.figures import polygrid_figure
 from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import load_mesh
@@ -37,9 +37,8 @@ def _add_gl(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-
     cfg = demo.DemoConfig(nx=args.size[0], ny=args.size[1], nz=args.size[2], h=args.h,
-                          tol=args.tol, precision=args.precision, out=Path(args.out), seed=args.seed)
+                          tol=args.tol, precision=args.precision, out=check_output_folder(args.out), seed=args.seed)
     rows = demo.run(cfg, progress=not args.quiet)
     print_table(f"Back-lit marble slab {cfg.nx}x{cfg.ny}x{cfg.nz}, h = {cfg.h} mm, "
                 f"{gl.describe(gl.get_context())}", rows)
@@ -50,7 +49,6 @@ def cmd_demo(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-
     out = check_output(args.out)   # before any work
     scene = load_scene(args.scene) if args.scene else default_scene()
     if args.frames < 1:
@@ -70,8 +68,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-
-    rows = validate(args.cases, Path(args.out), size=args.size, spp=args.spp)
+    rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
                 "eta != 1: surface reflection removed) and the dipole", rows)
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
@@ -82,8 +79,7 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-
-    rows = forward_bench.forward(sizes=args.sizes, out=Path(args.out), max_direct_nodes=args.max_direct_nodes,
+    rows = forward_bench.forward(sizes=args.sizes, out=check_output_folder(args.out), max_direct_nodes=args.max_direct_nodes,
                          seconds=args.seconds, precisions=args.precision, schemes=args.schemes,
                          levels=args.levels, tol=args.tol)
     print_table("glsldiff bench forward", rows)
@@ -92,7 +88,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 
 def cmd_polygrid(args: argparse.Namespace) -> int:
-
+    out = check_output_folder(args.out)   # before the build
     mesh = load_mesh(args.mesh, size_mm=args.size_mm, component=args.component)
     pg = build_polygrid(mesh, n=args.n, cube_size=args.cube_size,
                         n_cubes=None if args.cube_size else args.cubes, threshold=args.threshold,
@@ -104,8 +100,6 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
     stats["levels"] = " ".join(f"n={lv}:{cnt}" for lv, cnt in polygrid_study.level_counts(pg))
     print_table(f"polygrid of {args.mesh} ({mesh.extents.max():.3g} mm)",
                 [{"quantity": k, "value": v} for k, v in stats.items()])
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     io.write_csv(out / "polygrid.csv", [{"quantity": k, "value": v} for k, v in stats.items()])
     if not args.no_png:
         polygrid_figure(pg, str(out / "polygrid.png"))
@@ -119,9 +113,8 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_sphere(args: argparse.Namespace) -> int:
-
     rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
-                        out=Path(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed)
+                        out=check_output_folder(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed)
     print_table(f"polygrid sphere R = {args.radius} mm vs closed form (relative L2 of phi)", rows)
     print("series n: fixed polycube, more nodes per cube; series cubes: n fixed, smaller cubes. "
           "err_*_blend: default weights (blend fallback); _axis / _none: the other fallbacks on the same "
@@ -132,8 +125,7 @@ def cmd_bench_sphere(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_convergence(args: argparse.Namespace) -> int:
-
-    summary, _, extra = convergence_bench(args.models, Path(args.out), target=args.target, hole_n=args.hole_n,
+    summary, _, extra = convergence_bench(args.models, check_output_folder(args.out), target=args.target, hole_n=args.hole_n,
                                           bunny_n=args.bunny_n, maxiter=args.max_sweeps)
     print_table(f"time to error {args.target:g} (figure 15; error = sum (L-L0)^2 / sum L0^2 over the "
                 "boundary nodes, L0 = direct solve; seconds = GPU time of sweeps and transfer passes)", summary)
@@ -144,7 +136,6 @@ def cmd_bench_convergence(args: argparse.Namespace) -> int:
 
 
 def cmd_info(args: argparse.Namespace) -> int:
-
     for backend in ("egl", "osmesa"):
         try:
             ctx = gl.create_context(backend)
@@ -159,7 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="glsldiff", description=__doc__)
     sub = parser.add_subparsers(dest="command")
 
-    p = sub.add_parser("demo", help="back-lit marble slab, 4x4 projector regions (default job)")
+    p = sub.add_parser("demo", help="back-lit marble slab, 4x4 projector regions (GLSL vs scipy on a regular grid)")
     p.add_argument("--size", type=int, nargs=3, default=(64, 64, 12), metavar=("NX", "NY", "NZ"))
     p.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
     p.add_argument("--tol", type=float, default=5e-7, help="Jacobi residual tolerance")
@@ -262,9 +253,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    if not getattr(args, "command", None):
-        args = build_parser().parse_args(["demo", *(argv or [])])
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "command", None):  # bare `glsldiff`: say what it can do, start nothing
+        parser.print_help()
+        return 0
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     if getattr(args, "gl", None):
         os.environ["GLSLDIFF_GL"] = args.gl
@@ -273,6 +266,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except GlsldiffError as exc:
         print(f"glsldiff: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"glsldiff: interrupted ({args.command}); finished output files are kept, none is "
+              "half-written", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

@@ -4,14 +4,13 @@ from __future__ import annotations
 import argparse
 import math
 import os
-from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
 from glsldiff.core.tables import print_table
 from glsldiff.core.errors import InputError
-from glsldiff.core.io import check_output
+from glsldiff.core.io import check_output, read_npz
 from glsldiff.bench import fit as fit_bench
 from glsldiff.core.io import write_csv, write_exr, write_npz
 from glsldiff.inverse.figures import depth_slices
@@ -82,7 +81,6 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
 
 
 def cmd_synth(args: argparse.Namespace) -> int:
-
     out = check_output(args.out)
     truth = check_output(out.with_name(out.stem + "_truth.npz"))
     nx, ny, nz = args.size
@@ -96,28 +94,27 @@ def cmd_synth(args: argparse.Namespace) -> int:
     return 0
 
 
-def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -> tuple[np.ndarray, np.ndarray]:
-    """kappa, mu of a material ``.npz`` on the measurements' grid ``shape``."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{what} {path!r} does not exist")
-    with np.load(p) as d:
-        if "kappa" not in d.files or "mu" not in d.files:
-            raise InputError(f"{what} {path!r} lacks kappa/mu")
-        k, m = d["kappa"], d["mu"]
+def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -> dict[str, np.ndarray]:
+    """The arrays of a material ``.npz`` (kappa, mu on the measurements' grid ``shape``, and
+    whatever else it holds, e.g. the stencil it was fitted with)."""
+    d = read_npz(path, what, ("kappa", "mu"))
+    k, m = d["kappa"], d["mu"]
     if k.shape[:3] != tuple(shape) or m.shape != k.shape:
-        raise InputError(f"{what} volumes have shape {k.shape}, the measurements' grid is {tuple(shape)}")
-    return k, m
+        raise InputError(f"{what} {path!r}: kappa/mu have shape {k.shape}/{m.shape}, the measurements' "
+                         f"grid is {tuple(shape)}")
+    return d
 
 
 def cmd_fit(args: argparse.Namespace) -> int:
-
     out = check_output(args.out)
     options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,
                          mu0=args.mu0, max_evals=args.max_evals, max_seconds=args.max_seconds,
                          backend=args.backend)
     meas = load_measurements(args.measurements)
-    truth = _load_truth(args.truth, meas.shape) if args.truth else None
+    truth = None
+    if args.truth:
+        d = _load_truth(args.truth, meas.shape)
+        truth = (d["kappa"], d["mu"])
     rows: list[dict[str, object]] = []
     channels = 1 if meas.grey() else 3
     bar = tqdm(total=channels * args.max_evals, desc="fit", unit="eval", dynamic_ncols=True)
@@ -134,7 +131,14 @@ def cmd_fit(args: argparse.Namespace) -> int:
     result = fit_measurements(meas, options, progress)
     bar.close()
     save_material(out, result)
-    write_csv(out.with_name(out.stem + "_trace.csv"), rows)
+    trace = out.with_name(out.stem + "_trace.csv")
+    if rows:
+        write_csv(trace, rows)
+    if result.interrupted:
+        for note in result.notes:
+            print(note)
+        print(f"interrupted: wrote the best material so far to {out}" + (f" and {trace}" if rows else ""))
+        return 130
     table = []
     for c, f in enumerate(result.channels):
         table.append(dict(channel="RGB"[c], kappa_h=f.homogeneous[0], mu_h=f.homogeneous[1],
@@ -156,22 +160,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
         png = out.with_name(out.stem + "_slices.png")
         depth_slices(png, result.kappa, result.mu, meas.h, truth=truth)
         print(f"wrote {png}")
-    print(f"wrote {out} and {out.with_name(out.stem + '_trace.csv')} in {result.seconds:.1f} s")
+    print(f"wrote {out} and {trace} in {result.seconds:.1f} s")
     return 0
 
 
 def cmd_reflectance(args: argparse.Namespace) -> int:
-
     out = check_output(args.out)
     if out.suffix.lower() != ".exr":
         raise InputError(f"output {str(out)!r} must be an .exr file")
     if args.irradiance is not None and len(args.irradiance) not in (1, 3):
         raise InputError(f"--irradiance takes 1 or 3 values, got {len(args.irradiance)}")
     meas = load_measurements(args.measurements)
-    k, m = _load_truth(args.material, meas.shape, "material file")
-    with np.load(args.material) as d:
-        stencil = str(d["stencil"]) if "stencil" in d.files else "conservative"
-        face_mean = str(d["face_mean"]) if "face_mean" in d.files else "arithmetic"
+    d = _load_truth(args.material, meas.shape, "material file")
+    k, m = d["kappa"], d["mu"]
+    stencil = str(d["stencil"]) if "stencil" in d else "conservative"
+    face_mean = str(d["face_mean"]) if "face_mean" in d else "arithmetic"
     r = diffuse_reflectance(meas, k, m, args.condition, args.irradiance, stencil, face_mean)
     write_exr(out, r.rho.astype(np.float32), {"glsldiff": "diffuse surface reflectance, one pixel per block "
                                                           f"node of face {meas.observed_face}"})
@@ -182,7 +185,6 @@ def cmd_reflectance(args: argparse.Namespace) -> int:
 
 
 def cmd_bench_fit(args: argparse.Namespace) -> int:
-
     if args.gl:
         os.environ["GLSLDIFF_GL"] = args.gl
     fit_bench.run(args)

@@ -11,6 +11,8 @@ from __future__ import annotations
 import csv
 import os
 import tempfile
+import zipfile
+import zlib
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, Mapping, Sequence
@@ -23,19 +25,45 @@ from glsldiff.core.checks import finite_array
 from glsldiff.core.errors import GlsldiffError, InputError
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = "") -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; rename it to ``path`` on success."""
-    dest = Path(path)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=suffix or dest.suffix, dir=dest.parent)
-    os.close(fd)
+    """Yield a temporary path beside ``path``; rename it to ``path`` on success. The file gets
+    the permissions of a newly created file under the umask (``mkstemp`` alone makes it 0600)."""
+    with atomic_paths([path], [suffix]) as (tmp,):
+        yield tmp
+
+
+@contextmanager
+def atomic_paths(paths: Sequence[str | os.PathLike], suffixes: Sequence[str] | None = None
+                 ) -> Iterator[list[Path]]:
+    """Temporary paths beside each of ``paths``, renamed into place together once every one
+    is written: an interrupted write leaves the old files (or none), never a new file beside
+    a stale or missing partner (e.g. an EXR and its PNG)."""
+    dests = [Path(p) for p in paths]
+    suffixes = list(suffixes or [""] * len(dests))
+    tmps: list[str] = []
     try:
-        yield Path(tmp)
-        os.replace(tmp, dest)
+        for dest, suffix in zip(dests, suffixes):
+            dest.parent.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=suffix or dest.suffix, dir=dest.parent)
+            os.close(fd)
+            tmps.append(tmp)
+        yield [Path(t) for t in tmps]
+        mode = 0o666 & ~_umask()
+        for tmp in tmps:
+            os.chmod(tmp, mode)
+        for tmp, dest in zip(tmps, dests):
+            os.replace(tmp, dest)
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        for tmp in tmps:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
 
 
 #: 8/16-bit image files OpenCV decodes (captures, projector images); sRGB-encoded.
@@ -53,23 +81,40 @@ def _rgb(image: ArrayLike, name: str) -> NDArray[np.float32]:
     return finite_array(img, f"{name}: image").astype(np.float32)  # float32 first: values beyond its range are inf
 
 
-def write_exr(path: str | os.PathLike, image: ArrayLike,
-              attributes: Mapping[str, str] | None = None, half: bool = False) -> Path:
-    """Write a linear RGB image (row 0 = top) as ZIP-compressed OpenEXR: float32 pixels, or
-    16-bit half floats with ``half=True`` (values beyond the half range, 65504, are refused)."""
+def _exr_file(tmp: Path, image: ArrayLike, attributes: Mapping[str, str] | None, half: bool, name: str) -> None:
     import OpenEXR  # heavy import (~60 ms): only EXR files need it
 
-    img = np.ascontiguousarray(_rgb(image, str(path)))
+    img = np.ascontiguousarray(_rgb(image, name))
     if half:
         if np.abs(img).max() > np.finfo(np.float16).max:
-            raise InputError(f"{path}: values up to {np.abs(img).max():.4g} exceed the half-float range "
+            raise InputError(f"{name}: values up to {np.abs(img).max():.4g} exceed the half-float range "
                              f"(65504); write float32 instead or rescale")
         img = img.astype(np.float16)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     header.update({k: str(v) for k, v in (attributes or {}).items()})
-    with atomic_path(path) as tmp, OpenEXR.File(header, {"RGB": img}) as f:
+    with OpenEXR.File(header, {"RGB": img}) as f:
         f.write(str(tmp))
+
+
+def write_exr(path: str | os.PathLike, image: ArrayLike,
+              attributes: Mapping[str, str] | None = None, half: bool = False) -> Path:
+    """Write a linear RGB image (row 0 = top) as ZIP-compressed OpenEXR: float32 pixels, or
+    16-bit half floats with ``half=True`` (values beyond the half range, 65504, are refused)."""
+    with atomic_path(path) as tmp:
+        _exr_file(tmp, image, attributes, half, str(path))
     return Path(path)
+
+
+def write_exr_png(path: str | os.PathLike, image: ArrayLike, image8: NDArray[np.uint8],
+                  attributes: Mapping[str, str] | None = None) -> tuple[Path, Path]:
+    """An EXR (linear) and its 8-bit PNG beside it (same name, ``.png``), written as a pair:
+    both appear together, or neither changes."""
+    exr = Path(path)
+    png = exr.with_suffix(".png")
+    with atomic_paths([exr, png]) as (tmp_exr, tmp_png):
+        _exr_file(tmp_exr, image, attributes, False, str(exr))
+        _png_file(tmp_png, image8)
+    return exr, png
 
 
 def read_exr(path: str | os.PathLike) -> NDArray[np.float32]:
@@ -121,10 +166,14 @@ def tonemap(image: ArrayLike, exposure: float, gamma: float = 2.2) -> NDArray[np
     return np.round(img * 255.0).astype(np.uint8)
 
 
+def _png_file(tmp: Path, image8: NDArray[np.uint8]) -> None:
+    Image.fromarray(np.ascontiguousarray(image8), "RGB").save(tmp, format="PNG")
+
+
 def write_png(path: str | os.PathLike, image8: NDArray[np.uint8]) -> Path:
     """Write an 8-bit RGB image (row 0 = top) as PNG."""
     with atomic_path(path) as tmp:
-        Image.fromarray(np.ascontiguousarray(image8), "RGB").save(tmp, format="PNG")
+        _png_file(tmp, image8)
     return Path(path)
 
 
@@ -166,9 +215,10 @@ def write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, object]]) -> 
 def check_output(path: str | os.PathLike, suffixes: Sequence[str] = (), note: str = "") -> Path:
     """Refuse an output path that cannot be written, before any work is done.
 
-    The folder must exist and be writable, the path must not be a folder, an existing file
-    must be writable, and when ``suffixes`` are given the name must end in one of them
-    (``note`` says why, e.g. what is written beside it).
+    The folder must exist, the path must not be a folder, an existing file must be writable,
+    and when ``suffixes`` are given the name must end in one of them (``note`` says why, e.g.
+    what is written beside it). The check creates and removes a file in the folder, so a
+    folder that refuses new files (read-only mounts, /proc) fails here, not after the work.
     """
     p = Path(path)
     if suffixes and p.suffix.lower() not in suffixes:
@@ -178,7 +228,60 @@ def check_output(path: str | os.PathLike, suffixes: Sequence[str] = (), note: st
     if p.is_dir():
         raise InputError(f"output {str(p)!r} is a folder; give a file name")
     if not parent.is_dir():
-        raise InputError(f"output {str(p)!r}: folder {str(parent)!r} does not exist")
-    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
-        raise InputError(f"output {str(p)!r}: not writable")
+        raise InputError(f"output {str(p)!r}: folder {str(parent)!r} does not exist; create it first")
+    if p.exists() and not os.access(p, os.W_OK):
+        raise InputError(f"output {str(p)!r}: the existing file is not writable")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".glsldiff-write-test-", dir=parent)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise InputError(f"output {str(p)!r}: cannot create files in {str(parent)!r} "
+                         f"({exc.strerror or exc}); choose another folder") from None
     return p
+
+
+def check_output_folder(folder: str | os.PathLike) -> Path:
+    """Create ``folder`` if needed and check that files can be created in it, before any work."""
+    f = Path(folder)
+    if f.exists() and not f.is_dir():
+        raise InputError(f"output folder {str(f)!r} is a file; give a folder name")
+    try:
+        f.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"output folder {str(f)!r} cannot be created ({exc.strerror or exc})") from None
+    check_output(f / "probe")
+    return f
+
+
+def read_npz(path: str | os.PathLike, what: str, required: Sequence[str] = ()) -> dict[str, NDArray]:
+    """All arrays of an ``.npz`` file (no pickled objects), read once; ``required`` names
+    must be present. Every way a file can be bad (missing, empty, truncated, not a zip, a
+    pickle, a missing array) is one :class:`InputError` naming ``what`` and the file."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{what} {str(p)!r} does not exist")
+    with open(p, "rb") as f:
+        magic = f.read(4)
+    if not magic:
+        raise InputError(f"{what} {str(p)!r} is empty; write it with numpy.savez")
+    if not magic.startswith(b"PK"):
+        raise InputError(f"{what} {str(p)!r} is not an .npz archive (a zip of .npy arrays, as "
+                         "numpy.savez writes); check the file name")
+    try:
+        with np.load(p, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (zipfile.BadZipFile, zlib.error) as exc:
+        raise InputError(f"{what} {str(p)!r} is damaged or truncated ({exc}); write it again") from None
+    except ValueError as exc:
+        if "pickle" in str(exc):
+            raise InputError(f"{what} {str(p)!r} holds pickled objects, which are not read; store "
+                             "plain numeric arrays") from None
+        raise InputError(f"{what} {str(p)!r} is not a readable .npz archive ({exc})") from None
+    except (OSError, EOFError) as exc:
+        raise InputError(f"{what} {str(p)!r} is empty, truncated or unreadable ({exc})") from None
+    missing = [k for k in required if k not in arrays]
+    if missing:
+        raise InputError(f"{what} {str(p)!r} lacks {', '.join(missing)} (has "
+                         f"{', '.join(arrays) or 'no arrays'}; needs {', '.join(required)})")
+    return arrays

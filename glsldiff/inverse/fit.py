@@ -94,6 +94,7 @@ class FitResult:
     options: FitOptions
     shared: bool = False  # one fit served all three (grey) channels
     notes: list[str] = field(default_factory=list)
+    interrupted: bool = False  # Ctrl-C: the best material so far (see notes)
 
 
 def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: int) -> tuple[float, float, Trace]:
@@ -182,15 +183,26 @@ def fit_measurements(meas: Measurements, options: FitOptions | None = None,
         model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)
     shared = meas.grey()
     fits: list[ChannelFit] = []
+    notes: list[str] = ["grey data: one fit served all three channels"] if shared else []
+    interrupted = False
     try:
         for c in range(1 if shared else 3):
             cb = (lambda rec, c=c: callback(c, rec)) if callback else None
             fits.append(fit_channel(model, *meas.channel(c), options, cb))
+            if fits[-1].trace.status == "interrupted":
+                interrupted = True
+                notes.append(f"interrupted in channel {'RGB'[c]} after {len(fits[-1].trace.records)} evaluations: "
+                             "its best material so far is saved")
+                if len(fits) < (1 if shared else 3):
+                    notes.append(f"channels {'RGB'[len(fits):]} were not fitted: they hold a copy of channel "
+                                 f"{'RGB'[c]}")
+                break
     finally:
         if hasattr(model, "release"):
             model.release()
     if shared:
         fits = fits * 3
+    fits += [fits[-1]] * (3 - len(fits))
     g = meas.grid
     kappa = np.stack([model.volume(f.kappa, 0.0) for f in fits], axis=-1)
     mu = np.stack([model.volume(f.mu, 0.0) for f in fits], axis=-1)
@@ -199,8 +211,7 @@ def fit_measurements(meas: Measurements, options: FitOptions | None = None,
     mu = np.stack([fill_unseen(mu[..., c], kind == INTERIOR) for c in range(3)], axis=-1)
     if not np.all(np.isfinite(kappa)) or not np.all(np.isfinite(mu)):
         raise SolverError("the fit produced non-finite coefficients")
-    notes = [] if not shared else ["grey data: one fit served all three channels"]
-    return FitResult(kappa, mu, fits, g.h, time.perf_counter() - t0, options, shared, notes)
+    return FitResult(kappa, mu, fits, g.h, time.perf_counter() - t0, options, shared, notes, interrupted)
 
 
 def save_material(path: str | os.PathLike, result: FitResult) -> Path:
@@ -211,5 +222,6 @@ def save_material(path: str | os.PathLike, result: FitResult) -> Path:
                   stencil=o.stencil, face_mean=o.face_mean, seconds=result.seconds,
                   data_error=np.array([f.data for f in result.channels]),
                   converged=np.array([f.converged for f in result.channels]),
+                  interrupted=result.interrupted,
                   homogeneous=np.array([f.homogeneous for f in result.channels]))
     return write_npz(path, **arrays)

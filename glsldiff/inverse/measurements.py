@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.checks import integer, real
 from glsldiff.core.errors import InputError
-from glsldiff.core.io import write_npz
+from glsldiff.core.io import read_npz, write_npz
 from glsldiff.grids.regular import FACES, RegularGrid
 
 REQUIRED = ("shape", "h", "lit_face", "observed_face", "incoming", "radiance")
@@ -185,25 +185,20 @@ def save_measurements(path: str | os.PathLike, m: Measurements) -> Path:
 
 def load_measurements(path: str | os.PathLike) -> Measurements:
     """Read and validate an ``.npz`` measurement file (layout in the module docstring)."""
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(f"measurements file {str(p)!r} does not exist")
+    data = read_npz(path, "measurements file", REQUIRED)
+
+    def scalar(key: str, default: float | None) -> float | None:
+        return float(data[key]) if key in data else default
+
     try:
-        data = np.load(p, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read measurements file {str(p)!r}: {exc}") from None
-    with data:
-        missing = [k for k in REQUIRED if k not in data.files]
-        if missing:
-            raise InputError(f"measurements file {str(p)!r} lacks {', '.join(missing)} "
-                             f"(needs {', '.join(REQUIRED)})")
-
-        def scalar(key: str, default: float | None) -> float | None:
-            return float(data[key]) if key in data.files else default
-
-        return Measurements(shape=tuple(data["shape"]), h=float(data["h"]),
-                            lit_face=str(data["lit_face"]), observed_face=str(data["observed_face"]),
-                            incoming=data["incoming"], radiance=data["radiance"],
-                            mask=data["mask"] if "mask" in data.files else None,
-                            eta=scalar("eta", 1.3), saturation=scalar("saturation", None),
-                            C=scalar("C", None))
+        shape = tuple(int(s) for s in np.asarray(data["shape"]).reshape(-1))
+        h = float(data["h"])
+    except (TypeError, ValueError):
+        raise InputError(f"measurements file {str(path)!r}: shape must be 3 integers and h one number "
+                         "(mm)") from None
+    return Measurements(shape=shape, h=h,
+                        lit_face=str(data["lit_face"]), observed_face=str(data["observed_face"]),
+                        incoming=data["incoming"], radiance=data["radiance"],
+                        mask=data.get("mask"),
+                        eta=scalar("eta", 1.3), saturation=scalar("saturation", None),
+                        C=scalar("C", None))

@@ -106,7 +106,22 @@ class ScaledProblem:
         return np.clip(v, self.lower, self.upper)
 
     def __call__(self, z: Array, grad: Array | None) -> float:
-        """Objective in NLopt's convention (fills ``grad`` in place when it is non-empty)."""
+        """Objective in NLopt's convention (fills ``grad`` in place when it is non-empty).
+
+        Ctrl-C inside an NLopt run stops it gracefully (NLopt would turn the exception into
+        a bare runtime error): the trace says "interrupted" and the best point is kept."""
+        try:
+            return self._evaluate(z, grad)
+        except KeyboardInterrupt:
+            if self.stop is None or not self.trace.records:
+                raise
+            self.trace.status = "interrupted"
+            self.stop()
+            if grad is not None and grad.size > 0:
+                grad[:] = 0.0
+            return self.trace.best.value
+
+    def _evaluate(self, z: Array, grad: Array | None) -> float:
         tr = self.trace
         if len(tr.records) >= self.max_evals or time.perf_counter() - self._t0 > self.max_seconds:
             tr.status = "budget spent"
@@ -156,6 +171,10 @@ def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float 
             _nlopt(problem, z0, stopval, ftol_rel)
     except Budget:
         tr.status = "budget spent"
+    except KeyboardInterrupt:  # Ctrl-C: keep the best point so far (the caller saves it)
+        if problem.best_z is None:
+            raise
+        tr.status = "interrupted"
     tr.seconds = time.perf_counter() - problem._t0
     tr.converged = tr.status.startswith("converged")
     if problem.best_z is None:
@@ -184,7 +203,7 @@ def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -
         code = nlopt.FORCED_STOP
     problem.trace.iterations = problem.gradients
     if code == nlopt.FORCED_STOP:
-        return  # budget: status already set
+        return  # budget or Ctrl-C: status already set
     problem.trace.status = {"roundoff": "converged (roundoff limited)",nlopt.STOPVAL_REACHED: "converged (f < eps)",
                             nlopt.FTOL_REACHED: "converged (f stopped changing)",
                             nlopt.XTOL_REACHED: "converged (x stopped changing)",

@@ -24,11 +24,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
 
-from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_image
 from glsldiff.physics.material import Preset, coefficients, preset
 from glsldiff.physics.procedural import blend, default_vein, marble_volume, point_weight, unit_box
-from glsldiff.render.scene import MaterialSpec, Scene
+from glsldiff.render.scene import MaterialSpec, Scene, block_volume
 from glsldiff.render.shellmap import map_shell, map_surface
 
 
@@ -58,13 +57,7 @@ def _vein_lattice(cells: int, seed: int, sigma_a: tuple, sigma_s_prime: tuple, e
 
 def _block(scene: Scene) -> tuple[NDArray, NDArray, float]:
     """kappa, mu and h_mm of the scene's block volume file."""
-    path = scene.resolve(scene.material.volume)
-    try:
-        with np.load(path) as z:
-            return np.asarray(z["kappa"], float), np.asarray(z["mu"], float), float(z["h_mm"])
-    except (OSError, KeyError, ValueError) as exc:
-        raise InputError(f"{scene.source}: [material].volume: {str(path)!r} is not an npz with kappa, mu "
-                         f"and h_mm ({exc})") from exc
+    return block_volume(scene.resolve(scene.material.volume), f"{scene.source}: [material].volume: file")
 
 
 def surface_reflectance(scene: Scene, polygrid: Any) -> NDArray[np.float64] | None:

@@ -25,11 +25,9 @@ def auto_exposure(img: NDArray) -> float:
 
 
 def save(img: NDArray, path: Path, scene: Scene, rep: RenderReport) -> tuple[Path, Path, float]:
-    """EXR (linear radiance) and a tone-mapped PNG beside it, both written atomically."""
+    """EXR (linear radiance) and a tone-mapped PNG beside it, written as a pair (both or neither)."""
     exposure = auto_exposure(img) if scene.output.exposure == "auto" else float(scene.output.exposure)
     attrs = {"glsldiff_scene": scene.source, "glsldiff_renderer": rep.renderer,
              "glsldiff_t1_t2_t3_ms": "/".join(f"{rep.seconds.get(k, 0) * 1e3:.1f}" for k in ("t1", "t2", "t3"))}
-    io.write_exr(path, img, attributes=attrs)
-    png = path.with_suffix(".png")
-    io.write_png(png, io.tonemap(img, exposure))
-    return path, png, exposure
+    exr, png = io.write_exr_png(path, img, io.tonemap(img, exposure), attributes=attrs)
+    return exr, png, exposure

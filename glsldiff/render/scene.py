@@ -89,7 +89,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.core.io import read_image
+from glsldiff.core.io import read_image, read_npz
 from glsldiff.mesh import SAMPLE_MESHES
 from glsldiff.physics.exitance import EXITANT
 from glsldiff.physics.lights import (KINDS, DirectionalLight, EnvironmentLight, Light, PointLight, ProjectorLight,
@@ -300,10 +300,8 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
     core = t.string("core", "mean")
     t.preset_name("core", None if core == "mean" else core)
     volume = t.string("volume", None)
-    if volume is not None:
-        p = _resolve(scene_dir, volume)
-        if not p.is_file():
-            t.fail("volume", f"file {str(p)!r} does not exist")
+    if volume is not None:  # read now: a bad file fails before the polygrid is built
+        block_volume(_resolve(scene_dir, volume), f"{t.src}: [material].volume: file")
     reflectance: Any = None
     if isinstance(t.data.get("reflectance"), str):
         if volume is None:
@@ -467,3 +465,22 @@ def load_scene(path: str | Path) -> Scene:
 def vec(a: Any) -> NDArray[np.float64]:
     """A scene 3-tuple as an array."""
     return np.asarray(a, dtype=np.float64)
+
+
+def block_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """kappa (mm), mu (mm^-1) as ``(nz, ny, nx, 3)`` and the voxel size h_mm of a block volume
+    ``.npz`` (the ``[material].volume`` of a scene), checked."""
+    z = read_npz(path, what, ("kappa", "mu", "h_mm"))
+    kappa, mu = np.asarray(z["kappa"], dtype=np.float64), np.asarray(z["mu"], dtype=np.float64)
+    if kappa.ndim != 4 or kappa.shape[3] != 3 or mu.shape != kappa.shape or min(kappa.shape[:3]) < 1:
+        raise InputError(f"{what} {str(path)!r}: kappa and mu must both have shape (nz, ny, nx, 3), got "
+                         f"{kappa.shape} and {mu.shape}")
+    if z["h_mm"].size != 1:
+        raise InputError(f"{what} {str(path)!r}: h_mm must be one number (mm), got shape {z['h_mm'].shape}")
+    h = float(z["h_mm"].reshape(()))
+    if not (np.isfinite(h) and h > 0):
+        raise InputError(f"{what} {str(path)!r}: h_mm must be a positive voxel size in mm, got {h}")
+    if not (np.isfinite(kappa).all() and np.isfinite(mu).all() and (kappa > 0).all() and (mu >= 0).all()):
+        raise InputError(f"{what} {str(path)!r}: kappa must be finite and > 0 (mm), mu finite and >= 0 "
+                         "(mm^-1) everywhere")
+    return kappa, mu, h

@@ -1,0 +1,164 @@
+"""Bad input ends in one line and exit 2, an interruption in one line, and nothing is lost or
+half-written (issue 19, first part): one npz reader for every file kind, an output check that
+really creates a file, EXR + PNG written as a pair with the umask's permissions, a bare
+``glsldiff`` printing help, Ctrl-C during ``fit`` keeping the best material so far."""
+from __future__ import annotations
+
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from glsldiff.commands import inverse as inverse_commands
+from glsldiff.commands.cli import main
+from glsldiff.core import io
+from glsldiff.core.errors import InputError
+from glsldiff.inverse.fit import FitOptions, fit_measurements
+from glsldiff.inverse.measurements import load_measurements
+
+
+def _bad_npz_files(folder):
+    """Every kind of bad .npz: missing, empty, text, truncated, pickled objects, wrong arrays."""
+    good = folder / "good.npz"
+    np.savez(good, other=np.ones(3))
+    data = good.read_bytes()
+    files = {"missing": folder / "missing.npz", "empty": folder / "empty.npz", "text": folder / "text.npz",
+             "truncated": folder / "truncated.npz", "pickled": folder / "pickled.npz", "wrong arrays": good}
+    files["empty"].write_bytes(b"")
+    files["text"].write_text("kappa = 1\n")
+    files["truncated"].write_bytes(data[: len(data) // 2])
+    np.savez(files["pickled"], kappa=np.array([{"a": 1}], dtype=object))
+    return files
+
+
+EXPECT = {"missing": "does not exist", "empty": "is empty", "text": "is not an .npz archive",
+          "truncated": "damaged or truncated", "pickled": "pickled objects", "wrong arrays": "lacks"}
+
+
+@pytest.mark.parametrize("kind", list(EXPECT))
+def test_read_npz_names_the_cause(tmp_path, kind):
+    path = _bad_npz_files(tmp_path)[kind]
+    with pytest.raises(InputError, match=EXPECT[kind]) as err:
+        io.read_npz(path, "volume file", ("kappa", "mu"))
+    assert "\n" not in str(err.value) and str(path) in str(err.value)
+
+
+def _one_error_line(capsys, code, expect):
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("glsldiff: error:") and expect in err[0], err
+
+
+@pytest.mark.parametrize("kind", list(EXPECT))
+def test_commands_refuse_bad_npz_in_one_line(tmp_path, capsys, kind):
+    """fit's measurements and --truth, the reflectance material, a scene's block volume."""
+    bad = _bad_npz_files(tmp_path)[kind]
+    meas = tmp_path / "m.npz"
+    assert main(["synth", str(meas), "--size", "8", "8", "4", "--n", "1"]) == 0
+    capsys.readouterr()
+    _one_error_line(capsys, main(["fit", str(bad), "-o", str(tmp_path / "o.npz")]), EXPECT[kind])
+    _one_error_line(capsys, main(["fit", str(meas), "-o", str(tmp_path / "o.npz"), "--truth", str(bad)]),
+                    EXPECT[kind])
+    _one_error_line(capsys, main(["reflectance", str(meas), str(bad), "-o", str(tmp_path / "r.exr")]),
+                    EXPECT[kind])
+    scene = tmp_path / "s.toml"
+    scene.write_text(f'[mesh]\nsource = "sphere"\nsize_mm = 20.0\n[material]\nvolume = "{bad.name}"\n')
+    _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "r.exr")]), EXPECT[kind])
+    assert not list(tmp_path.glob("o.npz")) and not list(tmp_path.glob("r.*"))
+
+
+def test_output_check_creates_a_file(tmp_path, capsys):
+    """A folder that refuses new files fails before the work, not after it (os.access says yes
+    to root everywhere); nothing is left behind by the check."""
+    _one_error_line(capsys, main(["render", "-o", "/proc/glsldiff-test.exr"]), "cannot create files")
+    _one_error_line(capsys, main(["render", "-o", str(tmp_path / "no" / "x.exr")]), "does not exist")
+    _one_error_line(capsys, main(["render", "-o", str(tmp_path)]), "must end in .exr")
+    assert io.check_output(tmp_path / "x.exr") == tmp_path / "x.exr"
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_exr_and_png_are_a_pair_with_umask_permissions(tmp_path, monkeypatch):
+    img = np.random.default_rng(0).random((6, 5, 3)).astype(np.float32)
+    old = os.umask(0o027)
+    try:
+        exr, png = io.write_exr_png(tmp_path / "a.exr", img, io.tonemap(img, 1.0))
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(exr.stat().st_mode) == 0o640 and stat.S_IMODE(png.stat().st_mode) == 0o640
+    np.testing.assert_array_equal(io.read_exr(exr), img)
+    # the PNG step fails: the existing pair stays as it was and no temporary file is left
+    before = (exr.read_bytes(), png.read_bytes())
+
+    def broken(tmp, image8):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(io, "_png_file", broken)
+    with pytest.raises(OSError):
+        io.write_exr_png(tmp_path / "a.exr", 2 * img, io.tonemap(img, 1.0))
+    assert (exr.read_bytes(), png.read_bytes()) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]
+
+
+def test_bare_command_prints_help(capsys):
+    assert main([]) == 0
+    out = capsys.readouterr().out
+    assert "usage: glsldiff" in out and "render" in out
+
+
+def _measurements(tmp_path, capsys):
+    meas = tmp_path / "m.npz"
+    assert main(["synth", str(meas), "--size", "10", "10", "5", "--n", "2", "--noise", "0.005",
+                 "--volume", "veins"]) == 0
+    capsys.readouterr()
+    return meas
+
+
+def test_interrupted_fit_keeps_the_best_material(tmp_path, capsys):
+    """Ctrl-C during the heterogeneous stage: the best point so far is returned and marked."""
+    meas = load_measurements(_measurements(tmp_path, capsys))
+    seen = []
+
+    def ctrl_c(channel, record):
+        seen.append(record)
+        if len(seen) == 6:
+            raise KeyboardInterrupt
+
+    result = fit_measurements(meas, FitOptions(max_evals=40), ctrl_c)
+    assert result.interrupted and any("interrupted" in n for n in result.notes)
+    assert np.all(np.isfinite(result.kappa)) and np.all(result.kappa > 0)
+    statuses = [f.trace.status for f in result.channels]
+    assert "interrupted" in statuses, statuses
+
+
+def test_fit_command_saves_on_ctrl_c(tmp_path, capsys, monkeypatch):
+    """The same through `glsldiff fit`: exit 130, material and trace written, one message."""
+    meas = _measurements(tmp_path, capsys)
+
+    class Bar:
+        calls = 0
+
+        def __init__(self, *a, **k):
+            pass
+
+        def update(self, n):
+            Bar.calls += 1
+            if Bar.calls == 6:
+                raise KeyboardInterrupt
+
+        def set_postfix(self, **k):
+            pass
+
+        def write(self, s):
+            pass
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(inverse_commands, "tqdm", Bar)
+    out = tmp_path / "mat.npz"
+    assert main(["fit", str(meas), "-o", str(out), "--max-evals", "40"]) == 130
+    text = capsys.readouterr().out
+    assert "interrupted: wrote the best material so far" in text
+    with np.load(out) as d:
+        assert bool(d["interrupted"]) and np.all(d["kappa"] > 0)
