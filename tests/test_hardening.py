@@ -162,3 +162,60 @@ def test_fit_command_saves_on_ctrl_c(tmp_path, capsys, monkeypatch):
     assert "interrupted: wrote the best material so far" in text
     with np.load(out) as d:
         assert bool(d["interrupted"]) and np.all(d["kappa"] > 0)
+
+
+@pytest.mark.parametrize("argv, expect", [
+    (["demo", "--seed", "-1"], "--seed: must be an integer in [0, 4294967295], got -1"),
+    (["synth", "m.npz", "--size", "-4", "8", "8"], "--size: must be an integer in [3, 1024], got -4"),
+    (["fit", "m.npz", "--max-seconds", "0"], "--max-seconds: must be a number in (0, inf), got 0"),
+    (["synth", "m.npz", "--noise", "nan"], "--noise: must be a number in [0, inf), got nan"),
+    (["polygrid", "cow", "--cube-size", "0"], "--cube-size: must be a number in (0, inf), got 0"),
+    (["polygrid", "cow", "--n", "512"], "--n: must be an integer in [2, 256], got 512"),
+    (["render", "--frames", "0"], "--frames: must be an integer in [1, 10000], got 0"),
+    (["bench", "forward", "--levels", "x"], "--levels: 'x' is not an integer"),
+])
+def test_bad_arguments_fail_in_one_line_before_work(tmp_path, capsys, argv, expect):
+    with pytest.raises(SystemExit) as ex:
+        main(argv)
+    assert ex.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and expect in err[0], err
+
+
+def _scene(tmp_path, **extra):
+    lines = ['[mesh]', 'source = "sphere"', f'size_mm = {extra.pop("size_mm", 20.0)}',
+             '[polygrid]', 'n = 4', 'cubes = 20', 'levels = 1',
+             '[[lights]]', 'type = "directional"', 'direction = [0, 0, 1]',
+             f'irradiance = {extra.pop("irradiance", [1.0, 1.0, 1.0])}',
+             '[output]', 'width = 32', 'height = 32']
+    path = tmp_path / "s.toml"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.mark.parametrize("extra, expect", [
+    (dict(irradiance=[0.0, 0.0, 0.0]), "no light reaches the object"),
+    (dict(irradiance=[1e38, 1e38, 1e38]), "beyond what the solver's float32 textures hold"),
+    (dict(size_mm=1e-6), "pass 2 did not converge"),
+    (dict(irradiance=[1.0, 1.0, 1.0]), None),
+])
+def test_render_refuses_silent_wrong_images(tmp_path, capsys, extra, expect):
+    """No light, a float overflow or an exhausted solver budget is an error (exit 2, no files),
+    not a black image with exit 0; a sound scene renders."""
+    out = tmp_path / "r.exr"
+    code = main(["render", str(_scene(tmp_path, **extra)), "-o", str(out)])
+    if expect is None:
+        assert code == 0 and out.exists() and out.with_suffix(".png").exists()
+        return
+    assert code == 2
+    assert expect in capsys.readouterr().err.strip().splitlines()[-1]
+    assert not out.exists() and not out.with_suffix(".png").exists()
+
+
+def test_polygrid_node_budget(tmp_path, capsys):
+    """A lattice too large for memory is refused before it is allocated (n = 512: 753 GiB)."""
+    scene = tmp_path / "big.toml"
+    scene.write_text('[mesh]\nsource = "sphere"\n[polygrid]\nn = 256\n[[lights]]\ntype = "directional"\n'
+                     'direction = [0, 0, 1]\n')
+    _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "r.exr")]), "use n <= 49")
+    _one_error_line(capsys, main(["polygrid", "cow", "--n", "200", "--out", str(tmp_path / "pg")]), "lattice nodes")

@@ -11,6 +11,7 @@ import os
 import sys
 from typing import Sequence
 
+from glsldiff.commands import args as A
 from glsldiff.core.errors import GlsldiffError, InputError
 from glsldiff.core.tables import print_table
 from glsldiff import gl
@@ -53,7 +54,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene) if args.scene else default_scene()
     if args.frames < 1:
         raise InputError(f"--frames={args.frames} must be >= 1")
-    with Renderer() as r:
+    with Renderer(allow_unconverged=args.allow_unconverged) as r:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}")
         print("\n".join(rep.lines()))
@@ -147,15 +148,15 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="glsldiff", description=__doc__)
+    parser = A.Parser(prog="glsldiff", description=__doc__)
     sub = parser.add_subparsers(dest="command")
 
     p = sub.add_parser("demo", help="back-lit marble slab, 4x4 projector regions (GLSL vs scipy on a regular grid)")
-    p.add_argument("--size", type=int, nargs=3, default=(64, 64, 12), metavar=("NX", "NY", "NZ"))
-    p.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
-    p.add_argument("--tol", type=float, default=5e-7, help="Jacobi residual tolerance")
+    p.add_argument("--size", type=A.integer(3, 4096), nargs=3, default=(64, 64, 12), metavar=("NX", "NY", "NZ"))
+    p.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
+    p.add_argument("--tol", type=A.positive, default=5e-7, help="Jacobi residual tolerance")
     p.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=A.seed, default=0)
     p.add_argument("--out", default="glsldiff-out")
     p.add_argument("--quiet", action="store_true")
     _add_gl(p)
@@ -164,7 +165,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a TOML scene (default: the bunny in veined marble) to OpenEXR + PNG")
     p.add_argument("scene", nargs="?", help="scene file (TOML, see glsldiff.render.scene); none = the built-in default")
     p.add_argument("-o", "--out", default="render.exr", help="output .exr (a tone-mapped .png goes beside it)")
-    p.add_argument("--frames", type=int, default=1, help="render the scene this many times (frame 2+ reuse passes)")
+    p.add_argument("--allow-unconverged", action="store_true",
+                   help="write the image even when pass 2 runs out of iterations (default: exit 2)")
+    p.add_argument("--frames", type=A.integer(1, 10000), default=1, help="render the scene this many times (frame 2+ reuse passes)")
     _add_gl(p)
     p.set_defaults(func=cmd_render)
 
@@ -174,8 +177,8 @@ def build_parser() -> argparse.ArgumentParser:
                                                   "sphere-constant", "sphere-eta1.3-constant", "sphere-sky",
                                                   "sphere-eta1.3-sky"],
                    help="validation cases (glsldiff.validation.validate.CASES)")
-    p.add_argument("--size", type=int, default=64, help="image side, pixels")
-    p.add_argument("--spp", type=int, default=256, help="Monte Carlo samples per pixel (a power of two >= 8: "
+    p.add_argument("--size", type=A.integer(8, 8192), default=64, help="image side, pixels")
+    p.add_argument("--spp", type=A.integer(8), default=256, help="Monte Carlo samples per pixel (a power of two >= 8: "
                    "split into 2-4 renders of 4^k samples, all Mitsuba's low-discrepancy sampler takes)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
@@ -186,16 +189,16 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("forward", help="GLSL Jacobi vs numpy Jacobi vs scipy direct / pyamg, 1e4..1e6 nodes")
     b.add_argument("--sizes", nargs="+", default=["32x32x10", "80x80x16", "200x200x25"],
                    help="grids as NXxNYxNZ")
-    b.add_argument("--seconds", type=float, default=20.0, help="time budget per iterative run")
-    b.add_argument("--max-direct-nodes", type=int, default=200_000,
+    b.add_argument("--seconds", type=A.positive, default=20.0, help="time budget per iterative run")
+    b.add_argument("--max-direct-nodes", type=A.integer(0), default=200_000,
                    help="largest grid for the scipy direct (SuperLU) solve; above it the "
                         "pyamg solution is the reference")
     b.add_argument("--precision", nargs="+", default=["fp32", "fp16"], choices=("fp32", "fp16"))
     b.add_argument("--schemes", nargs="*", default=[], choices=("hierarchical", "multigrid", "single"),
                    help="also solve with these multiresolution schedules on the grid's hierarchy (every "
                         "axis needs an odd node count, e.g. 161x161x33), to --tol")
-    b.add_argument("--levels", type=int, default=4, help="levels of the --schemes hierarchy (at most)")
-    b.add_argument("--tol", type=float, default=1e-6,
+    b.add_argument("--levels", type=A.integer(1, 12), default=4, help="levels of the --schemes hierarchy (at most)")
+    b.add_argument("--tol", type=A.positive, default=1e-6,
                    help="--schemes: Jacobi-scaled residual to solve to")
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
@@ -203,31 +206,31 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("polygrid", help="build a polygrid from a closed mesh and print its statistics")
     p.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF) or a built-in sample: bunny, cow, bone")
-    p.add_argument("--n", type=int, default=16, help="nodes per cube edge (paper: 16 for the bunny)")
-    p.add_argument("--cubes", type=int, default=253, help="target number of cubes (paper's bunny: 253)")
-    p.add_argument("--cube-size", type=float, default=None, help="cube edge in mm (overrides --cubes)")
-    p.add_argument("--size-mm", type=float, default=100.0, help="scale the mesh to this longest extent, mm")
-    p.add_argument("--threshold", type=float, default=0.5, help="inside-volume fraction a cube needs")
+    p.add_argument("--n", type=A.integer(2, 256), default=16, help="nodes per cube edge (paper: 16 for the bunny)")
+    p.add_argument("--cubes", type=A.integer(1), default=253, help="target number of cubes (paper's bunny: 253)")
+    p.add_argument("--cube-size", type=A.positive, default=None, help="cube edge in mm (overrides --cubes)")
+    p.add_argument("--size-mm", type=A.positive, default=100.0, help="scale the mesh to this longest extent, mm")
+    p.add_argument("--threshold", type=A.number(0.0, 1.0, lo_open=True), default=0.5, help="inside-volume fraction a cube needs")
     p.add_argument("--component", choices=("error", "largest"), default="error",
                    help="meshes with several components: refuse, or keep the largest")
     p.add_argument("--fallback", choices=("blend", "axis", "none"), default="blend",
                    help="treatment of nodes with negative or ill-conditioned appendix-B weights")
-    p.add_argument("--variance-iterations", type=int, default=100,
+    p.add_argument("--variance-iterations", type=A.integer(0), default=100,
                    help="L-BFGS iterations of the link-length variance minimisation")
     p.add_argument("--solve", action="store_true", help="also solve a lit marble problem: GLSL vs scipy")
-    p.add_argument("--tol", type=float, default=5e-7, help="Jacobi residual tolerance for --solve")
+    p.add_argument("--tol", type=A.positive, default=5e-7, help="Jacobi residual tolerance for --solve")
     p.add_argument("--no-png", action="store_true", help="skip the figure")
     p.add_argument("--out", default="polygrid-out")
     _add_gl(p)
     p.set_defaults(func=cmd_polygrid)
 
     b = bsub.add_parser("sphere", help="polygrid sphere vs the closed form, grid refinement")
-    b.add_argument("--n", type=int, nargs="+", default=[4, 6, 8, 12], help="nodes per cube edge")
-    b.add_argument("--radius", type=float, default=10.0, help="sphere radius, mm")
-    b.add_argument("--cube-size", type=float, default=5.0, help="polycube cube edge of series n, mm")
-    b.add_argument("--cube-sizes", type=float, nargs="*", default=[5.0, 2.5, 1.667, 1.25],
+    b.add_argument("--n", type=A.integer(2, 64), nargs="+", default=[4, 6, 8, 12], help="nodes per cube edge")
+    b.add_argument("--radius", type=A.positive, default=10.0, help="sphere radius, mm")
+    b.add_argument("--cube-size", type=A.positive, default=5.0, help="polycube cube edge of series n, mm")
+    b.add_argument("--cube-sizes", type=A.positive, nargs="*", default=[5.0, 2.5, 1.667, 1.25],
                    help="cube edges of series cubes (n fixed), mm")
-    b.add_argument("--n-fixed", type=int, default=4, help="nodes per cube edge of series cubes")
+    b.add_argument("--n-fixed", type=A.integer(2, 64), default=4, help="nodes per cube edge of series cubes")
     b.add_argument("--no-glsl", action="store_true", help="skip the GLSL solve (direct solves only)")
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
@@ -236,11 +239,11 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("convergence", help="figure 15: single, hierarchical, adaptive, multigrid vs scipy, "
                                              "error against work and time")
     b.add_argument("--models", nargs="+", default=["hole", "bunny"], choices=("hole", "bunny"))
-    b.add_argument("--target", type=float, default=0.005, help="figure-15 error to reach")
-    b.add_argument("--hole-n", type=int, default=12, help="nodes per cube edge of the hole model (paper: 12)")
-    b.add_argument("--bunny-n", type=int, default=8,
+    b.add_argument("--target", type=A.positive, default=0.005, help="figure-15 error to reach")
+    b.add_argument("--hole-n", type=A.integer(4, 64), default=12, help="nodes per cube edge of the hole model (paper: 12)")
+    b.add_argument("--bunny-n", type=A.integer(4, 64), default=8,
                    help="nodes per cube edge of the bunny (paper: 16; 8 keeps the CPU-only run short)")
-    b.add_argument("--max-sweeps", type=int, default=20000, help="sweep budget per solve")
+    b.add_argument("--max-sweeps", type=A.integer(1), default=20000, help="sweep budget per solve")
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_convergence)

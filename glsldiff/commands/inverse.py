@@ -9,6 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 from glsldiff.core.tables import print_table
+from glsldiff.commands import args as A
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import check_output, read_npz
 from glsldiff.bench import fit as fit_bench
@@ -24,14 +25,14 @@ from glsldiff.physics.procedural import synthetic_volume
 def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("synth", help="render synthetic measurements of a heterogeneous block (npz)")
     p.add_argument("out", help="measurements file to write (.npz); the true material goes to OUT_truth.npz")
-    p.add_argument("--size", type=int, nargs=3, default=(32, 32, 10), metavar=("NX", "NY", "NZ"))
-    p.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
-    p.add_argument("--n", type=int, default=4, help="n x n projector regions")
+    p.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 10), metavar=("NX", "NY", "NZ"))
+    p.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
+    p.add_argument("--n", type=A.integer(1, 64), default=4, help="n x n projector regions")
     p.add_argument("--setup", choices=("back", "front"), default="back")
     p.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed")
-    p.add_argument("--noise", type=float, default=0.01, help="relative shot noise at the bright end")
-    p.add_argument("--saturation", type=float, default=None, help="clip radiance at this value")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--noise", type=A.nonnegative, default=0.01, help="relative shot noise at the bright end")
+    p.add_argument("--saturation", type=A.positive, default=None, help="clip radiance at this value")
+    p.add_argument("--seed", type=A.seed, default=0)
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("fit", help="fit kappa and mu to measurements by inverse diffusion")
@@ -39,15 +40,15 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("-o", "--out", default="material.npz", help="fitted material (.npz)")
     p.add_argument("--method", choices=("lbfgs", "tnewton", "var2", "cg"), default="lbfgs",
                    help="optimiser (cg = the paper's Table I)")
-    p.add_argument("--lam", type=float, default=1e-5, help="kappa-gradient regularisation weight")
+    p.add_argument("--lam", type=A.nonnegative, default=1e-5, help="kappa-gradient regularisation weight")
     p.add_argument("--stencil", choices=("conservative", "paper"), default="conservative")
     p.add_argument("--backend", choices=("cpu", "glsl"), default="cpu",
                    help="forward/adjoint solves: one SuperLU factor (cpu) or GLSL Jacobi (glsl)")
     p.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for --backend glsl")
-    p.add_argument("--max-evals", type=int, default=200, help="evaluations per channel")
-    p.add_argument("--max-seconds", type=float, default=math.inf, help="time budget per channel")
-    p.add_argument("--kappa0", type=float, default=0.3, help="initial kappa of the homogeneous fit, mm")
-    p.add_argument("--mu0", type=float, default=0.01, help="initial mu of the homogeneous fit, 1/mm")
+    p.add_argument("--max-evals", type=A.integer(1), default=200, help="evaluations per channel")
+    p.add_argument("--max-seconds", type=A.number(0.0, lo_open=True, allow_inf=True), default=math.inf, help="time budget per channel")
+    p.add_argument("--kappa0", type=A.positive, default=0.3, help="initial kappa of the homogeneous fit, mm")
+    p.add_argument("--mu0", type=A.nonnegative, default=0.01, help="initial mu of the homogeneous fit, 1/mm")
     p.add_argument("--truth", default=None, help="true material (.npz) to report the figure-11 error E")
     p.add_argument("--no-png", action="store_true", help="skip the depth-slice pictures")
     p.set_defaults(func=cmd_fit)
@@ -56,8 +57,8 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                                           "lit front image minus the fitted material's multiple scattering")
     p.add_argument("measurements", help="front-lit .npz measurements holding the uniformly lit condition")
     p.add_argument("material", help="fitted material .npz (glsldiff fit -o)")
-    p.add_argument("--condition", type=int, default=0, help="index of the uniformly lit condition")
-    p.add_argument("--irradiance", type=float, nargs="+", default=None, metavar="E",
+    p.add_argument("--condition", type=A.integer(0), default=0, help="index of the uniformly lit condition")
+    p.add_argument("--irradiance", type=A.positive, nargs="+", default=None, metavar="E",
                    help="irradiance of the uniform light (1 or 3 values, camera units x sr); "
                         "default: the condition's q / F_t at normal incidence")
     p.add_argument("-o", "--out", default="reflectance.exr", help="albedo map (.exr), [material].reflectance")
@@ -65,13 +66,13 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
 
     b = bsub.add_parser("fit", help="inverse diffusion: figure 11 (E vs measurements, vs iterations), "
                                     "figure 13 (lambda), CPU vs GLSL forward solves")
-    b.add_argument("--size", type=int, nargs=3, default=(32, 32, 8), metavar=("NX", "NY", "NZ"))
-    b.add_argument("--h", type=float, default=0.5)
-    b.add_argument("--n", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6], help="n for n x n measurements")
+    b.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 8), metavar=("NX", "NY", "NZ"))
+    b.add_argument("--h", type=A.positive, default=0.5)
+    b.add_argument("--n", type=A.integer(1, 64), nargs="+", default=[1, 2, 3, 4, 5, 6], help="n for n x n measurements")
     b.add_argument("--methods", nargs="+", default=["lbfgs", "cg"], choices=("lbfgs", "tnewton", "var2", "cg"))
-    b.add_argument("--lams", type=float, nargs="+", default=[1e-4, 1e-5, 1e-6])
-    b.add_argument("--max-evals", type=int, default=150)
-    b.add_argument("--noise", type=float, default=0.01)
+    b.add_argument("--lams", type=A.nonnegative, nargs="+", default=[1e-4, 1e-5, 1e-6])
+    b.add_argument("--max-evals", type=A.integer(1), default=150)
+    b.add_argument("--noise", type=A.nonnegative, default=0.01)
     b.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed")
     b.add_argument("--skip", nargs="*", default=[], choices=("measurements", "lambda", "backends"),
                    help="parts of the benchmark to leave out")

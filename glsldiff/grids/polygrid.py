@@ -247,6 +247,22 @@ def box_polygrid(cubes: tuple[int, int, int], n: int, size: float = 1.0, **kwarg
     return lattice_polygrid(Lattice.build(cube_list, n, size), **kwargs)
 
 
+#: Lattice nodes a polygrid may have: its arrays take roughly 150 bytes a node on the CPU
+#: (positions, links, weights, packing), so 3e7 nodes are about 4.5 GB (the paper's bunny,
+#: 253 cubes of 16^3, has 1e6).
+MAX_NODES = 30_000_000
+
+
+def check_node_budget(cubes: int, n: int, what: str = "polygrid") -> None:
+    """Refuse ``cubes`` cubes of ``n^3`` nodes beyond :data:`MAX_NODES`, before allocating them."""
+    nodes = int(cubes) * int(n) ** 3
+    if nodes > MAX_NODES:
+        n_max = int((MAX_NODES / max(int(cubes), 1)) ** (1.0 / 3.0))
+        raise InputError(f"{what}: {cubes} cubes of n = {n} nodes per edge make {nodes:.3g} lattice nodes "
+                         f"(about {nodes * 150 / 2**30:.0f} GiB); the limit is {MAX_NODES:.0e}: use n <= "
+                         f"{n_max} or fewer cubes")
+
+
 def build_polygrid(mesh: Mesh, n: int = 16, cube_size: float | None = None, n_cubes: int | None = None,
                    threshold: float = 0.5, polycube: Polycube | None = None,
                    mapping: dict[str, Any] | None = None, weights: dict[str, Any] | None = None,
@@ -270,8 +286,11 @@ def build_polygrid(mesh: Mesh, n: int = 16, cube_size: float | None = None, n_cu
     """
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
+    if n_cubes is not None and polycube is None and cube_size is None:
+        check_node_budget(n_cubes, n)  # the target count: before the polycube search
     if polycube is None:
         polycube = polycube_from_mesh(mesh, cube_size=cube_size, n_cubes=n_cubes, threshold=threshold)
+    check_node_budget(len(polycube.cubes), n)
     seconds["polycube"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     lattice = Lattice.build(polycube.cubes, n, polycube.size, polycube.origin)

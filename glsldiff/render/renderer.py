@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff import gl
+from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
@@ -60,6 +61,11 @@ from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.report import CURRENT
 
 
+#: Largest boundary source pass 2 accepts: its float32 textures overflow near 3.4e38, and the
+#: sweeps multiply sources by stencil weights (mm^-2) before they are divided back.
+Q_MAX = 1e30
+
+
 # ---------------------------------------------------------------- the renderer
 def _key(*parts: Any) -> str:
     return repr(parts)
@@ -72,9 +78,11 @@ class Renderer:
     >>> img, rep = r.render(default_scene())  # doctest: +SKIP
     """
 
-    def __init__(self, ctx: moderngl.Context | None = None, progress: bool = False) -> None:
+    def __init__(self, ctx: moderngl.Context | None = None, allow_unconverged: bool = False) -> None:
+        """``allow_unconverged``: keep a pass-2 solve that ran out of iterations (the image is
+        then not the converged answer) instead of raising :class:`SolverError`."""
         self.ctx = ctx if ctx is not None else gl.get_context()
-        self.progress = progress
+        self.allow_unconverged = allow_unconverged
         self._keys: dict[str, str] = {}
         self._geo: dict[str, Any] = {}
         self._solver: Any = None
@@ -121,7 +129,17 @@ class Renderer:
         E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, scene.lights,
                                    scene.material.eta, ctx=self.ctx)
         self._E_t = np.asarray(E_t, dtype=np.float64)
-        self._q = source_from_irradiance(self._E_t, scene.material.eta, scene.options.exitant)
+        q = source_from_irradiance(self._E_t, scene.material.eta, scene.options.exitant)
+        if not np.all(np.isfinite(q)) or q.max() > Q_MAX:
+            raise InputError(f"{scene.source}: [[lights]]: the transmitted irradiance reaches "
+                             f"{np.nanmax(self._E_t):.3g}, beyond what the solver's float32 textures hold "
+                             f"(source <= {Q_MAX:.0e}); scale the lights' irradiance or intensity down (the "
+                             "image is linear in it)")
+        if not q.any():
+            raise InputError(f"{scene.source}: [[lights]]: no light reaches the object (the source is 0 at "
+                             "every boundary node); check the lights' directions, positions, cones and "
+                             "intensities")
+        self._q = q
         self._light_info = info
 
     def _pass2(self, scene: Scene, warm: bool) -> None:
@@ -135,6 +153,11 @@ class Renderer:
         else:
             self._solver.set_q(self._q)
         phi, rep = self._solver.solve(tol=opts.tol, x0=CURRENT if warm and opts.scheme != "multigrid" else None)
+        if rep.status not in ("converged", "stalled") and not self.allow_unconverged:
+            raise SolverError(f"pass 2 did not converge: residual {rep.residual:.3g} > tol {opts.tol:g} after "
+                              f"{rep.sweeps} iterations ({rep.status}); the object may be optically too "
+                              "small or thin for its material (size_mm, sigma), or [options].tol too tight; "
+                              "--allow-unconverged writes the unconverged image")
         self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
         self._solve_report = rep
 
