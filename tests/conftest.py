@@ -36,6 +36,9 @@ from glsldiff.mesh import sphere_mesh
 
 BACKENDS = ("egl", "osmesa")
 
+# Tests never write into the user's polygrid cache (test_hardening.py tests the cache in a tmp folder).
+os.environ.setdefault("GLSLDIFF_CACHE", "off")
+
 
 class GLStateError(Exception):
     """The GL error flag was set after a test body (not an AssertionError on purpose)."""

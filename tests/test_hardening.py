@@ -219,3 +219,37 @@ def test_polygrid_node_budget(tmp_path, capsys):
                      'direction = [0, 0, 1]\n')
     _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "r.exr")]), "use n <= 49")
     _one_error_line(capsys, main(["polygrid", "cow", "--n", "200", "--out", str(tmp_path / "pg")]), "lattice nodes")
+
+
+def test_polygrid_cache(tmp_path, monkeypatch):
+    """The second build of the same mesh and parameters is read from the cache (same arrays);
+    other parameters are another entry; a damaged entry is rebuilt; GLSLDIFF_CACHE=off skips it."""
+    from glsldiff.grids.cache import cached_polygrid, polygrid_key
+    from glsldiff.mesh import sphere_mesh
+
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
+    mesh = sphere_mesh(10.0, subdivisions=3)
+    pg, hit = cached_polygrid(mesh, n=4, n_cubes=20)
+    pg2, hit2 = cached_polygrid(mesh, n=4, n_cubes=20)
+    assert (hit, hit2) == (False, True)
+    np.testing.assert_array_equal(pg2.positions, pg.positions)
+    np.testing.assert_array_equal(pg2.weights, pg.weights)
+    assert cached_polygrid(mesh, n=6, n_cubes=20)[1] is False
+    assert len(list((tmp_path / "cache").iterdir())) == 2
+    entry = tmp_path / "cache" / f"polygrid-{polygrid_key(mesh, n=4, n_cubes=20)}.pkl"
+    entry.write_bytes(b"damaged")
+    assert cached_polygrid(mesh, n=4, n_cubes=20)[1] is False   # rebuilt ...
+    assert cached_polygrid(mesh, n=4, n_cubes=20)[1] is True    # ... and written again
+    monkeypatch.setenv("GLSLDIFF_CACHE", "off")
+    assert cached_polygrid(mesh, n=4, n_cubes=20)[1] is False
+
+
+def test_render_reports_progress_and_reuses_the_polygrid(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
+    scene = _scene(tmp_path)
+    assert main(["render", str(scene), "-o", str(tmp_path / "a.exr")]) == 0
+    first = capsys.readouterr().err
+    assert main(["render", str(scene), "-o", str(tmp_path / "b.exr")]) == 0
+    second = capsys.readouterr().err
+    assert "polygrid built" in first and "polygrid read from the cache" in second and "pass 2:" in second
+    np.testing.assert_array_equal(io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "b.exr"))

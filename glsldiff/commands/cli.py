@@ -49,12 +49,17 @@ def cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _status(line: str) -> None:
+    """Progress of a long step, on stderr (stdout keeps the results)."""
+    print(line, file=sys.stderr, flush=True)
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     out = check_output(args.out)   # before any work
     scene = load_scene(args.scene) if args.scene else default_scene()
     if args.frames < 1:
         raise InputError(f"--frames={args.frames} must be >= 1")
-    with Renderer(allow_unconverged=args.allow_unconverged) as r:
+    with Renderer(allow_unconverged=args.allow_unconverged, status=_status) as r:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}")
         print("\n".join(rep.lines()))

@@ -36,7 +36,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import replace
-from typing import Any
+from typing import Any, Callable
 
 import moderngl
 import numpy as np
@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
-from glsldiff.grids.polygrid import build_polygrid
+from glsldiff.grids.cache import cached_polygrid
 from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.lights import DirectLight, EnvironmentLight, ProjectorLight, projector_factor
@@ -78,11 +78,14 @@ class Renderer:
     >>> img, rep = r.render(default_scene())  # doctest: +SKIP
     """
 
-    def __init__(self, ctx: moderngl.Context | None = None, allow_unconverged: bool = False) -> None:
+    def __init__(self, ctx: moderngl.Context | None = None, allow_unconverged: bool = False,
+                 status: Callable[[str], None] | None = None) -> None:
         """``allow_unconverged``: keep a pass-2 solve that ran out of iterations (the image is
-        then not the converged answer) instead of raising :class:`SolverError`."""
+        then not the converged answer) instead of raising :class:`SolverError`. ``status``
+        receives a line before each step that can take seconds (the command prints them)."""
         self.ctx = ctx if ctx is not None else gl.get_context()
         self.allow_unconverged = allow_unconverged
+        self._status = status
         self._keys: dict[str, str] = {}
         self._geo: dict[str, Any] = {}
         self._solver: Any = None
@@ -109,7 +112,12 @@ class Renderer:
         else:
             src = m.source if m.source in SAMPLE_MESHES else str(scene.resolve(m.source))
             mesh = load_mesh(src, size_mm=m.size_mm)
-        pg = build_polygrid(mesh, n=g.n, n_cubes=g.cubes)
+        self._say(f"setup: polygrid of {m.source} (n = {g.n}, about {g.cubes} cubes): building it takes "
+                  "seconds to minutes the first time, then it is read from the cache")
+        t0 = time.perf_counter()
+        pg, cached = cached_polygrid(mesh, n=g.n, n_cubes=g.cubes)
+        self._say(f"setup: polygrid {'read from the cache' if cached else 'built'} in "
+                  f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
         hier = Hierarchy.build(pg, g.levels)   # levels = 1: the polygrid alone
         render_mesh = subdivide(mesh, pg.lattice.h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
@@ -142,8 +150,13 @@ class Renderer:
         self._q = q
         self._light_info = info
 
+    def _say(self, line: str) -> None:
+        if self._status is not None:
+            self._status(line)
+
     def _pass2(self, scene: Scene, warm: bool) -> None:
         pg, opts = self._geo["pg"], scene.options
+        self._say(f"pass 2: {opts.scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
         gl.make_current(self.ctx)
         if self._solver is None:
             problem = DiffusionProblem(pg, self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
