@@ -203,6 +203,9 @@ def relax(system: LinearSystem, advance: Callable[[int], NDArray], x: NDArray, *
         raise InputError(f"check_every must be >= 1 and maxiter >= 0 (got check_every={check_every}, "
                          f"maxiter={maxiter})")
     zero_source = not np.any(system.b)
+    if zero_source:
+        logger.warning("%s: the source is zero in every channel, so the solution is 0 (no light enters); "
+                       "the residual is measured absolutely", name)
     monitor = ConvergenceMonitor(tol, maxiter, patience=patience, floor_max=floor_max)
 
     def check(iterations: int, x: NDArray) -> str | None:

@@ -57,6 +57,7 @@ from glsldiff.render.materials import node_material
 from glsldiff.render.renderer import Renderer
 from glsldiff.render.scene import CameraSpec, MaterialSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
 from glsldiff.validation.mitsuba import McCamera, render_scattering_orders, render_subsurface
+from glsldiff.validation.mitsuba_scene import load_mitsuba
 
 #: Environment lights a case may name (:func:`environment_map`).
 ENVIRONMENTS = ("constant", "sky")
@@ -277,6 +278,7 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256) ->
     if unknown:
         raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}")
     mc_split(spp)                           # a bad sample count fails before any rendering
+    load_mitsuba("scalar_rgb")              # so does a missing Mitsuba
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in cases:
