@@ -55,7 +55,8 @@ class Mosaic:
         w, h = self.texture_size
         if h > self.max_texture_size:
             raise InputError(f"{self.n_slots} blocks of {self.bw}x{self.bh} texels need a {w}x{h} "
-                             f"texture, over the limit {self.max_texture_size}; use fewer nodes")
+                             f"texture, over the limit {self.max_texture_size}; use fewer nodes (a smaller n per cube "
+                             "edge, fewer cubes, or a smaller grid)")
 
     @cached_property
     def slot(self) -> NDArray[np.int64]:

@@ -209,7 +209,7 @@ def _fractions(mesh: Mesh, size: float, samples: int,
         raise InputError(
             f"cube size {size:.4g} mm is too small for mesh {mesh.name!r} (extents "
             f"{np.round(ext, 4).tolist()} mm): {int(np.prod(n))} candidate cubes x {samples}^3 "
-            f"samples exceeds {MAX_SAMPLE_POINTS}; use a larger cube size or fewer samples")
+            f"samples exceeds {MAX_SAMPLE_POINTS}; use larger cubes (glsldiff polygrid --cube-size or fewer --cubes; a scene's [polygrid].cubes)")
     origin = (lo + hi) / 2 - n * size / 2
     axes = [origin[a] + size * (np.arange(n[a] * samples) + 0.5) / samples for a in range(3)]
     inside = contains_grid(mesh, *axes)

@@ -304,7 +304,8 @@ def _check_topology(v: NDArray[np.float64], f: NDArray[np.int64], label: str, re
                      "repairs non-manifold elements and face orientation)")
     if n_components > 1:
         problems.append(f"it has {n_components} connected components")
-        fixes.append("pass component='largest' to keep the largest one, or split the file")
+        fixes.append("keep the largest one (glsldiff polygrid --component largest; in Python "
+                     "load_mesh(..., component='largest')), or split the file")
     if problems:
         raise InputError(f"{label}: {'; '.join(problems)}; glsldiff needs one closed "
                          f"two-manifold surface: {'; '.join(fixes)}")
