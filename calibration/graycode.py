@@ -76,6 +76,9 @@ class Decoded:
     row: NDArray[np.int32]
     valid: NDArray[np.bool_]
     lit: NDArray[np.bool_]
+    col_max: int = -1            # largest decoded column / row over the lit, reliable pixels,
+    row_max: int = -1            # before codes beyond the projector size are discarded
+    out_of_range: float = 0.0    # fraction of the lit, reliable pixels whose code lies beyond it
 
     @property
     def fraction(self) -> float:
@@ -109,10 +112,16 @@ def decode(images: NDArray, size: tuple[int, int], shadow_threshold: float = 20.
     bits = diff > 0
     col = _gray_to_binary(bits[:nc])
     row = _gray_to_binary(bits[nc:])
-    valid = lit & reliable & (col < size[0]) & (row < size[1])
+    good = lit & reliable
+    beyond = good & ((col >= size[0]) | (row >= size[1]))
+    n_good = int(good.sum())
+    col_max = int(col[good].max()) if n_good else -1
+    row_max = int(row[good].max()) if n_good else -1
+    valid = good & ~beyond
     col[~valid] = -1
     row[~valid] = -1
-    return Decoded(col=col, row=row, valid=valid, lit=lit)
+    return Decoded(col=col, row=row, valid=valid, lit=lit, col_max=col_max, row_max=row_max,
+                   out_of_range=float(beyond.sum()) / n_good if n_good else 0.0)
 
 
 def list_images(folder: str | os.PathLike) -> list[Path]:

@@ -101,6 +101,12 @@ def make_bracket(images: Sequence[ArrayLike], times: Sequence[float],
         raise InputError(f"{where}: {len(imgs)} image(s) with {len(np.unique(t))} distinct exposure time(s); "
                          f"an HDR bracket needs at least two different exposures")
     order = np.argsort(t, kind="stable")
+    means = np.array([imgs[k].mean() for k in order])
+    if np.ptp(means) > 1.0 and np.corrcoef(np.log(t[order]), means)[0, 1] < 0:
+        where = names[0].parent if names else "bracket"
+        raise InputError(f"{where}: the images get darker as the exposure time grows (mean level "
+                         f"{means[0]:.0f} at {t[order][0]:.4g} s, {means[-1]:.0f} at {t[order][-1]:.4g} s): the "
+                         "exposure times are probably inverted (listed in reverse order, or given as 1/t)")
     return Bracket(tuple(imgs[k] for k in order), t[order], tuple(names[k] for k in order))
 
 
@@ -282,6 +288,10 @@ def calibrate_response(brackets: Bracket | Sequence[Bracket], samples: int = 256
     if not (np.all(np.isfinite(resp)) and np.all(resp > 0)):
         raise InputError(f"{bs[0].files[0].parent}: the recovered camera response is not finite and "
                          f"positive; the bracket does not constrain it (too few exposures or levels)")
+    falling = [c for c in range(3) if resp[HI, c] <= resp[LO, c]]
+    if falling:
+        raise InputError(f"{bs[0].files[0].parent}: the recovered response falls with the pixel value in channel "
+                         f"{'RGB'[falling[0]]}: check the exposure times (order and units) of the bracket")
     return resp / np.exp(np.log(resp[LO:HI + 1]).mean(axis=0))
 
 
@@ -391,7 +401,7 @@ def _cmd_response(args: argparse.Namespace) -> int:
 def _cmd_merge(args: argparse.Namespace) -> int:
     bracket = load_bracket(args.folder)
     resp = load_response(args.response) if args.response else calibrate_response(bracket)
-    img, mask = merge_bracket(bracket, resp)
+    img, mask = merge_bracket(bracket, resp, lo=args.low, hi=args.high)
     png = cv2.imencode(".png", (mask[..., ::-1] * 255).astype(np.uint8))[1] if args.mask else None
     attrs = {"glsldiff": "linear relative radiance (Debevec-Malik merge, OpenCV)",
              "exposures_s": " ".join(f"{t:.6g}" for t in bracket.times)}
@@ -421,6 +431,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--response", help="response JSON (default: recovered from this bracket)")
     p.add_argument("--half", action="store_true", help="write 16-bit half floats instead of float32")
     p.add_argument("--mask", help="also write an 8-bit PNG, 255 where a channel is unusable")
+    p.add_argument("--low", type=int, default=LO,
+                   help=f"pixel values below this are noise, not signal (default {LO}); raise it to the "
+                        "camera's noise floor (e.g. the 99th percentile of a dark frame)")
+    p.add_argument("--high", type=int, default=HI, help=f"pixel values above this count as clipped (default {HI})")
     p.set_defaults(func=_cmd_merge)
     return parser
 

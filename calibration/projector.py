@@ -58,6 +58,19 @@ from glsldiff.core.errors import InputError
 Array = NDArray[np.float64]
 
 
+#: Largest fraction of lit, reliably decoded pixels whose Gray code may lie beyond the stated
+#: projector size (a few from defocus at the frame's edge); more means a wrong or swapped size.
+MAX_OUT_OF_RANGE = 0.02
+#: A pose keeps its corners that decoded; it is refused with fewer than this many, or fewer
+#: than this fraction of the board's corners.
+MIN_CORNERS = 6
+MIN_CORNER_FRACTION = 0.5
+#: Largest RMS residual (projector px) of a pose's corners from one homography: lens distortion
+#: stays below it; a torn mapping (pattern/inverse swapped, bad decoding) does not.
+MAX_PLANE_RESIDUAL_PX = 10.0
+MAX_PLANE_RESIDUAL_FRACTION = 0.02
+
+
 @dataclass
 class DecodeSettings:
     """Decoding and corner-mapping parameters: window side (camera px), white - black shadow
@@ -86,9 +99,10 @@ class PoseCorners:
     projector_points: NDArray[np.float32]
     image_size: tuple[int, int]
     decoded_fraction: float
+    dropped: list[int] = field(default_factory=list)  # board corners without a decoded window
 
     def to_json(self) -> dict:
-        return {"folder": self.folder, "corners": len(self.object_points),
+        return {"folder": self.folder, "corners": len(self.object_points), "dropped_corners": self.dropped,
                 "decoded_fraction": self.decoded_fraction,
                 "camera_points": np.round(self.camera_points, 4).tolist(),
                 "projector_points": np.round(self.projector_points, 4).tolist()}
@@ -141,6 +155,13 @@ def process_capture(folder: str | Path, board: BoardSpec, projector_size: tuple[
     settings = settings or DecodeSettings()
     stack = read_sequence(folder, projector_size)
     decoded = decode(stack, projector_size, settings.shadow_threshold, settings.bit_threshold)
+    if decoded.out_of_range > MAX_OUT_OF_RANGE:
+        w, h = projector_size
+        raise InputError(f"{folder}: {decoded.out_of_range:.0%} of the lit pixels decode beyond the stated "
+                         f"{w}x{h} projector (columns up to {decoded.col_max}, rows up to {decoded.row_max}): "
+                         f"the projector size is wrong or swapped (--projector takes COLSxROWS, e.g. "
+                         f"{max(w, h)}x{min(w, h)} for a landscape projector), or this pose's pattern and "
+                         "inverse images are in the wrong order (each pair: pattern, then inverse)")
     found = board.detect(to_uint8(stack[-2]))
     if found is None:
         raise InputError(f"{folder}: {board.kind} with {board.cols}x{board.rows} inner corners not found in the "
@@ -148,13 +169,37 @@ def process_capture(folder: str | Path, board: BoardSpec, projector_size: tuple[
     obj, cam = found
     proj = [corner_to_projector(decoded, c, settings) for c in cam]
     missing = [i for i, p in enumerate(proj) if p is None]
-    if missing:
+    keep = [i for i, p in enumerate(proj) if p is not None]
+    if len(keep) < max(MIN_CORNERS, MIN_CORNER_FRACTION * len(proj)):  # a pose that lost most corners
         raise InputError(f"{folder}: corners {missing[:10]}{'...' if len(missing) > 10 else ''} have fewer than "
-                         f"{settings.min_fraction:.0%} decoded pixels in their {settings.window} px window "
-                         f"(decoded {decoded.fraction:.1%} of lit pixels; not lit by the projector, or lower "
-                         f"--shadow-threshold/--bit-threshold)")
-    return PoseCorners(str(folder), obj, cam, np.asarray(proj, np.float32),
-                       (stack.shape[2], stack.shape[1]), decoded.fraction)
+                         f"{settings.min_fraction:.0%} decoded pixels in their {settings.window} px window, "
+                         f"{len(keep)} of {len(proj)} corners left (decoded {decoded.fraction:.1%} of lit "
+                         f"pixels; not lit by the projector, or lower --shadow-threshold/--bit-threshold)")
+    pose = PoseCorners(str(folder), np.asarray(obj)[keep], np.asarray(cam)[keep],
+                       np.asarray([proj[i] for i in keep], np.float32),
+                       (stack.shape[2], stack.shape[1]), decoded.fraction, dropped=missing)
+    rms = plane_residual(pose)
+    limit = max(MAX_PLANE_RESIDUAL_PX, MAX_PLANE_RESIDUAL_FRACTION * max(projector_size))
+    if rms > limit:
+        raise InputError(f"{folder}: the decoded projector coordinates of the board's corners do not map a "
+                         f"plane (homography residual {rms:.1f} px > {limit:.0f} px): this pose's pattern and "
+                         "inverse images are probably in the wrong order (each pair: pattern, then inverse), "
+                         "or the decoding failed (check the lighting and --bit-threshold)")
+    return pose
+
+
+def plane_residual(pose: PoseCorners) -> float:
+    """RMS distance (projector px) of the pose's projector corners from the best homography of
+    its camera corners: the board is a plane, so a sound decoding leaves lens distortion
+    (a few px at most); a pose with pattern and inverse swapped decodes codes with their top
+    bit flipped and tears the board in two (hundreds of px)."""
+    cp = pose.camera_points.reshape(-1, 2).astype(np.float64)
+    pp = pose.projector_points.reshape(-1, 2).astype(np.float64)
+    H, _ = cv2.findHomography(cp, pp, 0)
+    if H is None:
+        return float("inf")
+    fit = cv2.perspectiveTransform(cp.reshape(-1, 1, 2), H).reshape(-1, 2)
+    return float(np.sqrt(((fit - pp) ** 2).sum(axis=1).mean()))
 
 
 @dataclass

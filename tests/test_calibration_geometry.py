@@ -283,3 +283,47 @@ def test_full_size_projector_calibration(tmp_path, capsys):
     Kp, Kpt = np.array(data["projector"]["K"]), np.array(truth["projector"]["K"])
     assert rel_err(Kp[0, 0], Kpt[0, 0]) < 0.02 and rel_err(Kp[1, 1], Kpt[1, 1]) < 0.02
     assert rel_err(data["stereo"]["baseline_mm"], truth["baseline_mm"]) < 0.02
+
+
+def _swap_pattern_and_inverse(folder: Path, pairs: range) -> None:
+    files = graycode.list_images(folder)
+    for k in pairs:
+        a, b = files[2 * k], files[2 * k + 1]
+        tmp = a.with_suffix(".swap")
+        a.rename(tmp)
+        b.rename(a)
+        tmp.rename(b)
+
+
+def test_swapped_projector_size_is_refused(proj_data):
+    """384x512 for a 512x384 projector has the same image count but decodes columns up to 511."""
+    with pytest.raises(InputError, match=r"decode beyond the stated 384x512 projector .*wrong or swapped"):
+        projector.process_capture(proj_data / "capture_000", BOARD, (384, 512), projector.DecodeSettings(window=31))
+
+
+@pytest.mark.parametrize("pairs, expect", [
+    (range(9), r"do not map a plane"),             # column bits only: codes stay in range, the board tears
+    (range(18), r"pattern and inverse images"),   # every pair: the rows also leave the projector
+])
+def test_pose_with_pattern_and_inverse_swapped_is_refused(proj_data, tmp_path, pairs, expect):
+    root = copy_poses(proj_data, tmp_path / "caps", 3)
+    _swap_pattern_and_inverse(root / "capture_001", pairs)
+    with pytest.raises(InputError, match=r"capture_001: .*" + expect):
+        projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31))
+
+
+def test_one_bad_corner_keeps_its_pose(proj_data, proj_rig, tmp_path):
+    """A corner whose window is not lit by the projector is dropped; the pose stays, and the
+    calibration is as good as with every corner."""
+    root = copy_poses(proj_data, tmp_path / "caps", 4)
+    pose = projector.process_capture(root / "capture_002", BOARD, PROJ, projector.DecodeSettings(window=31))
+    x, y = np.round(pose.camera_points.reshape(-1, 2)[10]).astype(int)
+    for f in graycode.list_images(root / "capture_002")[:-2]:   # every pattern, not the white/black frames
+        img = cv2.imread(str(f), cv2.IMREAD_UNCHANGED)
+        img[y - 20:y + 21, x - 20:x + 21] = img[y - 20:y + 21, x - 20:x + 21].mean()  # no decodable bits
+        cv2.imwrite(str(f), img)
+    rig = projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31))
+    assert len(rig.poses) == 4
+    kept = {Path(p.folder).name: p for p in rig.poses}["capture_002"]
+    assert kept.dropped == [10] and len(kept.object_points) == BOARD.cols * BOARD.rows - 1
+    assert rig.stereo_rms < 0.5

@@ -312,3 +312,31 @@ def test_bad_corners_and_roi(tmp_path, capsys):
     assert color.main(["white-balance", str(tmp_path / "x.exr"), "-o", str(tmp_path / "wb.json"),
                        "--corners", "1,2", "3", "4,5", "6,7"]) == 2
     assert capsys.readouterr().err.startswith(ERR + "--corners 1,2 3 4,5 6,7: expected 4 points")
+
+
+def test_inverted_exposure_times_are_refused(tmp_path, small_bracket, capsys):
+    """Exposure times listed in reverse (as some tools store them) pair the brightest image
+    with the shortest time: refused in one line instead of a decreasing response with exit 0."""
+    images, times = small_bracket
+    with pytest.raises(InputError, match="exposure times are probably inverted"):
+        hdr.make_bracket(images, list(times)[::-1])
+    folder = sr.write_bracket(tmp_path / "inv", images, list(times)[::-1])
+    assert hdr.main(["response", str(folder), "-o", str(tmp_path / "r.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(ERR) and "\n" not in err and "inverted" in err
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_merge_noise_floor_option(tmp_path, ramp, response, capsys):
+    """--low raises the noise floor: more dark pixels become bounds instead of noisy values;
+    out-of-range cutoffs are refused."""
+    _, _, bracket = ramp
+    _, mask20 = hdr.merge_bracket(bracket, response)
+    _, mask40 = hdr.merge_bracket(bracket, response, lo=40)
+    assert mask40.sum() > mask20.sum()
+    images, times = sr.capture_bracket(sr.camera((64, 16), gain=0.1), sr.ramp_radiance((16, 64), 1e-3, 1e2),
+                                       seed=7), sr.EXPOSURES
+    folder = sr.write_bracket(tmp_path / "b", images, times)
+    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "m.exr"), "--low", "30", "--high", "220"]) == 0
+    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "n.exr"), "--low", "0"]) == 2
+    assert "0 < lo < hi < 255" in capsys.readouterr().err
