@@ -48,7 +48,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.calibration.camera import (DEFAULT_FLAGS, BoardSpec, Intrinsics, add_board_arguments,
+from glsldiff.calibration.camera import (DEFAULT_FLAGS, MAX_ITERATIONS, BoardSpec, Intrinsics, add_board_arguments,
                                          board_from_args, calibrate_points, flags_from_args, to_uint8)
 from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
 from glsldiff.calibration.graycode import (Decoded, bit_counts, decode, list_images, read_stack,
@@ -244,7 +244,7 @@ def calibrate_rig(poses: Sequence[PoseCorners], projector_size: tuple[int, int],
     obj = [p.object_points for p in poses]
     cam = calibrate_points(obj, [p.camera_points for p in poses], poses[0].image_size, flags, "camera")
     proj = calibrate_points(obj, [p.projector_points for p in poses], projector_size, flags, "projector")
-    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, 100, 1e-10)
+    crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, MAX_ITERATIONS, 1e-10)  # see camera.py
     out = cv2.stereoCalibrateExtended(
         [o.reshape(-1, 1, 3) for o in obj], [p.camera_points.reshape(-1, 1, 2) for p in poses],
         [p.projector_points.reshape(-1, 1, 2) for p in poses], cam.K, cam.dist, proj.K, proj.dist,
