@@ -29,6 +29,7 @@ and exit with status 2.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from dataclasses import asdict, dataclass, field
@@ -147,6 +148,28 @@ class Intrinsics:
     def to_json(self) -> dict:
         return {"image_size": list(self.size), "K": self.K.tolist(), "dist": self.dist.ravel().tolist(),
                 "rms": self.rms, "per_view_rms": self.per_view_rms.tolist()}
+
+
+def load_intrinsics(path: str | os.PathLike) -> Intrinsics:
+    """Camera intrinsics from a ``camera.json`` written by this module (``image_size``, ``K``,
+    ``dist``, ``rms``), to reuse in the projector calibration."""
+    p = Path(path)
+    try:
+        d = json.loads(p.read_text())
+        K = np.asarray(d["K"], np.float64)
+        dist = np.asarray(d["dist"], np.float64).ravel()
+        size = tuple(int(s) for s in d["image_size"])
+        rms = float(d.get("rms", float("nan")))
+    except FileNotFoundError:
+        raise InputError(f"{p}: no such camera calibration file") from None
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{p}: not a camera calibration (camera.json with image_size, K, dist): {exc}") from None
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or len(size) != 2 \
+            or dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+        raise InputError(f"{p}: K must be a finite 3x3 camera matrix with positive focal lengths, dist an "
+                         f"OpenCV distortion vector and image_size [cols, rows]")
+    return Intrinsics(K=K, dist=dist, size=(size[0], size[1]), rms=rms, per_view_rms=np.zeros(0),
+                      rvecs=[], tvecs=[])
 
 
 def view_rms(obj: NDArray, img: NDArray, K: Array, dist: Array, rvec: Array, tvec: Array) -> float:

@@ -49,7 +49,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.camera import (DEFAULT_FLAGS, MAX_ITERATIONS, BoardSpec, Intrinsics, add_board_arguments,
-                                         board_from_args, calibrate_points, flags_from_args, to_uint8)
+                                         board_from_args, calibrate_points, flags_from_args, load_intrinsics,
+                                         to_uint8)
 from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
 from glsldiff.calibration.graycode import (Decoded, bit_counts, decode, list_images, read_stack,
                                            sequence_length, write_patterns)
@@ -233,8 +234,9 @@ class RigCalibration:
 
 
 def calibrate_rig(poses: Sequence[PoseCorners], projector_size: tuple[int, int],
-                  flags: int = DEFAULT_FLAGS) -> RigCalibration:
-    """Camera, projector and stereo calibration from per-pose corners."""
+                  flags: int = DEFAULT_FLAGS, camera: Intrinsics | None = None) -> RigCalibration:
+    """Camera, projector and stereo calibration from per-pose corners; with ``camera`` (e.g.
+    :func:`~glsldiff.calibration.camera.load_intrinsics`) the camera is not re-calibrated."""
     if not poses:
         raise InputError("no usable poses")
     sizes = {p.image_size for p in poses}
@@ -242,7 +244,14 @@ def calibrate_rig(poses: Sequence[PoseCorners], projector_size: tuple[int, int],
         raise InputError("camera images have different sizes across poses: "
                          + ", ".join(f"{p.folder}: {p.image_size[0]}x{p.image_size[1]}" for p in poses))
     obj = [p.object_points for p in poses]
-    cam = calibrate_points(obj, [p.camera_points for p in poses], poses[0].image_size, flags, "camera")
+    if camera is None:
+        cam = calibrate_points(obj, [p.camera_points for p in poses], poses[0].image_size, flags, "camera")
+    elif tuple(camera.size) != tuple(poses[0].image_size):
+        raise InputError(f"--camera: its image size {camera.size[0]}x{camera.size[1]} differs from the captures' "
+                         f"{poses[0].image_size[0]}x{poses[0].image_size[1]}; calibrate the camera at this "
+                         "resolution or leave --camera out")
+    else:
+        cam = camera
     proj = calibrate_points(obj, [p.projector_points for p in poses], projector_size, flags, "projector")
     crit = (cv2.TERM_CRITERIA_COUNT + cv2.TERM_CRITERIA_EPS, MAX_ITERATIONS, 1e-10)  # see camera.py
     out = cv2.stereoCalibrateExtended(
@@ -256,7 +265,8 @@ def calibrate_rig(poses: Sequence[PoseCorners], projector_size: tuple[int, int],
 
 def calibrate_folder(folder: str | Path, board: BoardSpec, projector_size: tuple[int, int],
                      settings: DecodeSettings | None = None, flags: int = DEFAULT_FLAGS,
-                     skip_bad: bool = False, output: str | Path | None = None) -> RigCalibration:
+                     skip_bad: bool = False, output: str | Path | None = None,
+                     camera: Intrinsics | None = None) -> RigCalibration:
     """Calibrate from ``folder/capture_*``; a pose that fails raises unless ``skip_bad``
     (then it is listed in ``rejected``). Writes ``output`` JSON only after success."""
     settings = settings or DecodeSettings()
@@ -268,7 +278,7 @@ def calibrate_folder(folder: str | Path, board: BoardSpec, projector_size: tuple
             if not skip_bad:
                 raise
             rejected.append({"folder": str(sub), "reason": str(exc)})
-    rig = calibrate_rig(poses, projector_size, flags)
+    rig = calibrate_rig(poses, projector_size, flags, camera)
     rig.rejected = rejected
     if output is not None:
         save_json(output, rig.to_json(board, settings, flags))
@@ -296,6 +306,9 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--bit-threshold", type=float, default=d.bit_threshold,
                      help="min |pattern - inverse| per bit, 8-bit levels (default %(default)s)")
     cal.add_argument("--skip-bad", action="store_true", help="skip poses that fail instead of stopping")
+    cal.add_argument("--camera", metavar="camera.json",
+                     help="reuse these camera intrinsics (python -m glsldiff.calibration.camera) instead of "
+                          "calibrating the camera from the board poses again")
     cal.set_defaults(func=_calibrate)
     return p
 
@@ -310,8 +323,9 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.window < 5:
         raise InputError(f"--window {args.window}: must be >= 5 px")
     settings = DecodeSettings(args.window, args.shadow_threshold, args.bit_threshold)
+    camera = load_intrinsics(args.camera) if args.camera else None
     rig = calibrate_folder(args.folder, board_from_args(args), args.projector, settings, flags_from_args(args),
-                           args.skip_bad, args.output)
+                           args.skip_bad, args.output, camera)
     for r in rig.rejected:
         print(f"  rejected {r['folder']}: {r['reason']}")
     print(f"poses {len(rig.poses)}; camera RMS {rig.camera.rms:.3f} px; projector RMS {rig.projector.rms:.3f} px; "

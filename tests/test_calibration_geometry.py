@@ -327,3 +327,26 @@ def test_one_bad_corner_keeps_its_pose(proj_data, proj_rig, tmp_path):
     kept = {Path(p.folder).name: p for p in rig.poses}["capture_002"]
     assert kept.dropped == [10] and len(kept.object_points) == BOARD.cols * BOARD.rows - 1
     assert rig.stereo_rms < 0.5
+
+
+def test_projector_calibration_reuses_camera_intrinsics(proj_data, tmp_path, capsys):
+    """--camera camera.json: the camera is not re-calibrated (its K is taken as given) and the
+    projector and stereo results stay right; a camera.json of another resolution is refused."""
+    truth = json.loads((proj_data / "truth.json").read_text())
+    cam_json = tmp_path / "camera.json"
+    cam_json.write_text(json.dumps({"image_size": list(CAM), "K": truth["camera"]["K"],
+                                    "dist": [0.0, 0.0, 0.0, 0.0, 0.0], "rms": 0.0}))
+    out = tmp_path / "rig.json"
+    rc = projector.main(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
+                         "--camera", str(cam_json), "-o", str(out)])
+    assert rc == 0
+    data = json.loads(out.read_text())
+    np.testing.assert_allclose(data["camera"]["K"], truth["camera"]["K"])
+    Kp, Kpt = np.array(data["projector"]["K"]), np.array(truth["projector"]["K"])
+    assert rel_err(Kp[0, 0], Kpt[0, 0]) < 0.02 and data["stereo"]["rms"] < 0.5
+    assert rel_err(data["stereo"]["baseline_mm"], truth["baseline_mm"]) < 0.02
+    capsys.readouterr()
+    cam_json.write_text(json.dumps({"image_size": [1280, 1024], "K": truth["camera"]["K"], "dist": [0] * 5}))
+    rc = projector.main(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
+                         "--camera", str(cam_json), "-o", str(tmp_path / "rig2.json")])
+    check_cli_error(capsys, rc, "--camera", "1280x1024")
