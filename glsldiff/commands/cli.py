@@ -28,7 +28,7 @@ from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import load_mesh
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
-from glsldiff.render.scene import default_scene, load_scene
+from glsldiff.render.scene import default_scene, example_names, example_scene, load_scene
 from glsldiff.validation.validate import validate
 
 
@@ -56,7 +56,9 @@ def _status(line: str) -> None:
 
 def cmd_render(args: argparse.Namespace) -> int:
     out = check_output(args.out)   # before any work
-    scene = load_scene(args.scene) if args.scene else default_scene()
+    if args.scene and args.example:
+        raise InputError("give a scene file or --example NAME, not both")
+    scene = load_scene(args.scene) if args.scene else example_scene(args.example) if args.example else default_scene()
     if args.frames < 1:
         raise InputError(f"--frames={args.frames} must be >= 1")
     with Renderer(allow_unconverged=args.allow_unconverged, status=_status) as r:
@@ -170,6 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("render", help="render a TOML scene (default: the bunny in veined marble) to OpenEXR + PNG")
     p.add_argument("scene", nargs="?", help="scene file (TOML, see glsldiff.render.scene); none = the built-in default")
     p.add_argument("-o", "--out", default="render.exr", help="output .exr (a tone-mapped .png goes beside it)")
+    p.add_argument("--example", metavar="NAME", help=f"render a shipped example scene ({', '.join(example_names())})")
     p.add_argument("--allow-unconverged", action="store_true",
                    help="write the image even when pass 2 runs out of iterations (default: exit 2)")
     p.add_argument("--frames", type=A.integer(1, 10000), default=1, help="render the scene this many times (frame 2+ reuse passes)")

@@ -76,6 +76,7 @@ files are read (and checked) when the scene is parsed.
 """
 from __future__ import annotations
 
+import importlib.resources
 import math
 try:
     import tomllib
@@ -489,3 +490,18 @@ def block_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDAr
         raise InputError(f"{what} {str(path)!r}: kappa must be finite and > 0 (mm), mu finite and >= 0 "
                          "(mm^-1) everywhere")
     return kappa, mu, h
+
+
+def example_names() -> tuple[str, ...]:
+    """Names of the example scenes shipped in :mod:`glsldiff.render.examples`."""
+    folder = importlib.resources.files("glsldiff.render.examples")
+    return tuple(sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml")))
+
+
+def example_scene(name: str) -> Scene:
+    """A shipped example scene by name (:func:`example_names`)."""
+    names = example_names()
+    if name not in names:
+        raise InputError(f"no example scene {name!r}; the examples are: {', '.join(names)}")
+    with importlib.resources.as_file(importlib.resources.files("glsldiff.render.examples") / f"{name}.toml") as p:
+        return load_scene(p)
