@@ -187,7 +187,7 @@ def _scene(tmp_path, **extra):
              '[polygrid]', 'n = 4', 'cubes = 20', 'levels = 1',
              '[[lights]]', 'type = "directional"', 'direction = [0, 0, 1]',
              f'irradiance = {extra.pop("irradiance", [1.0, 1.0, 1.0])}',
-             '[output]', 'width = 32', 'height = 32']
+             '[output]', 'width = 32', 'height = 32', extra.pop("material", "")]
     path = tmp_path / "s.toml"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -196,7 +196,9 @@ def _scene(tmp_path, **extra):
 @pytest.mark.parametrize("extra, expect", [
     (dict(irradiance=[0.0, 0.0, 0.0]), "no light reaches the object"),
     (dict(irradiance=[1e38, 1e38, 1e38]), "beyond what the solver's float32 textures hold"),
-    (dict(size_mm=1e-6), "pass 2 did not converge"),
+    (dict(material='[material]\nsigma_a = [1e-7, 1e-7, 1e-7]\nsigma_s_prime = [1e-6, 1e-6, 1e-6]'),
+     "pass 2 did not converge"),                       # kappa = 3e5 mm: the budget runs out
+    (dict(size_mm=1e-9), "[mesh].size_mm: must be >= 0.1, got 1e-09"),
     (dict(irradiance=[1.0, 1.0, 1.0]), None),
 ])
 def test_render_refuses_silent_wrong_images(tmp_path, capsys, extra, expect):

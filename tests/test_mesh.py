@@ -183,8 +183,10 @@ def test_zero_volume():
 
 def test_bad_size_mm():
     with pytest.raises(InputError, match=r"size_mm \(mm; None keeps the file's units\) must be a "
-                                         r"number in \(0, inf\), got -1\.0"):
+                                         r"number in \[0\.1, 100000\], got -1\.0"):
         M.load_mesh("bone", size_mm=-1.0)
+    with pytest.raises(InputError, match=r"number in \[0\.1, 100000\], got 1e-30"):
+        M.load_mesh("bone", size_mm=1e-30)   # a 1e-30 mm object: refused before pymeshlab scales it
 
 
 # ---------------------------------------------------------------- primitives

@@ -58,6 +58,12 @@ def sample_mesh_path(name: str) -> Path:
     return path
 
 
+#: Object sizes glsldiff takes (mm): below 0.1 mm no material is many mean free paths across
+#: (the diffusion model does not hold) and the solver stiffens; above 100 m the float32 textures
+#: lose the node spacing.
+MIN_SIZE_MM, MAX_SIZE_MM = 0.1, 1e5
+
+
 def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: bool = True,
               component: str = "error") -> Mesh:
     """Load, repair and validate a closed mesh file (any format pymeshlab reads).
@@ -233,7 +239,7 @@ def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: 
     label = f"mesh {name!r}" if name else "mesh"
     choice(component, f"{label}: component", COMPONENT_MODES)
     if size_mm is not None:
-        real(size_mm, f"{label}: size_mm (mm; None keeps the file's units)", lo=0.0, lo_open=True)
+        real(size_mm, f"{label}: size_mm (mm; None keeps the file's units)", lo=MIN_SIZE_MM, hi=MAX_SIZE_MM)
     v, f = _arrays(ms)
     if len(f) == 0:
         raise InputError(f"{label} has no faces ({len(v)} vertices); pass a closed triangle "

@@ -93,6 +93,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_image, read_npz
 from glsldiff.grids.polygrid import check_node_budget
 from glsldiff.mesh import SAMPLE_MESHES
+from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.physics.exitance import EXITANT
 from glsldiff.physics.lights import (KINDS, DirectionalLight, EnvironmentLight, Light, PointLight, ProjectorLight,
                                      SpotLight)
@@ -411,7 +412,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
         if not p.is_file():
             m.fail("source", f"mesh file {str(p)!r} does not exist (sample names: "
                              f"{', '.join(SAMPLE_MESHES)}, sphere)")
-    mesh = MeshSpec(source, m.number("size_mm", 100.0, 0.0, lo_open=True))
+    mesh = MeshSpec(source, m.number("size_mm", 100.0, MIN_SIZE_MM, hi=MAX_SIZE_MM))
 
     g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
     n = g.integer("n", 8, 2)
