@@ -41,8 +41,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.graycode import list_images, read_gray
-from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
+from glsldiff.calibration.common import parse_size, run_command, save_json
 from glsldiff.core.checks import choice, real
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]

@@ -31,8 +31,9 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
+from glsldiff.calibration.common import parse_points, run_command, save_json
 from glsldiff.calibration.hdr import read_hdr
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import tonemap
 

@@ -1,5 +1,6 @@
-"""Helpers shared by the calibration commands: one-line errors, JSON and folder outputs that
-appear only when complete, ``WxH`` arguments."""
+"""Helpers shared by the calibration commands: one-line errors (their parser is
+:class:`glsldiff.core.arguments.CommandParser`), JSON and folder outputs that appear only when
+complete, ``WxH`` arguments."""
 from __future__ import annotations
 
 import argparse
@@ -18,13 +19,6 @@ from glsldiff.core.errors import GlsldiffError, InputError
 from glsldiff.core.io import atomic_path
 
 PROG = "glsldiff-calibration"
-
-
-class CommandParser(argparse.ArgumentParser):
-    """ArgumentParser whose usage errors raise InputError (one error line, status 2)."""
-
-    def error(self, message: str):  # type: ignore[override]
-        raise InputError(f"{self.prog}: {message} (see --help)")
 
 
 def run_command(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> int:

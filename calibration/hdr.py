@@ -48,7 +48,8 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from PIL import ExifTags, Image, UnidentifiedImageError
 
-from glsldiff.calibration.common import CommandParser, run_command
+from glsldiff.calibration.common import run_command
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import LDR_SUFFIXES, atomic_path, read_image, write_exr
 

@@ -34,9 +34,10 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from glsldiff.calibration import hdr as hdrlib
-from glsldiff.calibration.common import CommandParser, parse_points, run_command, save_json
+from glsldiff.calibration.common import parse_points, run_command, save_json
 from glsldiff.calibration.plan import CapturePlan, face_homography, load_plan
 from glsldiff.core.checks import real
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import check_output
 from glsldiff.inverse.measurements import Measurements, save_measurements

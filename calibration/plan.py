@@ -36,8 +36,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.calibration.common import CommandParser, atomic_folder, parse_points, parse_size, run_command
+from glsldiff.calibration.common import atomic_folder, parse_points, parse_size, run_command
 from glsldiff.core.checks import choice, integer, real
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.measurements import SETUPS, face_regions
 

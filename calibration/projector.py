@@ -51,9 +51,10 @@ from numpy.typing import NDArray
 from glsldiff.calibration.camera import (DEFAULT_FLAGS, MAX_ITERATIONS, BoardSpec, Intrinsics, add_board_arguments,
                                          board_from_args, calibrate_points, flags_from_args, load_intrinsics,
                                          to_uint8)
-from glsldiff.calibration.common import CommandParser, parse_size, run_command, save_json
+from glsldiff.calibration.common import parse_size, run_command, save_json
 from glsldiff.calibration.graycode import (Decoded, bit_counts, decode, list_images, read_stack,
                                            sequence_length, write_patterns)
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]

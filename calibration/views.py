@@ -41,10 +41,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.camera import BoardSpec
-from glsldiff.calibration.common import CommandParser, atomic_folder, parse_size, run_command
+from glsldiff.calibration.common import atomic_folder, parse_size, run_command
 from glsldiff.calibration.graycode import patterns
 from glsldiff.calibration.simcam import Pinhole, SimCamera, SimProjector, intersect_plane
 from glsldiff.core.camera import opencv_pose
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]

@@ -21,7 +21,7 @@ import numpy as np
 
 from glsldiff.calibration import hdr
 from glsldiff.calibration.camera import BoardSpec, calibrate_camera
-from glsldiff.calibration.common import CommandParser, run_command, save_json
+from glsldiff.calibration.common import run_command, save_json
 from glsldiff.calibration.measure import measure
 from glsldiff.calibration.plan import CapturePlan, write_plan
 from glsldiff.calibration.projector import DecodeSettings, calibrate_folder
@@ -30,6 +30,7 @@ from glsldiff.calibration.synth_radiometric import true_inverse_response
 from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homography, run_capture
 from glsldiff.calibration.views import (SyntheticRig, board_poses, synthetic_rig, write_camera_dataset,
                                         write_projector_dataset)
+from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
 from glsldiff.inverse.measurements import save_measurements

@@ -175,11 +175,7 @@ def test_fit_command_saves_on_ctrl_c(tmp_path, capsys, monkeypatch):
     (["bench", "forward", "--levels", "x"], "--levels: 'x' is not an integer"),
 ])
 def test_bad_arguments_fail_in_one_line_before_work(tmp_path, capsys, argv, expect):
-    with pytest.raises(SystemExit) as ex:
-        main(argv)
-    assert ex.value.code == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and expect in err[0], err
+    _one_error_line(capsys, main(argv), expect)
 
 
 def _scene(tmp_path, **extra):

@@ -11,7 +11,7 @@ import os
 import sys
 from typing import Sequence
 
-from glsldiff.commands import args as A
+from glsldiff.core import arguments as A
 from glsldiff.core.errors import GlsldiffError, InputError
 from glsldiff.core.tables import print_table
 from glsldiff import gl
@@ -155,7 +155,7 @@ def cmd_info(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = A.Parser(prog="glsldiff", description=__doc__)
+    parser = A.CommandParser(prog="glsldiff", description=__doc__)
     sub = parser.add_subparsers(dest="command")
 
     p = sub.add_parser("demo", help="back-lit marble slab, 4x4 projector regions (GLSL vs scipy on a regular grid)")
@@ -265,23 +265,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "command", None):  # bare `glsldiff`: say what it can do, start nothing
-        parser.print_help()
-        return 0
-    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if getattr(args, "gl", None):
-        os.environ["GLSLDIFF_GL"] = args.gl
     try:
+        args = parser.parse_args(argv)
+        if not getattr(args, "command", None):  # bare `glsldiff`: say what it can do, start nothing
+            parser.print_help()
+            return 0
+        logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+        if getattr(args, "gl", None):
+            os.environ["GLSLDIFF_GL"] = args.gl
         return args.func(args)
     except GlsldiffError as exc:
         print(f"glsldiff: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"glsldiff: interrupted ({args.command}); finished output files are kept, none is "
-              "half-written", file=sys.stderr)
+        print("glsldiff: interrupted; finished output files are kept, none is half-written", file=sys.stderr)
         return 130
-
 
 if __name__ == "__main__":
     sys.exit(main())

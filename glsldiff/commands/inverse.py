@@ -9,7 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 from glsldiff.core.tables import print_table
-from glsldiff.commands import args as A
+from glsldiff.core import arguments as A
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import check_output, read_npz
 from glsldiff.bench import fit as fit_bench

@@ -1,24 +1,22 @@
-"""Argument types for the command line: each checks its value while the arguments are parsed,
-so a bad number fails in one line before any work (``--seed -1``, ``--size -4 8 8``,
+"""Command-line parsing shared by ``glsldiff`` and the calibration commands: a parser whose
+usage errors are one line, and argument types that check each value while the arguments are
+parsed, so a bad number fails before any work (``--seed -1``, ``--size -4 8 8``,
 ``--max-seconds 0``, ``--noise nan``). Lengths in mm."""
 from __future__ import annotations
 
 import argparse
 import math
-import sys
 from typing import Callable, NoReturn
 
+from glsldiff.core.errors import InputError
 
-class Parser(argparse.ArgumentParser):
-    """argparse with errors in one line: ``glsldiff <command>: error: <what and the fix>``."""
+
+class CommandParser(argparse.ArgumentParser):
+    """ArgumentParser whose usage errors raise InputError: the command prints them as one error
+    line with status 2, like every other bad input (``glsldiff`` and the calibration commands)."""
 
     def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-    def exit(self, status: int = 0, message: str | None = None) -> NoReturn:
-        if message:
-            sys.stderr.write(message)
-        raise SystemExit(status)
+        raise InputError(f"{self.prog}: {message} (see --help)")
 
 
 def integer(lo: int, hi: float = math.inf) -> Callable[[str], int]:
