@@ -253,14 +253,20 @@ def box_polygrid(cubes: tuple[int, int, int], n: int, size: float = 1.0, **kwarg
 MAX_NODES = 30_000_000
 
 
-def check_node_budget(cubes: int, n: int, what: str = "polygrid") -> None:
-    """Refuse ``cubes`` cubes of ``n^3`` nodes beyond :data:`MAX_NODES`, before allocating them."""
+def node_budget_problem(cubes: int, n: int) -> str | None:
+    """Why ``cubes`` cubes of ``n^3`` nodes exceed :data:`MAX_NODES` (and what fits), or None."""
     nodes = int(cubes) * int(n) ** 3
-    if nodes > MAX_NODES:
-        n_max = int((MAX_NODES / max(int(cubes), 1)) ** (1.0 / 3.0))
-        raise InputError(f"{what}: {cubes} cubes of n = {n} nodes per edge make {nodes:.3g} lattice nodes "
-                         f"(about {nodes * 150 / 2**30:.0f} GiB); the limit is {MAX_NODES:.0e}: use n <= "
-                         f"{n_max} or fewer cubes")
+    if nodes <= MAX_NODES:
+        return None
+    n_max = int((MAX_NODES / max(int(cubes), 1)) ** (1.0 / 3.0))
+    return (f"{cubes} cubes of n = {n} nodes per edge make {nodes:.3g} lattice nodes (about "
+            f"{nodes * 150 / 2**30:.0f} GiB); the limit is {MAX_NODES:.0e}: use n <= {n_max} or fewer cubes")
+
+
+def _check_node_budget(cubes: int, n: int) -> None:
+    problem = node_budget_problem(cubes, n)
+    if problem:
+        raise InputError(f"polygrid: {problem}")
 
 
 def build_polygrid(mesh: Mesh, n: int = 16, cube_size: float | None = None, n_cubes: int | None = None,
@@ -287,10 +293,10 @@ def build_polygrid(mesh: Mesh, n: int = 16, cube_size: float | None = None, n_cu
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     if n_cubes is not None and polycube is None and cube_size is None:
-        check_node_budget(n_cubes, n)  # the target count: before the polycube search
+        _check_node_budget(n_cubes, n)  # the target count: before the polycube search
     if polycube is None:
         polycube = polycube_from_mesh(mesh, cube_size=cube_size, n_cubes=n_cubes, threshold=threshold)
-    check_node_budget(len(polycube.cubes), n)
+    _check_node_budget(len(polycube.cubes), n)
     seconds["polycube"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     lattice = Lattice.build(polycube.cubes, n, polycube.size, polycube.origin)

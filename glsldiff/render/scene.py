@@ -91,7 +91,7 @@ from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_image, read_npz
-from glsldiff.grids.polygrid import check_node_budget
+from glsldiff.grids.polygrid import node_budget_problem
 from glsldiff.mesh import SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.physics.exitance import EXITANT
@@ -419,10 +419,9 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     if n % 2:
         g.fail("n", f"must be even (the hierarchy halves it), got {n}")
     poly = PolygridSpec(n, g.integer("cubes", 253, 1), g.integer("levels", 3, 1))
-    try:
-        check_node_budget(poly.cubes, n)
-    except InputError as exc:
-        g.fail("n", str(exc).split(": ", 1)[1])
+    problem = node_budget_problem(poly.cubes, n)
+    if problem:
+        g.fail("n", problem)
     if poly.levels > 1 and n >> (poly.levels - 1) < 2:
         g.fail("levels", f"{poly.levels} levels need n >= {2 ** poly.levels}, got n = {n}")
 
