@@ -24,7 +24,14 @@ camera is recalibrated once.
 
 Command: ``python -m glsldiff.calibration.camera IMAGES_OR_FOLDERS --board 9x7 --square 20
 -o camera.json`` (see ``--help``). Errors print one line ``glsldiff-calibration: error: ...``
-and exit with status 2.
+and exit with status 2. A projector capture root (a folder with ``capture_*`` sub-folders) or
+one ``capture_*`` folder contributes the white frame of each pose: the second to last image of
+its Gray-code sequence (:func:`~.graycode.sequence_images`: patterns, then white, then black).
+
+:func:`load_intrinsics` also reads kamino410/procam-calibration's camera parameter file
+(``camera_config.json``: ``{"camera": {"P": 9 numbers (3x3 K, row by row), "distortion":
+[k1, k2, p1, p2, k3], "width": cols, "height": rows}}``), told apart from ``camera.json`` by
+its content; without ``width``/``height`` the image size is taken from the captures.
 """
 from __future__ import annotations
 
@@ -40,7 +47,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.calibration.graycode import list_images, read_gray
+from glsldiff.calibration.graycode import capture_folders, list_images, read_gray, sequence_images
 from glsldiff.calibration.common import parse_size, run_command, save_json
 from glsldiff.core.checks import choice, real
 from glsldiff.core.arguments import CommandParser
@@ -140,7 +147,7 @@ class Intrinsics:
 
     K: Array
     dist: Array
-    size: tuple[int, int]  # (cols, rows) px
+    size: tuple[int, int] | None  # (cols, rows) px; None: not stated by a loaded file
     rms: float  # px, over all points
     per_view_rms: Array  # px
     rvecs: list[Array] = field(repr=False)
@@ -152,25 +159,36 @@ class Intrinsics:
 
 
 def load_intrinsics(path: str | os.PathLike) -> Intrinsics:
-    """Camera intrinsics from a ``camera.json`` written by this module (``image_size``, ``K``,
-    ``dist``, ``rms``), to reuse in the projector calibration."""
+    """Camera intrinsics to reuse in the projector calibration, from a ``camera.json`` written
+    by this module (``image_size``, ``K``, ``dist``, ``rms``) or procam-calibration's
+    ``camera_config.json`` (``camera``: ``P``, ``distortion``, ``width``, ``height``; see the
+    module docstring), told apart by content."""
     p = Path(path)
     try:
         d = json.loads(p.read_text())
-        K = np.asarray(d["K"], np.float64)
-        dist = np.asarray(d["dist"], np.float64).ravel()
-        size = tuple(int(s) for s in d["image_size"])
-        rms = float(d.get("rms", float("nan")))
+        if isinstance(d, dict) and isinstance(d.get("camera"), dict) and "P" in d["camera"]:
+            c = d["camera"]  # procam-calibration
+            K = np.asarray(c["P"], np.float64).reshape(3, 3)
+            dist = np.asarray(c["distortion"], np.float64).ravel()
+            size = (int(c["width"]), int(c["height"])) if "width" in c and "height" in c else None
+            rms = float("nan")
+        else:
+            K = np.asarray(d["K"], np.float64)
+            dist = np.asarray(d["dist"], np.float64).ravel()
+            size = tuple(int(s) for s in d["image_size"])
+            rms = float(d.get("rms", float("nan")))
     except FileNotFoundError:
         raise InputError(f"{p}: no such camera calibration file") from None
     except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{p}: not a camera calibration (camera.json with image_size, K, dist): {exc}") from None
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 or len(size) != 2 \
+        raise InputError(f"{p}: not a camera calibration (camera.json with image_size, K, dist, or "
+                         f"procam-calibration's camera_config.json with camera.P, camera.distortion): {exc}") from None
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0 \
+            or (size is not None and (len(size) != 2 or min(size) <= 0)) \
             or dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
         raise InputError(f"{p}: K must be a finite 3x3 camera matrix with positive focal lengths, dist an "
                          f"OpenCV distortion vector and image_size [cols, rows]")
-    return Intrinsics(K=K, dist=dist, size=(size[0], size[1]), rms=rms, per_view_rms=np.zeros(0),
-                      rvecs=[], tvecs=[])
+    return Intrinsics(K=K, dist=dist, size=None if size is None else (size[0], size[1]), rms=rms,
+                      per_view_rms=np.zeros(0), rvecs=[], tvecs=[])
 
 
 def view_rms(obj: NDArray, img: NDArray, K: Array, dist: Array, rvec: Array, tvec: Array) -> float:
@@ -233,12 +251,30 @@ class CameraCalibration:
                 "board": self.board.to_json(), "flags": int(self.flags)}
 
 
+def white_frame(folder: str | os.PathLike) -> Path:
+    """The white frame of a Gray-code capture folder: the second to last image of its
+    sequence (patterns, white, black; :func:`~.graycode.sequence_images`)."""
+    paths = sequence_images(folder)
+    if len(paths) < 6 or len(paths) % 2:
+        raise InputError(f"{folder}: {len(paths)} images; a capture_* folder is read as a Gray-code sequence "
+                         f"(2 per bit, then white and black: an even number >= 6) and its white frame used; "
+                         f"rename the folder or pass its board images as files")
+    return paths[-2]
+
+
 def expand_inputs(inputs: Sequence[str | os.PathLike]) -> list[Path]:
-    """Files and folders (all images inside, sorted by name) -> image paths."""
+    """Files and folders -> image paths. A folder with ``capture_*`` sub-folders (a projector
+    capture root) gives the white frame of each (:func:`white_frame`; its other images are not
+    used), a ``capture_*`` folder its white frame, any other folder all its images (sorted by
+    name)."""
     paths: list[Path] = []
     for item in inputs:
         p = Path(item)
-        if p.is_dir():
+        if p.is_dir() and any(q.is_dir() for q in p.glob("capture_*")):
+            paths += [white_frame(q) for q in capture_folders(p)]
+        elif p.is_dir() and p.name.startswith("capture_"):
+            paths.append(white_frame(p))
+        elif p.is_dir():
             found = list_images(p)
             if not found:
                 raise InputError(f"{p}: folder has no images (png, jpg, tif, bmp)")
@@ -335,7 +371,10 @@ def flags_from_args(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="python -m glsldiff.calibration.camera",
                                 description="Camera intrinsics from chessboard/ChArUco images (Zhang's method).")
-    p.add_argument("inputs", nargs="+", help="image files and/or folders of images")
+    p.add_argument("inputs", nargs="+",
+                   help="image files and/or folders of images; a projector capture folder (with capture_* "
+                        "sub-folders) or a capture_* folder gives the white frame of each pose (the second to "
+                        "last image of its Gray-code sequence), so the projector captures calibrate the camera too")
     add_board_arguments(p)
     p.add_argument("-o", "--output", default="camera.json", help="output JSON (default %(default)s)")
     p.add_argument("--drop-outliers", action="store_true",

@@ -16,7 +16,12 @@ and the stereo extrinsics found with ``cv2.stereoCalibrate(..., CALIB_FIX_INTRIN
 
 Capture folder layout: ``FOLDER/capture_*/`` one sub-folder per pose, each with exactly
 :func:`~.graycode.sequence_length` images (``*.png``/``*.jpg``... sorted by name, in pattern
-order). ``python -m glsldiff.calibration.projector patterns`` writes the projector images.
+order, white and black last). kamino410/procam-calibration's layout is read as it is:
+``capture_*/graycode_00.png ...`` (only the ``graycode_*`` images of a folder count when it has
+any, :func:`~.graycode.sequence_images`), and its ``camera_config.json`` is accepted for
+``--camera``. ``python -m glsldiff.calibration.projector patterns`` writes the projector images;
+``--step N`` (both sub-commands, procam-calibration's ``graycode_step``) shows each code pixel
+as an ``N x N`` block, see :mod:`.graycode` for how codes map back to projector pixels.
 
 ``rig.json`` (written atomically by :func:`calibrate_folder`)::
 
@@ -32,7 +37,8 @@ order). ``python -m glsldiff.calibration.projector patterns`` writes the project
      "rejected": [{"folder": path, "reason": text}, ...],
      "board": {...},                             # as in camera.json
      "settings": {"window_px", "shadow_threshold", "bit_threshold",   # 8-bit grey levels
-                  "min_fraction", "ransac_px", "flags"}}              # cv2.calibrateCamera flags
+                  "min_fraction", "ransac_px", "graycode_step",       # step: projector px per code
+                  "flags"}}                                           # cv2.calibrateCamera flags
 
 Errors a user can cause raise :class:`~glsldiff.core.errors.InputError` naming the folder or file.
 """
@@ -40,7 +46,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -52,9 +58,9 @@ from glsldiff.calibration.camera import (DEFAULT_FLAGS, MAX_ITERATIONS, BoardSpe
                                          board_from_args, calibrate_points, flags_from_args, load_intrinsics,
                                          to_uint8)
 from glsldiff.calibration.common import parse_size, run_command, save_json
-from glsldiff.calibration.graycode import (Decoded, bit_counts, decode, list_images, read_stack,
-                                           sequence_length, write_patterns)
-from glsldiff.core.arguments import CommandParser
+from glsldiff.calibration.graycode import (Decoded, bit_counts, capture_folders, code_size, decode,
+                                           read_stack, sequence_images, sequence_length, write_patterns)
+from glsldiff.core.arguments import CommandParser, integer
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
@@ -77,18 +83,20 @@ MAX_PLANE_RESIDUAL_FRACTION = 0.02
 class DecodeSettings:
     """Decoding and corner-mapping parameters: window side (camera px), white - black shadow
     threshold and per-bit contrast threshold (8-bit grey levels), minimum fraction of decoded
-    pixels in a corner's window, RANSAC threshold (projector px)."""
+    pixels in a corner's window, RANSAC threshold (code px: ``ransac_px * step`` projector px,
+    as codes are ``step`` px apart), Gray-code ``step`` (projector px per code pixel)."""
 
     window: int = 47
     shadow_threshold: float = 20.0
     bit_threshold: float = 3.0
     min_fraction: float = 0.2
     ransac_px: float = 2.0
+    step: int = 1
 
     def to_json(self) -> dict:
         return {"window_px": self.window, "shadow_threshold": self.shadow_threshold,
                 "bit_threshold": self.bit_threshold, "min_fraction": self.min_fraction,
-                "ransac_px": self.ransac_px}
+                "ransac_px": self.ransac_px, "graycode_step": self.step}
 
 
 @dataclass
@@ -110,25 +118,18 @@ class PoseCorners:
                 "projector_points": np.round(self.projector_points, 4).tolist()}
 
 
-def capture_folders(folder: str | Path) -> list[Path]:
-    """The ``capture_*`` sub-folders of ``folder``, sorted by name."""
-    root = Path(folder)
-    if not root.is_dir():
-        raise InputError(f"{root}: no such folder")
-    subs = sorted(p for p in root.glob("capture_*") if p.is_dir())
-    if not subs:
-        raise InputError(f"{root}: no capture_* sub-folders (one per board pose)")
-    return subs
-
-
-def read_sequence(folder: str | Path, projector_size: tuple[int, int]) -> NDArray[np.float32]:
-    """The captured sequence ``(n, rows, cols)`` of one pose, checking the image count."""
-    paths = list_images(folder)
-    n = sequence_length(projector_size)
+def read_sequence(folder: str | Path, projector_size: tuple[int, int], step: int = 1) -> NDArray[np.float32]:
+    """The captured sequence ``(n, rows, cols)`` of one pose (:func:`~.graycode.sequence_images`),
+    checking the image count against the projector size and Gray-code ``step``."""
+    paths = sequence_images(folder)
+    n = sequence_length(projector_size, step)
     if len(paths) != n:
-        nc, nr = bit_counts(projector_size)
+        nc, nr = bit_counts(code_size(projector_size, step))
+        at = f" at --step {step}" if step != 1 else ""
+        fits = [s for s in range(1, min(projector_size)) if sequence_length(projector_size, s) == len(paths)]
+        hint = f"; {len(paths)} images fit --step {fits[0]}" if fits else ""
         raise InputError(f"{folder}: {len(paths)} images, expected {n} for a {projector_size[0]}x{projector_size[1]} "
-                         f"projector (2 x ({nc} column + {nr} row Gray bits) + white + black)")
+                         f"projector{at} (2 x ({nc} column + {nr} row Gray bits) + white + black){hint}")
     return read_stack(paths, str(folder))
 
 
@@ -145,7 +146,7 @@ def corner_to_projector(decoded: Decoded, corner: NDArray, settings: DecodeSetti
     ys, xs = ys + y0, xs + x0
     src = np.stack([xs, ys], axis=1).astype(np.float64)
     dst = np.stack([decoded.col[ys, xs], decoded.row[ys, xs]], axis=1).astype(np.float64)
-    H, _ = cv2.findHomography(src, dst, cv2.RANSAC, settings.ransac_px)
+    H, _ = cv2.findHomography(src, dst, cv2.RANSAC, settings.ransac_px * settings.step)
     if H is None:
         return None
     return cv2.perspectiveTransform(np.asarray(corner, np.float64).reshape(1, 1, 2), H).reshape(2)
@@ -155,8 +156,8 @@ def process_capture(folder: str | Path, board: BoardSpec, projector_size: tuple[
                     settings: DecodeSettings | None = None) -> PoseCorners:
     """Decode one pose and map its board corners into the projector (steps 1-3 above)."""
     settings = settings or DecodeSettings()
-    stack = read_sequence(folder, projector_size)
-    decoded = decode(stack, projector_size, settings.shadow_threshold, settings.bit_threshold)
+    stack = read_sequence(folder, projector_size, settings.step)
+    decoded = decode(stack, projector_size, settings.shadow_threshold, settings.bit_threshold, settings.step)
     if decoded.out_of_range > MAX_OUT_OF_RANGE:
         w, h = projector_size
         raise InputError(f"{folder}: {decoded.out_of_range:.0%} of the lit pixels decode beyond the stated "
@@ -167,7 +168,7 @@ def process_capture(folder: str | Path, board: BoardSpec, projector_size: tuple[
     found = board.detect(to_uint8(stack[-2]))
     if found is None:
         raise InputError(f"{folder}: {board.kind} with {board.cols}x{board.rows} inner corners not found in the "
-                         f"white image ({list_images(folder)[-2].name}); check --board and the lighting")
+                         f"white image ({sequence_images(folder)[-2].name}); check --board and the lighting")
     obj, cam = found
     proj = [corner_to_projector(decoded, c, settings) for c in cam]
     missing = [i for i, p in enumerate(proj) if p is None]
@@ -247,6 +248,8 @@ def calibrate_rig(poses: Sequence[PoseCorners], projector_size: tuple[int, int],
     obj = [p.object_points for p in poses]
     if camera is None:
         cam = calibrate_points(obj, [p.camera_points for p in poses], poses[0].image_size, flags, "camera")
+    elif camera.size is None:  # a file that does not state it (procam-calibration's camera_config.json)
+        cam = replace(camera, size=tuple(poses[0].image_size))
     elif tuple(camera.size) != tuple(poses[0].image_size):
         raise InputError(f"--camera: its image size {camera.size[0]}x{camera.size[1]} differs from the captures' "
                          f"{poses[0].image_size[0]}x{poses[0].image_size[1]}; calibrate the camera at this "
@@ -291,14 +294,20 @@ def build_parser() -> argparse.ArgumentParser:
     p = CommandParser(prog="python -m glsldiff.calibration.projector",
                                 description="Gray-code projector-camera calibration (Moreno & Taubin 2012).")
     sub = p.add_subparsers(dest="command", required=True)
+    step_help = ("Gray-code step: each code pixel is an N x N block of projector pixels, for a "
+                 "ceil(W/N) x ceil(H/N) code (procam-calibration's graycode_step; raise it against moire "
+                 "or defocus; calibrate with the step the patterns were made with; default %(default)s)")
     pat = sub.add_parser("patterns", help="write the projector images pattern_00.png ... into a folder")
     pat.add_argument("--projector", type=parse_size, required=True, metavar="WxH", help="projector size, px")
+    pat.add_argument("--step", type=integer(1), default=1, metavar="N", help=step_help)
     pat.add_argument("-o", "--output", default="patterns", help="output folder (default %(default)s)")
     pat.set_defaults(func=_patterns)
     cal = sub.add_parser("calibrate", help="calibrate camera + projector from FOLDER/capture_*/")
-    cal.add_argument("folder", help="folder with one capture_* sub-folder per board pose")
+    cal.add_argument("folder", help="folder with one capture_* sub-folder per board pose (images in pattern "
+                                    "order, white and black last; procam-calibration's graycode_*.png too)")
     add_board_arguments(cal)
     cal.add_argument("--projector", type=parse_size, required=True, metavar="WxH", help="projector size, px")
+    cal.add_argument("--step", type=integer(1), default=1, metavar="N", help=step_help)
     cal.add_argument("-o", "--output", default="rig.json", help="output JSON (default %(default)s)")
     d = DecodeSettings()
     cal.add_argument("--window", type=int, default=d.window, help="local homography window, camera px (default %(default)s)")
@@ -308,14 +317,16 @@ def build_parser() -> argparse.ArgumentParser:
                      help="min |pattern - inverse| per bit, 8-bit levels (default %(default)s)")
     cal.add_argument("--skip-bad", action="store_true", help="skip poses that fail instead of stopping")
     cal.add_argument("--camera", metavar="camera.json",
-                     help="reuse these camera intrinsics (python -m glsldiff.calibration.camera) instead of "
-                          "calibrating the camera from the board poses again")
+                     help="reuse these camera intrinsics (python -m glsldiff.calibration.camera, or "
+                          "procam-calibration's camera_config.json) instead of calibrating the camera from "
+                          "the board poses again")
     cal.set_defaults(func=_calibrate)
     return p
 
 
 def _patterns(args: argparse.Namespace) -> int:
-    paths = write_patterns(args.output, args.projector)
+    code_size(args.projector, args.step)  # refuse a bad step before writing anything
+    paths = write_patterns(args.output, args.projector, args.step)
     print(f"wrote {len(paths)} patterns ({paths[0].name} .. {paths[-1].name}) to {args.output}")
     return 0
 
@@ -323,7 +334,8 @@ def _patterns(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     if args.window < 5:
         raise InputError(f"--window {args.window}: must be >= 5 px")
-    settings = DecodeSettings(args.window, args.shadow_threshold, args.bit_threshold)
+    code_size(args.projector, args.step)
+    settings = DecodeSettings(args.window, args.shadow_threshold, args.bit_threshold, step=args.step)
     camera = load_intrinsics(args.camera) if args.camera else None
     rig = calibrate_folder(args.folder, board_from_args(args), args.projector, settings, flags_from_args(args),
                            args.skip_bad, args.output, camera)

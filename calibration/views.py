@@ -21,10 +21,13 @@ Folders written by :func:`write_projector_dataset` (the layout :mod:`.projector`
     OUT/capture_001/...
     OUT/truth.json
 
+or, with ``layout="procam"``, kamino410/procam-calibration's names ``OUT/capture_0/graycode_00.png
+...``; with ``step`` > 1 the patterns have that Gray-code step (:func:`~.graycode.patterns`).
+
 and by :func:`write_camera_dataset`: ``OUT/view_00.png ...`` plus ``OUT/truth.json``.
 ``truth.json``: ``{"camera": {"K", "dist", "image_size"}, "projector": {...} | null,
 "R", "T"`` (camera -> projector: ``X_p = R X_c + T``, mm) ``, "baseline_mm", "board": {...},
-"poses": [{"R", "t"}, ...]}`` (board -> camera).
+"poses": [{"R", "t"}, ...]}`` (board -> camera), plus ``"graycode_step"`` for projector datasets.
 """
 from __future__ import annotations
 
@@ -45,7 +48,7 @@ from glsldiff.calibration.common import atomic_folder, parse_size, run_command
 from glsldiff.calibration.graycode import patterns
 from glsldiff.calibration.simcam import Pinhole, SimCamera, SimProjector, intersect_plane
 from glsldiff.core.camera import opencv_pose
-from glsldiff.core.arguments import CommandParser
+from glsldiff.core.arguments import CommandParser, integer
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
@@ -302,21 +305,30 @@ def _write(path: Path, img: NDArray) -> None:
         raise InputError(f"cannot write {path}")
 
 
-def write_projector_dataset(out: str | os.PathLike, rig: SyntheticRig) -> Path:
-    """Render every pose under every Gray-code pattern (+ white, black) into
-    ``out/capture_XXX/img_YY.png`` plus ``out/truth.json``; ``out`` appears only when complete."""
+#: Capture folder and image names per layout: this package's, and kamino410/procam-calibration's.
+LAYOUTS = {"glsldiff": ("capture_{:03d}", "img_{:02d}.png"), "procam": ("capture_{}", "graycode_{:02d}.png")}
+
+
+def write_projector_dataset(out: str | os.PathLike, rig: SyntheticRig, step: int = 1,
+                            layout: str = "glsldiff") -> Path:
+    """Render every pose under every Gray-code pattern of Gray-code ``step`` (+ white, black)
+    into ``out/capture_XXX/img_YY.png`` (``layout="procam"``: ``out/capture_K/graycode_YY.png``)
+    plus ``out/truth.json``; ``out`` appears only when complete."""
     if rig.projector is None:
         raise InputError("write_projector_dataset: the rig has no projector")
-    seq = patterns(rig.projector.size)
+    if layout not in LAYOUTS:
+        raise InputError(f"layout {layout!r}: choose one of {', '.join(LAYOUTS)}")
+    folder_name, image_name = LAYOUTS[layout]
+    seq = patterns(rig.projector.size, step)
     rng = np.random.default_rng(rig.seed)
     with atomic_folder(out) as tmp:
         for k, scene in enumerate(rig.scenes()):
-            folder = tmp / f"capture_{k:03d}"
+            folder = tmp / folder_name.format(k)
             folder.mkdir()
             for i, pat in enumerate(seq):
                 img = rig.camera.capture(scene.radiance(rig.projector, pat, rig.ambient), 1.0, rng)
-                _write(folder / f"img_{i:02d}.png", img)
-        (tmp / "truth.json").write_text(json.dumps(rig.truth(), indent=1))
+                _write(folder / image_name.format(i), img)
+        (tmp / "truth.json").write_text(json.dumps({**rig.truth(), "graycode_step": step}, indent=1))
     return Path(out)
 
 
@@ -345,6 +357,12 @@ def build_parser() -> argparse.ArgumentParser:
         s.add_argument("--board", type=parse_size, default=(9, 7), help="inner corners (default 9x7)")
         s.add_argument("--square", type=float, default=20.0, help="square size, mm (default %(default)s)")
         s.add_argument("--seed", type=int, default=0)
+        if name == "projector":
+            s.add_argument("--step", type=integer(1), default=1, metavar="N",
+                           help="Gray-code step, projector px per code pixel (default %(default)s)")
+            s.add_argument("--layout", choices=tuple(LAYOUTS), default="glsldiff",
+                           help="file names: capture_XXX/img_YY.png, or procam-calibration's "
+                                "capture_K/graycode_YY.png (default %(default)s)")
     return p
 
 
@@ -352,8 +370,11 @@ def _run(args: argparse.Namespace) -> int:
     board = BoardSpec(args.board[0], args.board[1], args.square)
     proj = args.projector if args.command == "projector" else None
     rig = synthetic_rig(args.poses, args.camera, proj, board, seed=args.seed)
-    write = write_projector_dataset if proj else write_camera_dataset
-    print(f"wrote {write(args.out, rig)}")
+    if proj:
+        out = write_projector_dataset(args.out, rig, args.step, args.layout)
+    else:
+        out = write_camera_dataset(args.out, rig)
+    print(f"wrote {out}")
     return 0
 
 

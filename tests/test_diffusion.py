@@ -9,6 +9,8 @@ Each test runs once per backend (``bctx``: egl, osmesa) and, where relevant, per
 """
 from __future__ import annotations
 
+import logging
+
 import moderngl
 import numpy as np
 import pytest
@@ -38,7 +40,7 @@ FP32_FLOOR = 1e-6
 
 def _assert_fp32_end(rep, tol: float, caplog=None) -> None:
     """A fp32 solve with a tol near the fp32 floor: 'converged' with residual <= tol, or
-    'stalled' (not converged, warning logged) with the residual at the floor; never
+    'stalled' (not converged, logged at INFO) with the residual at the floor; never
     'budget' or 'diverged'. The history starts with the zero initial guess (residual 1)."""
     assert rep.status in ("converged", "stalled"), rep.status
     assert rep.converged == (rep.status == "converged")
@@ -107,6 +109,7 @@ def test_smooth_heterogeneous_matches_direct(bctx, backend, smooth_kappa, stenci
     non-negative; the reported residual is the true residual of the returned fluence.
     Measured (llvmpipe, tol 1e-7): 18 of 27 cases stall at residual 1.0e-7 .. 3.3e-7, the others
     converge; rel L2 vs direct 1.2e-7 .. 5.0e-7."""
+    caplog.set_level(logging.INFO, "glsldiff.oracle.solvers")   # 'did not converge' is logged at INFO
     p = _smooth_problem(smooth_kappa, shape, seed, stencil, face_mean)
     ref, _ = DirectSolver(p).solve()
     phi, rep = solve_glsl(p, bctx, tol=1e-7)
@@ -158,8 +161,9 @@ def test_fp16_precision(bctx, backend, smooth_kappa, case):
 def test_fp16_report_is_honest(bctx, smooth_kappa, caplog):
     """The reported residual is the documented max_c ||D^-1 (b - A x)|| / ||D^-1 b|| of the returned
     iterate; tol = 1e-6 is far below the fp16 floor, so the solve must not claim convergence: it
-    ends 'stalled' with a warning. Measured (llvmpipe): stalled after 650 sweeps, residual =
+    ends 'stalled' (logged at INFO). Measured (llvmpipe): stalled after 650 sweeps, residual =
     true residual = 1.76e-3, rel L2 vs direct 4.7e-3."""
+    caplog.set_level(logging.INFO, "glsldiff.oracle.solvers")
     p = _smooth_problem(smooth_kappa, (13, 9, 7), 0)
     ref, _ = DirectSolver(p).solve()
     phi, rep = solve_glsl(p, bctx, precision="fp16", tol=1e-6)

@@ -251,3 +251,75 @@ def test_render_reports_progress_and_reuses_the_polygrid(tmp_path, capsys, monke
     second = capsys.readouterr().err
     assert "polygrid built" in first and "polygrid read from the cache" in second and "pass 2:" in second
     np.testing.assert_array_equal(io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "b.exr"))
+
+
+def test_render_warm_starts_from_the_cached_solution(tmp_path, capsys, monkeypatch):
+    """The second render of a scene starts pass 2 from the converged solution an earlier run
+    cached (0 sweeps, same image); a damaged or wrong cached solution is still solved to tol;
+    another light is another system and solves from scratch."""
+    from glsldiff.core import cache
+
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
+    scene = _scene(tmp_path)
+    assert main(["render", str(scene), "-o", str(tmp_path / "a.exr")]) == 0
+    first = capsys.readouterr().out
+    assert main(["render", str(scene), "-o", str(tmp_path / "b.exr")]) == 0
+    second = capsys.readouterr().out
+    assert "cached solution" not in first and "cached solution of this system" in second
+    assert " 0 sweeps" in second and " 0 sweeps" not in first
+    np.testing.assert_array_equal(io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "b.exr"))
+    (entry,) = (tmp_path / "cache").glob("pass2-*.pkl")
+    phi = cache.load("pass2", entry.stem.split("-", 1)[1], np.ndarray)
+    cache.store("pass2", entry.stem.split("-", 1)[1], 3.0 * phi)   # a wrong start: solved again to tol
+    assert main(["render", str(scene), "-o", str(tmp_path / "c.exr")]) == 0
+    third = capsys.readouterr().out
+    assert "cached solution" in third and " 0 sweeps" not in third
+    a, c = io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "c.exr")
+    assert np.abs(c - a).max() < 2e-3 * a.max()
+    other = _scene(tmp_path, irradiance=[2.0, 1.0, 1.0])
+    assert main(["render", str(other), "-o", str(tmp_path / "d.exr")]) == 0
+    assert "cached solution" not in capsys.readouterr().out
+    assert len(list((tmp_path / "cache").glob("pass2-*.pkl"))) == 2
+
+
+@pytest.mark.parametrize("name, body, expect", [
+    ("nan.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 nan\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n", "line 4: a NaN"),
+    ("inf.obj", b"v 0 0 0\nv 1 0 0\nv 0 1 -inf\nv 0 0 1\nf 1 2 3\nf 1 3 4\nf 1 4 2\nf 2 4 3\n", "line 3: a NaN"),
+    ("nan.off", b"OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 NaN\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n", "line 6: a NaN"),
+])
+def test_non_finite_vertex_in_a_mesh_file(tmp_path, capsys, name, body, expect):
+    """pymeshlab silently drops NaN/inf vertices (and their faces); the file is refused instead,
+    naming the line, before pymeshlab reads it."""
+    path = tmp_path / name
+    path.write_bytes(body)
+    _one_error_line(capsys, main(["polygrid", str(path), "--n", "4", "--out", str(tmp_path / "pg")]), expect)
+    assert not (tmp_path / "pg").exists()
+
+
+def test_non_finite_vertex_in_binary_stl(tmp_path):
+    from glsldiff.mesh import load_mesh, sphere_mesh
+
+    m = sphere_mesh(5.0, subdivisions=2)
+    tri = np.asarray(m.vertices, np.float32)[np.asarray(m.faces)]
+    rec = np.zeros(len(tri), np.dtype([("f", "<f4", 12), ("a", "<u2")]))
+    rec["f"][:, 3:] = tri.reshape(len(tri), 9)
+    good = tmp_path / "good.stl"
+    good.write_bytes(b"\0" * 80 + np.uint32(len(tri)).tobytes() + rec.tobytes())
+    assert len(load_mesh(good).faces) == len(tri)          # the scan passes a clean file
+    rec["f"][7, 5] = np.nan
+    bad = tmp_path / "bad.stl"
+    bad.write_bytes(b"\0" * 80 + np.uint32(len(tri)).tobytes() + rec.tobytes())
+    with pytest.raises(InputError, match=r"1 triangles have NaN or infinite vertex coordinates \(e\.g\. triangle 7\)"):
+        load_mesh(bad)
+
+
+def test_comments_mentioning_nan_are_not_numbers(tmp_path):
+    from glsldiff.mesh import load_mesh, sphere_mesh
+
+    m = sphere_mesh(5.0, subdivisions=2)
+    lines = ["# nan and inf in a comment are text", "# exported by infinity-tool"]
+    lines += [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in m.vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]
+    path = tmp_path / "commented.obj"
+    path.write_text("\n".join(lines) + "\n")
+    assert len(load_mesh(path).vertices) == len(m.vertices)

@@ -22,7 +22,7 @@ from glsldiff.bench.convergence import convergence_bench
 from glsldiff.bench.sphere import sphere_study
 from glsldiff.commands.inverse import add_parsers
 from glsldiff.core import io
-from glsldiff.core.io import check_output_folder
+from glsldiff.core.io import check_output_folder, keep_created_folders, remove_created_folders
 from glsldiff.figures import polygrid_figure
 from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import load_mesh
@@ -273,11 +273,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         if getattr(args, "gl", None):
             os.environ["GLSLDIFF_GL"] = args.gl
-        return args.func(args)
+        code = args.func(args)
+        keep_created_folders()
+        return code
     except GlsldiffError as exc:
+        remove_created_folders()
         print(f"glsldiff: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        remove_created_folders()
         print("glsldiff: interrupted; finished output files are kept, none is half-written", file=sys.stderr)
         return 130
 

@@ -241,17 +241,40 @@ def check_output(path: str | os.PathLike, suffixes: Sequence[str] = (), note: st
     return p
 
 
+#: Folders :func:`check_output_folder` created, deepest last (see :func:`remove_created_folders`).
+_CREATED: list[Path] = []
+
+
 def check_output_folder(folder: str | os.PathLike) -> Path:
-    """Create ``folder`` if needed and check that files can be created in it, before any work."""
+    """Create ``folder`` if needed and check that files can be created in it, before any work.
+    A command that then fails calls :func:`remove_created_folders`, so that no empty folder
+    is left behind."""
     f = Path(folder)
     if f.exists() and not f.is_dir():
         raise InputError(f"output folder {str(f)!r} is a file; give a folder name")
+    missing = [p for p in [f, *f.parents] if not p.exists()]
     try:
         f.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"output folder {str(f)!r} cannot be created ({exc.strerror or exc})") from None
+    _CREATED.extend(reversed(missing))
     check_output(f / "probe")
     return f
+
+
+def keep_created_folders() -> None:
+    """Forget the folders created so far (the command succeeded: they are its output)."""
+    _CREATED.clear()
+
+
+def remove_created_folders() -> None:
+    """Remove the folders :func:`check_output_folder` created that are still empty (after a
+    failed or interrupted command; a folder holding any file is kept)."""
+    while _CREATED:
+        try:
+            _CREATED.pop().rmdir()
+        except OSError:   # not empty (finished outputs are kept) or already gone
+            pass
 
 
 def read_npz(path: str | os.PathLike, what: str, required: Sequence[str] = ()) -> dict[str, NDArray]:

@@ -13,6 +13,7 @@ import contextlib
 import ctypes
 import logging
 import os
+import re
 import sys
 import tempfile
 from collections.abc import Iterator
@@ -91,6 +92,7 @@ def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: b
         if not path.is_file():
             raise InputError(f"mesh file {str(path)!r} does not exist; pass an existing file "
                              f"or one of the sample names {', '.join(SAMPLE_MESHES)}")
+    _check_file_numbers(path)
     ms = _meshset()
     try:
         with _quiet():
@@ -175,6 +177,37 @@ def _quiet() -> Iterator[None]:
             text = tmp.read().decode(errors="replace").strip()
             if text:
                 log.debug("pymeshlab output: %s", text)
+
+
+#: A NaN or infinite number as C's strtod spells it, as a whole token.
+_NON_FINITE = re.compile(rb"(?<![\w.+-])[+-]?(nan|inf(inity)?)(?![\w.])", re.IGNORECASE)
+#: Comment lines of the text formats (obj/off ``#``, ply ``comment``/``obj_info``).
+_COMMENT = re.compile(rb"^\s*(#|comment\b|obj_info\b)")
+
+
+def _check_file_numbers(path: Path) -> None:
+    """Refuse a mesh file with a NaN or infinite vertex coordinate. pymeshlab drops such
+    vertices and the faces using them without a word, which would leave a different (often
+    open) mesh; text formats are scanned line by line, binary STL as float32 records (binary
+    PLY is checked after loading only)."""
+    data = path.read_bytes()
+    if data[:5].lower() != b"solid" and path.suffix.lower() == ".stl" and len(data) >= 84:
+        n = int(np.frombuffer(data, "<u4", 1, 80)[0])
+        if len(data) >= 84 + 50 * n:
+            rec = np.frombuffer(data, np.dtype([("f", "<f4", 12), ("a", "<u2")]), n, 84)
+            bad = ~np.isfinite(rec["f"][:, 3:]).all(axis=1)
+            if bad.any():
+                raise InputError(f"mesh file {str(path)!r}: {int(bad.sum())} triangles have NaN or infinite "
+                                 f"vertex coordinates (e.g. triangle {int(np.flatnonzero(bad)[0])}); fix or "
+                                 "remove them")
+        return
+    head = data[:4096]
+    if (head[:3] == b"ply" and b"format ascii" not in head) or (head[:3] != b"ply" and b"\0" in head):
+        return                                   # binary: nothing to scan as text
+    for number, line in enumerate(data.splitlines(), 1):
+        if _NON_FINITE.search(line) and not _COMMENT.match(line):
+            raise InputError(f"mesh file {str(path)!r} line {number}: a NaN or infinite number "
+                             f"({line.decode(errors='replace').strip()[:60]!r}); fix or remove that vertex")
 
 
 def _check_finite(v: NDArray[np.float64], label: str) -> None:

@@ -231,8 +231,8 @@ def relax(system: LinearSystem, advance: Callable[[int], NDArray], x: NDArray, *
     if status == "diverged":
         raise SolverError(diverged_message(problem, name, done) if problem is not None
                           else f"{name} diverged after {done} sweeps")
-    if status != "converged":
-        logger.warning("%s did not converge (%s): residual %.3e after %d iterations",
+    if status != "converged":   # the report carries it; each caller decides (render: an error)
+        logger.info("%s did not converge (%s): residual %.3e after %d iterations",
                        name, status, history[-1][1], done)
     return Relaxation(x, status, history, contraction_error_estimate(history, change, float(np.linalg.norm(x))))
 

@@ -11,7 +11,10 @@ Stages, in the one direction data flows (numpy arrays between them):
   (:func:`glsldiff.render.pass1.incident_light`: shadow maps, environment light with per-node
   visibility), and the solver's boundary source ``q``.
 * **pass 2** (t2): the polygrid diffusion solve (:class:`glsldiff.solve.multilevel.MultilevelDiffusion`),
-  warm-started from the previous frame's solution when only the light changed.
+  warm-started from the previous frame's solution when only the light changed, and on a
+  first frame from the converged solution of the same system cached on disk
+  (:mod:`glsldiff.core.cache`) by an earlier run: the solver still checks the residual
+  against ``tol`` before it stops (0 sweeps when the cached answer meets it).
 * **pass 3** (t3, every frame): :func:`glsldiff.render.shading.shade`, the mesh rasterised with
   moderngl from the scene's camera (:mod:`glsldiff.render.camera`); per vertex, the
   multiple-scattering term interpolated from the boundary nodes times ``F_t(eta, n.w_o)``,
@@ -43,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff import gl
+from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_polygrid
@@ -64,6 +68,8 @@ from glsldiff.system.report import CURRENT
 #: Largest boundary source pass 2 accepts: its float32 textures overflow near 3.4e38, and the
 #: sweeps multiply sources by stencil weights (mm^-2) before they are divided back.
 Q_MAX = 1e30
+#: Part of every cached pass-2 solution's key: bump it when the discrete system changes.
+SOLUTION_CACHE_VERSION = 1
 
 
 # ---------------------------------------------------------------- the renderer
@@ -94,6 +100,7 @@ class Renderer:
         self._q: NDArray | None = None
         self._phi_b: NDArray | None = None
         self._solve_report: Any = None
+        self._from_cache = False
 
     @property
     def mesh(self) -> Any:
@@ -158,19 +165,28 @@ class Renderer:
         pg, opts = self._geo["pg"], scene.options
         self._say(f"pass 2: {opts.scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
         gl.make_current(self.ctx)
+        x0: Any = CURRENT if warm and opts.scheme != "multigrid" else None
+        key = cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", pg.positions, pg.weights, self._mat["kappa"],
+                           self._mat["mu"], self._q, scene.material.eta, opts.scheme, opts.precision, opts.tol)
         if self._solver is None:
             problem = DiffusionProblem(pg, self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
                                        stencil="conservative")
             self._solver = MultilevelDiffusion(self._geo["hier"], problem, opts.scheme, ctx=self.ctx, precision=opts.precision)
-            warm = False
+            x0 = None
         else:
             self._solver.set_q(self._q)
-        phi, rep = self._solver.solve(tol=opts.tol, x0=CURRENT if warm and opts.scheme != "multigrid" else None)
+        self._from_cache = False
+        if x0 is None and opts.scheme != "adaptive":   # adaptive needs its coarse-to-fine start
+            x0 = cache.load("pass2", key, np.ndarray)
+            self._from_cache = x0 is not None
+        phi, rep = self._solver.solve(tol=opts.tol, x0=x0)
         if rep.status not in ("converged", "stalled") and not self.allow_unconverged:
             raise SolverError(f"pass 2 did not converge: residual {rep.residual:.3g} > tol {opts.tol:g} after "
                               f"{rep.sweeps} iterations ({rep.status}); the object may be optically too "
                               "small or thin for its material (size_mm, sigma), or [options].tol too tight; "
                               "--allow-unconverged writes the unconverged image")
+        if rep.status == "converged" and not self._from_cache:
+            cache.store("pass2", key, np.asarray(phi))
         self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
         self._solve_report = rep
 
@@ -283,7 +299,9 @@ class Renderer:
         warm = not (new_geo or new_mat) and new_light
         stage("pass2", "solve", solve_key, lambda: self._pass2(scene, warm),
               "material and incident light unchanged: solution kept", "t2")
-        if rep.ran("pass2") and warm:
+        if rep.ran("pass2") and self._from_cache:
+            rep.passes[-1]["why"] += ": warm start from the cached solution of this system (residual checked)"
+        elif rep.ran("pass2") and warm:
             rep.passes[-1]["why"] = "light changed: warm start from the previous frame (frame coherence)"
         t0 = time.perf_counter()
         img = self._pass3(scene)
