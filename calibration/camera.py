@@ -256,7 +256,8 @@ def white_frame(folder: str | os.PathLike) -> Path:
     sequence (patterns, white, black; :func:`~.graycode.sequence_images`)."""
     paths = sequence_images(folder)
     if len(paths) < 6 or len(paths) % 2:
-        raise InputError(f"{folder}: {len(paths)} images; a capture_* folder is read as a Gray-code sequence "
+        count = f"{len(paths)} images" if paths else "no images (png, jpg, tif, bmp)"
+        raise InputError(f"{folder}: {count}; a capture_* folder is read as a Gray-code sequence "
                          f"(2 per bit, then white and black: an even number >= 6) and its white frame used; "
                          f"rename the folder or pass its board images as files")
     return paths[-2]

@@ -26,6 +26,18 @@ Response file (JSON)::
 
 Any positive ``(256, 3)`` table is accepted on reading (e.g. OpenCV's own normalisation).
 
+Noise floor: pixel values below ``lo`` carry no weight in the merge. ``lo`` is per channel
+and, unless given, measured from a *black frame*: an image of the bracket's size taken with the
+lens capped (or the scene unlit) at the bracket's longest exposure, either named ``black.*`` in
+the bracket folder (e.g. ``black.png``; it is then not one of the bracket's images and needs no
+exposure time) or passed as ``--black FILE``. The floor is the 99.9th percentile of each
+channel of the black frame, rounded up, plus 2 levels (:func:`noise_floor`): at the
+percentile itself a dark pixel still passes once in 1000 per exposure, i.e. ~0.5 % over a
+5-exposure bracket; the margin brings that well under 0.1 %. Without a black frame ``lo`` is
+:data:`LO` = 20. OpenCV's Debevec merge weighs the remaining values with a fixed triangle
+(``cv2.MergeDebevec`` takes no weights, nor does ``cv2.MergeRobertson``), so the floor is
+where the sensor noise enters.
+
 Command line: ``python -m glsldiff.calibration.hdr {response,merge} --help``. Reading, the
 response, the merge and their command stay in one module (a little over 400 lines): they share
 the bracket and response formats documented here.
@@ -57,16 +69,21 @@ Array = NDArray[np.float64]
 SIDECARS = ("exposures.json", "exposures.csv", "exposures.txt")
 RESPONSE_FORMAT = "glsldiff-camera-response"
 LO, HI = 20, 235  # trusted pixel values: outside [LO, HI] noise, quantisation or clipping dominate
+BLACK_STEM = "black"  # a bracket folder's black frame: black.png, black.jpg, ... (not a bracket image)
+NOISE_PERCENTILE, NOISE_MARGIN = 99.9, 2  # noise floor = ceil(99.9th percentile of the black frame) + 2
 
 
 @dataclass(frozen=True)
 class Bracket:
     """One exposure bracket: RGB uint8 images ``(rows, cols, 3)``, their exposure times
-    (seconds, ascending) and source files (for messages; ``bracket/image k`` in memory)."""
+    (seconds, ascending) and source files (for messages; ``bracket/image k`` in memory), and
+    optionally a black frame (RGB uint8, same size) and its file."""
 
     images: tuple[NDArray[np.uint8], ...]
     times: Array
     files: tuple[Path, ...]
+    black: NDArray[np.uint8] | None = None
+    black_file: Path | None = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -74,9 +91,11 @@ class Bracket:
 
 
 def make_bracket(images: Sequence[ArrayLike], times: Sequence[float],
-                 files: Sequence[str | os.PathLike] | None = None) -> Bracket:
+                 files: Sequence[str | os.PathLike] | None = None, black: ArrayLike | None = None,
+                 black_file: str | os.PathLike | None = None) -> Bracket:
     """Validate and sort (by time) a bracket: 8-bit RGB images of one size, at least two
-    distinct positive exposure times (seconds)."""
+    distinct positive exposure times (seconds); ``black`` an optional black frame of that size
+    (see the module docstring), ``black_file`` its name in messages."""
     names = ([Path(f) for f in files] if files is not None
              else [Path("bracket", f"image {k}") for k in range(len(images))])
     if not (len(images) == len(times) == len(names)):
@@ -108,7 +127,16 @@ def make_bracket(images: Sequence[ArrayLike], times: Sequence[float],
         raise InputError(f"{where}: the images get darker as the exposure time grows (mean level "
                          f"{means[0]:.0f} at {t[order][0]:.4g} s, {means[-1]:.0f} at {t[order][-1]:.4g} s): the "
                          "exposure times are probably inverted (listed in reverse order, or given as 1/t)")
-    return Bracket(tuple(imgs[k] for k in order), t[order], tuple(names[k] for k in order))
+    blk, blk_name = None, None
+    if black is not None:
+        blk_name = Path(black_file) if black_file is not None else Path("bracket", "black frame")
+        blk = np.asarray(black)
+        if blk.dtype != np.uint8 or blk.shape != imgs[0].shape:
+            raise InputError(f"{blk_name}: black frame {blk.dtype} {blk.shape[1::-1] if blk.ndim >= 2 else blk.shape}"
+                             f" does not match the bracket's 8-bit {imgs[0].shape[1]}x{imgs[0].shape[0]} RGB "
+                             f"images; take it with the same camera settings (or pass --low N)")
+        blk = np.ascontiguousarray(blk)
+    return Bracket(tuple(imgs[k] for k in order), t[order], tuple(names[k] for k in order), blk, blk_name)
 
 
 # ----------------------------------------------------------------------------- reading
@@ -184,13 +212,20 @@ def read_image8(path: str | os.PathLike) -> NDArray[np.uint8]:
     return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB if img.shape[2] == 4 else cv2.COLOR_BGR2RGB)
 
 
-def load_bracket(folder: str | os.PathLike) -> Bracket:
-    """Read a bracket folder (images + exposure times, see the module docstring)."""
+def load_bracket(folder: str | os.PathLike, black: str | os.PathLike | None = None) -> Bracket:
+    """Read a bracket folder (images + exposure times, see the module docstring) and its black
+    frame: ``black`` when given, else a ``black.*`` image in the folder, else none."""
     root = Path(folder)
     if not root.is_dir():
         raise InputError(f"{root}: no such bracket folder")
-    files = sorted(p for p in root.iterdir()
+    found = sorted(p for p in root.iterdir()
                    if p.suffix.lower() in LDR_SUFFIXES and not p.name.startswith(".") and p.is_file())
+    files = [p for p in found if p.stem.lower() != BLACK_STEM]
+    blacks = [p for p in found if p.stem.lower() == BLACK_STEM]
+    if black is None and len(blacks) > 1:
+        raise InputError(f"{root}: several black frames ({', '.join(p.name for p in blacks)}); keep one "
+                         f"or pass --black FILE")
+    black_file = Path(black) if black is not None else (blacks[0] if blacks else None)
     if not files:
         raise InputError(f"{root}: no images ({', '.join(LDR_SUFFIXES)}) in the bracket folder")
     images = [read_image8(f) for f in files]
@@ -215,7 +250,8 @@ def load_bracket(folder: str | os.PathLike) -> Bracket:
                 raise InputError(f"{f}: no EXIF ExposureTime and no exposure-time file "
                                  f"({' / '.join(SIDECARS)}) in {root}")
             times.append(t)
-    return make_bracket(images, times, files)
+    black_img = read_image8(black_file) if black_file is not None else None
+    return make_bracket(images, times, files, black_img, black_file)
 
 
 def read_hdr(path: str | os.PathLike) -> NDArray[np.float32]:
@@ -347,42 +383,73 @@ def _check_response(response: ArrayLike, name: str) -> Array:
 
 # ----------------------------------------------------------------------------- merge
 
-def unusable_mask(bracket: Bracket, lo: int = LO, hi: int = HI) -> NDArray[np.bool_]:
+def noise_floor(black: ArrayLike, percentile: float = NOISE_PERCENTILE,
+                margin: int = NOISE_MARGIN) -> NDArray[np.int64]:
+    """Per-channel noise floor ``(3,)`` (8-bit levels) of a black frame ``(rows, cols, 3)``:
+    ``ceil`` of the ``percentile`` of each channel plus ``margin`` (see the module docstring)."""
+    b = np.asarray(black).reshape(-1, 3).astype(np.float64)
+    return np.ceil(np.percentile(b, percentile, axis=0)).astype(np.int64) + int(margin)
+
+
+def low_cutoff(bracket: Bracket, lo: int | Sequence[int] | None = None,
+               hi: int = HI) -> NDArray[np.int64]:
+    """The per-channel lower cutoff ``(3,)`` a merge uses: ``lo`` when given (one value or
+    R, G, B), else the :func:`noise_floor` of the bracket's black frame, else :data:`LO`."""
+    if lo is not None:
+        low = np.broadcast_to(np.asarray(lo, dtype=np.int64), (3,)).copy()
+        if not (np.all(low > 0) and np.all(low < hi) and 0 < hi < 255):
+            raise InputError(f"lo={lo}, hi={hi}: need 0 < lo < hi < 255")
+        return low
+    if bracket.black is None:
+        return np.full(3, LO, dtype=np.int64)
+    low = noise_floor(bracket.black)
+    if not 0 < hi < 255:
+        raise InputError(f"lo={low.tolist()}, hi={hi}: need 0 < lo < hi < 255")
+    if np.any(low >= hi):
+        raise InputError(f"{bracket.black_file}: noise floor R G B = {' '.join(map(str, low))} reaches --high {hi}: "
+                         f"not a black frame (cap the lens, same settings as the longest exposure) or pass --low N")
+    return low
+
+
+def unusable_mask(bracket: Bracket, lo: int | Sequence[int] | None = LO, hi: int = HI) -> NDArray[np.bool_]:
     """``(rows, cols, 3)`` True where a channel has no exposure with ``lo <= z <= hi``
-    (dark in every exposure, saturated in every exposure, or both in turn)."""
+    (dark in every exposure, saturated in every exposure, or both in turn); ``lo`` per
+    channel or one value (None: :func:`low_cutoff`)."""
+    low = low_cutoff(bracket, lo, hi)
     usable = np.zeros(bracket.images[0].shape, dtype=bool)
     for im in bracket.images:
-        usable |= (im >= lo) & (im <= hi)
+        usable |= (im >= low) & (im <= hi)
     return ~usable
 
 
-def merge_bracket(bracket: Bracket, response: ArrayLike | None = None, lo: int = LO,
+def merge_bracket(bracket: Bracket, response: ArrayLike | None = None, lo: int | Sequence[int] | None = None,
                   hi: int = HI) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
     """Linear relative radiance ``(rows, cols, 3)`` float32 and the :func:`unusable_mask`.
 
     ``cv2.createMergeDebevec`` averages ``log(response[z] / t)`` over the exposures with
     triangle weights (zero at 0 and 255). Values outside ``[lo, hi]`` are set to 0 / 255
-    first, so they get no weight (below ``lo`` an 8-bit gamma camera's noise and quantisation
-    step exceed 5 %), and it runs per channel so that a channel saturated in an exposure does
-    not borrow the weights of the others. Masked pixels get a bound instead: too bright in
+    first, so they get no weight (below ``lo`` noise dominates: the black frame's noise floor,
+    or on an 8-bit gamma camera without one, below 20, noise and quantisation exceed 5 %), and
+    it runs per channel so that a channel saturated in an exposure does not borrow the weights
+    of the others. ``lo`` is one value or R, G, B; None: :func:`low_cutoff` (the black frame's
+    :func:`noise_floor`, else :data:`LO`). Masked pixels get a bound instead: too bright in
     every exposure ``response[hi] / t_min`` (a lower bound), too dark in every exposure
     ``response[lo] / t_max`` (an upper bound, up to noise). Without ``response`` it is
     calibrated from this bracket."""
-    if not 0 < lo < hi < 255:
-        raise InputError(f"lo={lo}, hi={hi}: need 0 < lo < hi < 255")
+    low = low_cutoff(bracket, lo, hi)
     resp = calibrate_response(bracket) if response is None else _check_response(response, "response")
     times = bracket.times.astype(np.float32)
     merger = cv2.createMergeDebevec()
     out = np.empty(bracket.images[0].shape, dtype=np.float32)
     for c in range(3):
-        chans = [np.where(im[..., c] < lo, 0, np.where(im[..., c] > hi, 255, im[..., c])).astype(np.uint8)
+        chans = [np.where(im[..., c] < low[c], 0, np.where(im[..., c] > hi, 255, im[..., c])).astype(np.uint8)
                  for im in bracket.images]
         out[..., c] = merger.process(chans, times, np.ascontiguousarray(resp[:, c:c + 1], dtype=np.float32))
-    mask = unusable_mask(bracket, lo, hi)
+    mask = unusable_mask(bracket, low, hi)
     bright = np.all([im > hi for im in bracket.images], axis=0)
-    dark = np.all([im < lo for im in bracket.images], axis=0)
+    dark = np.all([im < low for im in bracket.images], axis=0)
     out = np.where(bright, (resp[hi] / bracket.times[0]).astype(np.float32), out)
-    out = np.where(dark, (resp[lo] / bracket.times[-1]).astype(np.float32), out)
+    out = np.where(dark, (resp[low, [0, 1, 2]] / bracket.times[-1]).astype(np.float32), out)
     if not np.all(np.isfinite(out)):
         raise InputError(f"{bracket.files[0].parent}: the merge produced non-finite values; check the response")
     return out, mask
@@ -400,9 +467,13 @@ def _cmd_response(args: argparse.Namespace) -> int:
 
 
 def _cmd_merge(args: argparse.Namespace) -> int:
-    bracket = load_bracket(args.folder)
+    bracket = load_bracket(args.folder, args.black)
+    low = low_cutoff(bracket, args.low, args.high)  # refuse a bad cutoff before the response solve
     resp = load_response(args.response) if args.response else calibrate_response(bracket)
-    img, mask = merge_bracket(bracket, resp, lo=args.low, hi=args.high)
+    img, mask = merge_bracket(bracket, resp, lo=low, hi=args.high)
+    source = ("--low" if args.low is not None else
+              f"noise floor of {bracket.black_file}" if bracket.black is not None else "default, no black frame")
+    print(f"lower cutoff R G B = {' '.join(map(str, low))} ({source})")
     png = cv2.imencode(".png", (mask[..., ::-1] * 255).astype(np.uint8))[1] if args.mask else None
     attrs = {"glsldiff": "linear relative radiance (Debevec-Malik merge, OpenCV)",
              "exposures_s": " ".join(f"{t:.6g}" for t in bracket.times)}
@@ -432,9 +503,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--response", help="response JSON (default: recovered from this bracket)")
     p.add_argument("--half", action="store_true", help="write 16-bit half floats instead of float32")
     p.add_argument("--mask", help="also write an 8-bit PNG, 255 where a channel is unusable")
-    p.add_argument("--low", type=int, default=LO,
-                   help=f"pixel values below this are noise, not signal (default {LO}); raise it to the "
-                        "camera's noise floor (e.g. the 99th percentile of a dark frame)")
+    p.add_argument("--low", type=int, default=None,
+                   help=f"pixel values below this are noise, not signal (default: the noise floor of the black "
+                        f"frame, ceil(99.9th percentile) + 2 per channel; {LO} without one)")
+    p.add_argument("--black", metavar="FILE",
+                   help="black frame (lens capped, settings of the longest exposure) for the noise floor "
+                        "(default: black.png / black.* in the bracket folder, if there)")
     p.add_argument("--high", type=int, default=HI, help=f"pixel values above this count as clipped (default {HI})")
     p.set_defaults(func=_cmd_merge)
     return parser

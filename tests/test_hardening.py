@@ -323,3 +323,18 @@ def test_comments_mentioning_nan_are_not_numbers(tmp_path):
     path = tmp_path / "commented.obj"
     path.write_text("\n".join(lines) + "\n")
     assert len(load_mesh(path).vertices) == len(m.vertices)
+
+
+def test_mesh_outside_the_size_range_in_file_units(tmp_path):
+    """A mesh 1e-30 units across, loaded without a size (file units taken as mm), is refused
+    naming the fix; with size_mm it is scaled (the commands always pass one: 100 mm default)."""
+    from glsldiff.mesh import load_mesh, sphere_mesh
+
+    m = sphere_mesh(0.5, subdivisions=2)
+    path = tmp_path / "tiny.obj"
+    path.write_text("\n".join([f"v {x:.9e} {y:.9e} {z:.9e}" for x, y, z in 1e-30 * np.asarray(m.vertices)]
+                              + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in m.faces]) + "\n")
+    with pytest.raises(InputError, match=r"1e-30 mm across in its file's units \(taken as mm\), outside "
+                                         r"0\.1 \.\. 100000 mm; scale it to a physical size with --size-mm"):
+        load_mesh(path)
+    assert np.ptp(load_mesh(path, size_mm=10.0).vertices, axis=0).max() == pytest.approx(10.0)

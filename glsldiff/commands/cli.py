@@ -217,7 +217,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=A.integer(2, 256), default=16, help="nodes per cube edge (paper: 16 for the bunny)")
     p.add_argument("--cubes", type=A.integer(1), default=253, help="target number of cubes (paper's bunny: 253)")
     p.add_argument("--cube-size", type=A.positive, default=None, help="cube edge in mm (overrides --cubes)")
-    p.add_argument("--size-mm", type=A.number(0.1, 1e5), default=100.0, help="scale the mesh to this longest extent, mm")
+    p.add_argument("--size-mm", type=A.number(0.1, 1e5), default=100.0, help="scale the mesh to this longest extent, mm (default %(default)s)")
     p.add_argument("--threshold", type=A.number(0.0, 1.0, lo_open=True), default=0.5, help="inside-volume fraction a cube needs")
     p.add_argument("--component", choices=("error", "largest"), default="error",
                    help="meshes with several components: refuse, or keep the largest")

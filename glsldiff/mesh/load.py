@@ -278,6 +278,12 @@ def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: 
         raise InputError(f"{label} has no faces ({len(v)} vertices); pass a closed triangle "
                          "surface")
     _check_finite(v, label)
+    if size_mm is None:
+        longest = float((v.max(axis=0) - v.min(axis=0)).max())
+        if not MIN_SIZE_MM <= longest <= MAX_SIZE_MM:
+            raise InputError(f"{label} is {longest:.3g} mm across in its file's units (taken as mm), outside "
+                             f"{MIN_SIZE_MM:g} .. {MAX_SIZE_MM:g} mm; scale it to a physical size with "
+                             "--size-mm (polygrid) or [mesh].size_mm (scenes)")
     repairs = _repair(ms) if repair else {}
     v, f = _arrays(ms)
     if len(f) == 0:

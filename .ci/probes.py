@@ -1,0 +1,149 @@
+#!/usr/bin/env python3
+"""Re-run the bad-input probes of the hardening issue against the installed ``glsldiff``
+and print one row per probe: exit code, stderr line count, seconds, files left behind, and
+the first stderr line. Run from the repository root: ``.venv/bin/python .ci/probes.py``.
+Each probe runs in a fresh temporary folder with GLSLDIFF_GL=osmesa and the cache off."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+GL = str(Path(sys.executable).with_name("glsldiff"))
+ENV = dict(os.environ, GLSLDIFF_GL="osmesa", GLSLDIFF_CACHE="off")
+
+SCENE = """[mesh]
+source = "sphere"
+size_mm = {size}
+[polygrid]
+n = {n}
+cubes = 20
+levels = 1
+[material]
+sigma_s_prime = {sp}
+sigma_a = 0.002
+{extra}
+[[lights]]
+type = "directional"
+direction = [0, 0, 1]
+irradiance = [{e}, {e}, {e}]
+[output]
+width = 32
+height = 32
+"""
+
+
+def scene(d: Path, size: float = 20, n: int = 4, sp: float = 1.0, e: float = 1.0, extra: str = "") -> str:
+    p = d / "s.toml"
+    p.write_text(SCENE.format(size=size, n=n, sp=sp, e=e, extra=extra))
+    return str(p)
+
+
+def files(d: Path) -> set[str]:
+    return {str(p.relative_to(d)) for p in d.rglob("*")}
+
+
+def run(name: str, make, interrupt_after: float | None = None) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        d = Path(tmp)
+        argv = make(d)
+        before = files(d)
+        t0 = time.perf_counter()
+        if interrupt_after is None:
+            p = subprocess.run([GL, *argv], cwd=d, env=ENV, capture_output=True, text=True, timeout=900)
+            code, err, out = p.returncode, p.stderr, p.stdout
+        else:
+            p = subprocess.Popen([GL, *argv], cwd=d, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            time.sleep(interrupt_after)
+            p.send_signal(signal.SIGINT)
+            out, err = p.communicate(timeout=300)
+            code = p.returncode
+        dt = time.perf_counter() - t0
+        lines = [l for l in err.splitlines() if l.strip() and not l.startswith(("setup:", "pass ", "fit:", "lightings"))]
+        if not lines and code != 0:   # a command that reports its interruption on stdout
+            lines = [l for l in out.splitlines() if l.strip()][-1:]
+        left = sorted(files(d) - before)
+        return {"probe": name, "exit": code, "err_lines": len(lines), "seconds": round(dt, 1),
+                "left": ",".join(left)[:60] or "-", "message": (lines[-1] if lines else "")[:150]}
+
+
+def npz_bad(d: Path, kind: str) -> str:
+    p = d / f"{kind}.npz"
+    if kind == "empty":
+        p.write_bytes(b"")
+    elif kind == "truncated":
+        np.savez(p, kappa=np.ones((4, 4, 4)))
+        p.write_bytes(p.read_bytes()[:100])
+    elif kind == "text":
+        p.write_text("this is not an archive\n")
+    elif kind == "pickle":
+        np.savez(p, kappa=np.array([object()], dtype=object))
+    elif kind == "missing-array":
+        np.savez(p, other=np.ones(3))
+    return str(p)
+
+
+PROBES = [
+    # bad npz of each kind, each reader
+    *[(f"scene volume npz: {k}", (lambda k: lambda d: ["render", scene(d, extra=f'volume = "{npz_bad(d, k)}"'), "-o", "r.exr"])(k))
+      for k in ("empty", "truncated", "text", "pickle", "missing-array")],
+    *[(f"fit measurements npz: {k}", (lambda k: lambda d: ["fit", npz_bad(d, k), "-o", "m.npz"])(k)) for k in ("empty", "text")],
+    ("fit --truth npz: truncated", lambda d: ["synth", "m.npz", "--size", "8", "8", "4", "--n", "2"] and
+     (subprocess.run([GL, "synth", str(d / "m.npz"), "--size", "8", "8", "4", "--n", "2"], env=ENV, capture_output=True),
+      ["fit", str(d / "m.npz"), "--truth", npz_bad(d, "truncated"), "-o", str(d / "f.npz")])[1]),
+    ("reflectance material npz: text", lambda d: (subprocess.run(
+        [GL, "synth", str(d / "m.npz"), "--size", "8", "8", "4", "--n", "2", "--setup", "front"], env=ENV, capture_output=True),
+        ["reflectance", str(d / "m.npz"), npz_bad(d, "text")])[1]),
+    # unwritable outputs
+    ("polygrid --out names a file", lambda d: (d.joinpath("f").write_text("x"), ["polygrid", "cow", "--n", "4", "--out", "f"])[1]),
+    ("polygrid --out unwritable", lambda d: ["polygrid", "cow", "--n", "4", "--out", "/proc/pg"]),
+    ("demo --out names a file", lambda d: (d.joinpath("f").write_text("x"), ["demo", "--out", "f"])[1]),
+    ("render -o /proc/x.exr", lambda d: ["render", scene(d), "-o", "/proc/x.exr"]),
+    # argument ranges
+    ("synth --seed -1", lambda d: ["synth", "m.npz", "--seed", "-1"]),
+    ("synth --size -4 8 8", lambda d: ["synth", "m.npz", "--size", "-4", "8", "8"]),
+    ("synth --noise nan", lambda d: ["synth", "m.npz", "--noise", "nan"]),
+    ("fit --max-seconds 0", lambda d: ["fit", "m.npz", "--max-seconds", "0"]),
+    ("polygrid --cube-size 0", lambda d: ["polygrid", "cow", "--cube-size", "0"]),
+    ("[polygrid] n = 512", lambda d: ["render", scene(d, n=512), "-o", "r.exr"]),
+    ("mesh at 1e-30 scale", lambda d: (d.joinpath("t.obj").write_text(
+        "v 0 0 0\nv 1e-30 0 0\nv 0 1e-30 0\nv 0 0 1e-30\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"), ["polygrid", "t.obj"])[1]),
+    ("mesh with a NaN vertex", lambda d: (d.joinpath("t.obj").write_text(
+        "v 0 0 0\nv 10 0 0\nv 0 10 0\nv 0 0 nan\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n"), ["polygrid", "t.obj"])[1]),
+    ("render size_mm = 1e-9", lambda d: ["render", scene(d, size=1e-9), "-o", "r.exr"]),
+    # silent wrong output
+    ("kappa ~ 3e5 mm (sigma_s' = 1e-6/mm)", lambda d: ["render", scene(d, sp=1e-6), "-o", "r.exr"]),
+    ("irradiance 1e38", lambda d: ["render", scene(d, e=1e38), "-o", "r.exr"]),
+    ("zero source", lambda d: ["render", scene(d, e=0.0), "-o", "r.exr"]),
+    # first run
+    ("bare glsldiff", lambda d: []),
+    ("validate without Mitsuba (if absent)", lambda d: ["validate", "--out", "v"]),
+]
+
+INTERRUPTS = [
+    ("Ctrl-C during render", lambda d: ["render", "-o", "r.exr"], 8.0),
+    ("Ctrl-C during fit", lambda d: (subprocess.run([GL, "synth", str(d / "m.npz"), "--size", "12", "12", "6", "--n", "3"],
+                                                    env=ENV, capture_output=True),
+                                     ["fit", str(d / "m.npz"), "-o", "f.npz", "--no-png"])[1], 20.0),
+]
+
+
+def main() -> int:
+    rows = [run(name, make) for name, make in PROBES]
+    rows += [run(name, make, after) for name, make, after in INTERRUPTS]
+    print("| probe | exit | stderr lines | s | files left | message |")
+    print("|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['probe']} | {r['exit']} | {r['err_lines']} | {r['seconds']} | {r['left']} | {r['message']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
