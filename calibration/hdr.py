@@ -31,12 +31,16 @@ and, unless given, measured from a *black frame*: an image of the bracket's size
 lens capped (or the scene unlit) at the bracket's longest exposure, either named ``black.*`` in
 the bracket folder (e.g. ``black.png``; it is then not one of the bracket's images and needs no
 exposure time) or passed as ``--black FILE``. The floor is the 99.9th percentile of each
-channel of the black frame, rounded up, plus 2 levels (:func:`noise_floor`): at the
-percentile itself a dark pixel still passes once in 1000 per exposure, i.e. ~0.5 % over a
-5-exposure bracket; the margin brings that well under 0.1 %. Without a black frame ``lo`` is
-:data:`LO` = 20. OpenCV's Debevec merge weighs the remaining values with a fixed triangle
-(``cv2.MergeDebevec`` takes no weights, nor does ``cv2.MergeRobertson``), so the floor is
-where the sensor noise enters.
+channel of the black frame, rounded up, plus 3 levels (:func:`noise_floor`): at the
+percentile itself a black pixel still passes once in 1000 per exposure (~0.5 % over a
+5-exposure bracket), and a dark pixel whose little signal the noise lifts just over the floor
+is read many times too bright; the margin keeps both out. On the simulated camera of
+:func:`~.synth_radiometric.noisy_camera` (black frame 17 / 20 / 18 at the 99.9th percentile)
+the dark pixels off by more than a factor 2 fall from 0.7-0.9 % with a cutoff of 20 to
+0.05-0.07 % (0.15-0.22 % with a margin of 2). Without a black frame ``lo`` is :data:`LO` = 20.
+OpenCV's Debevec merge weighs the remaining values with a fixed triangle (``cv2.MergeDebevec``
+takes no per-pixel weights, nor does ``cv2.MergeRobertson``), so the floor is where the sensor
+noise enters the merge.
 
 Command line: ``python -m glsldiff.calibration.hdr {response,merge} --help``. Reading, the
 response, the merge and their command stay in one module (a little over 400 lines): they share
@@ -70,7 +74,7 @@ SIDECARS = ("exposures.json", "exposures.csv", "exposures.txt")
 RESPONSE_FORMAT = "glsldiff-camera-response"
 LO, HI = 20, 235  # trusted pixel values: outside [LO, HI] noise, quantisation or clipping dominate
 BLACK_STEM = "black"  # a bracket folder's black frame: black.png, black.jpg, ... (not a bracket image)
-NOISE_PERCENTILE, NOISE_MARGIN = 99.9, 2  # noise floor = ceil(99.9th percentile of the black frame) + 2
+NOISE_PERCENTILE, NOISE_MARGIN = 99.9, 3  # noise floor = ceil(99.9th percentile of the black frame) + 3
 
 
 @dataclass(frozen=True)
@@ -132,9 +136,9 @@ def make_bracket(images: Sequence[ArrayLike], times: Sequence[float],
         blk_name = Path(black_file) if black_file is not None else Path("bracket", "black frame")
         blk = np.asarray(black)
         if blk.dtype != np.uint8 or blk.shape != imgs[0].shape:
-            raise InputError(f"{blk_name}: black frame {blk.dtype} {blk.shape[1::-1] if blk.ndim >= 2 else blk.shape}"
-                             f" does not match the bracket's 8-bit {imgs[0].shape[1]}x{imgs[0].shape[0]} RGB "
-                             f"images; take it with the same camera settings (or pass --low N)")
+            raise InputError(f"{blk_name}: black frame of shape {blk.shape} ({blk.dtype}) does not match the "
+                             f"bracket's images {imgs[0].shape} (uint8); take it with the same camera and size, "
+                             f"or pass --low N instead")
         blk = np.ascontiguousarray(blk)
     return Bracket(tuple(imgs[k] for k in order), t[order], tuple(names[k] for k in order), blk, blk_name)
 
@@ -396,7 +400,10 @@ def low_cutoff(bracket: Bracket, lo: int | Sequence[int] | None = None,
     """The per-channel lower cutoff ``(3,)`` a merge uses: ``lo`` when given (one value or
     R, G, B), else the :func:`noise_floor` of the bracket's black frame, else :data:`LO`."""
     if lo is not None:
-        low = np.broadcast_to(np.asarray(lo, dtype=np.int64), (3,)).copy()
+        try:
+            low = np.broadcast_to(np.asarray(lo, dtype=np.int64), (3,)).copy()
+        except (ValueError, TypeError):
+            raise InputError(f"lo={lo!r}: give one pixel value or three (R, G, B)") from None
         if not (np.all(low > 0) and np.all(low < hi) and 0 < hi < 255):
             raise InputError(f"lo={lo}, hi={hi}: need 0 < lo < hi < 255")
         return low
@@ -505,7 +512,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mask", help="also write an 8-bit PNG, 255 where a channel is unusable")
     p.add_argument("--low", type=int, default=None,
                    help=f"pixel values below this are noise, not signal (default: the noise floor of the black "
-                        f"frame, ceil(99.9th percentile) + 2 per channel; {LO} without one)")
+                        f"frame, ceil(99.9th percentile) + 3 per channel; {LO} without one)")
     p.add_argument("--black", metavar="FILE",
                    help="black frame (lens capped, settings of the longest exposure) for the noise floor "
                         "(default: black.png / black.* in the bracket folder, if there)")
