@@ -37,7 +37,9 @@ def sphere_fluence(r: ArrayLike, radius: float, kappa: float, mu: float, C: floa
 
     Solves ``kappa Laplacian phi - mu phi = 0`` with ``phi + 2 C kappa dphi/dr = q`` at
     ``r = radius``: ``phi(r) = a sinh(s r) / r``, ``s = sqrt(mu / kappa)`` (``phi = q``
-    everywhere for ``mu = 0``). ``r`` (mm) is the distance from the centre.
+    everywhere for ``mu = 0``). ``r`` (mm) is the distance from the centre. Evaluated as
+    ``q / D0 * (R / r) e^{s (r - R)} expm1(-2 s r) / expm1(-2 s R)`` with
+    ``D0 = 1 + 2 C kappa (s coth(s R) - 1 / R)``, which does not overflow for large ``s R``.
     """
     if kappa <= 0 or mu < 0 or radius <= 0:
         raise ValueError("sphere_fluence needs kappa > 0, mu >= 0, radius > 0")
@@ -45,10 +47,10 @@ def sphere_fluence(r: ArrayLike, radius: float, kappa: float, mu: float, C: floa
     if mu == 0:
         return np.full_like(r, float(q))
     s = np.sqrt(mu / kappa)
-    R = radius
-    shape = np.sinh(s * R) / R
-    slope = s * np.cosh(s * R) / R - np.sinh(s * R) / R ** 2
-    a = q / (shape + 2.0 * C * kappa * slope)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = a * np.sinh(s * r) / r
-    return np.where(r > 1e-12 * R, out, a * s)
+    R = float(radius)
+    x, X = s * r, s * R
+    D0 = 1.0 + 2.0 * C * kappa * (s / np.tanh(X) - 1.0 / R)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        shape = R / r * np.exp(x - X) * np.expm1(-2.0 * x) / np.expm1(-2.0 * X)
+    centre = 2.0 * X * np.exp(-X) / -np.expm1(-2.0 * X)          # the limit r -> 0
+    return q / D0 * np.where(r > 1e-12 * R, shape, centre)

@@ -1,0 +1,235 @@
+"""The pillowed polycube complex: the lattice's cells, split into tetrahedra, plus one layer
+of "pillow" cells between the lattice and the object's surface.
+
+Topology only (positions come from :mod:`glsldiff.grids.fem_grid`). Nodes ``0 .. N-1`` are
+the lattice's nodes (:class:`glsldiff.grids.lattice.Lattice`, texture order); nodes
+``N .. N+S-1`` are the **surface nodes**, one copy of each lattice node on the outer surface
+of the cell complex (:attr:`PillowComplex.outer`), to be placed on the object's surface.
+
+* **Cells**: the lattice cubes whose eight corner nodes all exist, each split into the six
+  Kuhn tetrahedra along its main diagonal (corner 0 -> 7). The split is conforming: each
+  face of a cell is cut along the diagonal from its lowest to its highest corner.
+* **Pillows**: every outer face (a cell face used by one cell) is extruded to the surface
+  copies of its four nodes, cut into two prisms along the same diagonal as the cell face,
+  and each prism into three tetrahedra by the lowest-index-vertex rule (Dompierre et al.
+  1999), which makes shared prism faces conforming.
+* **Surface**: the outer triangles of the pillows (copies only), oriented outward.
+
+Why a pillow layer: mapping a polycube onto a smooth surface flattens every cell that has
+two faces on the polycube surface (at polycube edges and corners), so that a lattice
+mapped directly is degenerate there and a discretisation on it cannot converge. With one
+layer of pillows no cell has two faces on the surface. Reference geometry
+(:meth:`PillowComplex.reference_positions`: lattice nodes at their cell centres, surface
+nodes at the polycube surface, half a step outward along each axis of their outer faces)
+fills the polycube exactly (tetrahedra of zero volume at saddle vertices of the polycube).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.core.errors import InputError
+from glsldiff.grids.lattice import Lattice
+
+__all__ = ["PillowComplex", "KUHN", "prism_tets", "signed_volumes"]
+
+#: Cell corners in bit order (bit 0: +x, bit 1: +y, bit 2: +z).
+CORNERS = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=np.int64)
+#: The six Kuhn tetrahedra of a cell: monotone corner paths 0 -> a -> a+b -> 7.
+KUHN = np.array([[0, a, a + b, 7] for a, b in ((1, 2), (1, 4), (2, 1), (2, 4), (4, 1), (4, 2))], dtype=np.int64)
+#: Corner bits of a cell face (axis, side), in the order c00, c10, c01, c11 of its two other axes.
+FACE_BITS = {(axis, side): [b for b in range(8) if (b >> axis) & 1 == side] for axis in range(3) for side in (0, 1)}
+_ROTATE = np.array([[0, 1, 2, 3, 4, 5], [1, 2, 0, 4, 5, 3], [2, 0, 1, 5, 3, 4]])
+
+
+def prism_tets(prisms: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``(M, 6)`` prisms ``p0 p1 p2 q0 q1 q2`` (``q_i`` above ``p_i``) -> ``(M, 3, 4)`` column
+    indices (0..5) of each prism's three tetrahedra (orientation not normalised).
+
+    Each quadrilateral face is cut along the diagonal through its lowest-index vertex, so
+    two prisms sharing a face cut it alike (Dompierre, Labbe, Vallet & Camarero 1999)."""
+    P = np.array(prisms, dtype=np.int64)
+    cols = np.tile(np.arange(6), (len(P), 1))
+    top = P[:, 3:].min(axis=1) < P[:, :3].min(axis=1)
+    cols[top] = cols[top][:, [3, 4, 5, 0, 1, 2]]
+    vals = np.take_along_axis(P, cols, axis=1)
+    rot = _ROTATE[np.argmin(vals[:, :3], axis=1)]
+    cols, vals = np.take_along_axis(cols, rot, axis=1), np.take_along_axis(vals, rot, axis=1)
+    p0, p1, p2, q0, q1, q2 = cols.T
+    a = (np.minimum(vals[:, 1], vals[:, 5]) < np.minimum(vals[:, 2], vals[:, 4]))[:, None]
+    T = np.empty((len(P), 3, 4), dtype=np.int64)
+    T[:, 0] = np.where(a, np.stack([p0, p1, p2, q2], 1), np.stack([p0, p1, p2, q1], 1))
+    T[:, 1] = np.where(a, np.stack([p0, p1, q2, q1], 1), np.stack([p0, p2, q1, q2], 1))
+    T[:, 2] = np.stack([p0, q1, q2, q0], 1)
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class PillowComplex:
+    """Tetrahedra and surface triangles of a pillowed lattice (see the module docstring)."""
+
+    lattice: Lattice
+
+    @classmethod
+    def build(cls, lattice: Lattice) -> "PillowComplex":
+        c = cls(lattice)
+        if len(c.cells) == 0:
+            raise InputError(f"the lattice of {len(lattice.cubes)} cube(s) with n = {lattice.n} has no cell "
+                             "(a cube of 8 nodes); use n >= 2 or more cubes")
+        return c
+
+    # ---- cells and outer faces -------------------------------------------------------
+    @cached_property
+    def cells(self) -> NDArray[np.int64]:
+        """``(C, 8)`` node indices of the complete lattice cells, corners in bit order."""
+        lat = self.lattice
+        cid = np.stack([lat.index_of(lat.coords + c) for c in CORNERS], axis=1)
+        return cid[np.all(cid >= 0, axis=1)]
+
+    @cached_property
+    def _outer(self) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+        quads, axes, sides = [], [], []
+        for (axis, side), bits in FACE_BITS.items():
+            quads.append(self.cells[:, bits])
+            axes.append(np.full(len(self.cells), axis))
+            sides.append(np.full(len(self.cells), side))
+        q, ax, sd = np.concatenate(quads), np.concatenate(axes), np.concatenate(sides)
+        _, inv, cnt = np.unique(np.sort(q, axis=1), axis=0, return_inverse=True, return_counts=True)
+        once = cnt[inv.ravel()] == 1
+        return q[once], ax[once], sd[once]
+
+    @property
+    def outer_quads(self) -> NDArray[np.int64]:
+        """``(Q, 4)`` lattice nodes ``c00, c10, c01, c11`` of each outer face."""
+        return self._outer[0]
+
+    @property
+    def outer_axes(self) -> NDArray[np.int64]:
+        """``(Q,)`` axis (0 x, 1 y, 2 z) of each outer face's outward normal."""
+        return self._outer[1]
+
+    @property
+    def outer_signs(self) -> NDArray[np.int64]:
+        """``(Q,)`` +1 / -1: the outward normal points along / against its axis."""
+        return np.where(self._outer[2] == 1, 1, -1)
+
+    @cached_property
+    def outer(self) -> NDArray[np.int64]:
+        """``(S,)`` lattice nodes on the outer surface of the cell complex (sorted)."""
+        return np.unique(self.outer_quads)
+
+    @cached_property
+    def used(self) -> NDArray[np.int64]:
+        """``(U,)`` lattice nodes that belong to at least one cell (sorted)."""
+        return np.unique(self.cells)
+
+    @property
+    def n_lattice(self) -> int:
+        return self.lattice.size_nodes
+
+    @property
+    def n_nodes(self) -> int:
+        """Lattice nodes plus surface nodes."""
+        return self.n_lattice + len(self.outer)
+
+    @cached_property
+    def copy_of(self) -> NDArray[np.int64]:
+        """``(N,)`` the surface node of each outer lattice node, -1 elsewhere."""
+        c = np.full(self.n_lattice, -1, dtype=np.int64)
+        c[self.outer] = self.n_lattice + np.arange(len(self.outer))
+        return c
+
+    @cached_property
+    def outward_axes(self) -> NDArray[np.float64]:
+        """``(S, 3)`` per surface node: +1 / -1 / 0 per axis, the outward directions of its
+        outer faces (one on a polycube face, two at an edge, three at a corner; at a saddle
+        vertex the sign of their sum)."""
+        acc = np.zeros((self.n_lattice, 3), dtype=np.int64)
+        for k in range(4):
+            np.add.at(acc, (self.outer_quads[:, k], self.outer_axes), self.outer_signs)
+        return np.sign(acc[self.outer]).astype(np.float64)
+
+    # ---- tetrahedra and surface ------------------------------------------------------
+    @cached_property
+    def _pillow_prisms(self) -> NDArray[np.int64]:
+        c00, c10, c01, c11 = self.outer_quads.T
+        k = self.copy_of
+        return np.concatenate([np.stack([c00, c10, c11, k[c00], k[c10], k[c11]], 1),
+                               np.stack([c00, c11, c01, k[c00], k[c11], k[c01]], 1)])
+
+    @cached_property
+    def tets(self) -> NDArray[np.int64]:
+        """``(T, 4)`` tetrahedra, right-handed: the cells' in the lattice geometry, each
+        pillow's in its own right prism (the outer face extruded one step along its normal),
+        which orients the complex consistently even where the surface folds."""
+        lat = self.lattice
+        cells = self.cells[:, KUHN].reshape(-1, 4)
+        P = self._pillow_prisms
+        local = prism_tets(P)                                        # (M, 3, 4) columns
+        ref = lat.lattice_positions
+        axis = np.concatenate([self.outer_axes, self.outer_axes])
+        sign = np.concatenate([self.outer_signs, self.outer_signs])
+        up = np.zeros((len(P), 3))
+        up[np.arange(len(P)), axis] = sign * lat.h
+        geo = np.concatenate([ref[P[:, :3]], ref[P[:, :3]] + up[:, None]], axis=1)   # (M, 6, 3)
+        m = np.repeat(np.arange(len(P)), 3)
+        pillows = np.take_along_axis(P, local.reshape(len(P), -1), axis=1).reshape(-1, 4)
+        pv = _signed_volumes_of(geo[m[:, None], local.reshape(-1, 4)])
+        cv = _signed_volumes(ref, cells)
+        cells[cv < 0] = cells[cv < 0][:, [0, 2, 1, 3]]
+        pillows[pv < 0] = pillows[pv < 0][:, [0, 2, 1, 3]]
+        return np.concatenate([cells, pillows])
+
+    @property
+    def n_cell_tets(self) -> int:
+        """The first ``6 C`` tetrahedra are the lattice cells', the rest the pillows'."""
+        return 6 * len(self.cells)
+
+    @cached_property
+    def surface(self) -> NDArray[np.int64]:
+        """``(2Q, 3)`` surface-node triangles, counter-clockwise seen from outside (oriented
+        like the outer faces of their pillow tetrahedra)."""
+        c00, c10, c01, c11 = self.outer_quads.T
+        k = self.copy_of
+        tri = np.concatenate([np.stack([k[c00], k[c10], k[c11]], 1), np.stack([k[c00], k[c11], k[c01]], 1)])
+        # the same extruded-prism geometry as tets: q_i = p_i + h * outward normal
+        lat = self.lattice
+        ref = lat.lattice_positions
+        axis = np.concatenate([self.outer_axes, self.outer_axes])
+        sign = np.concatenate([self.outer_signs, self.outer_signs])
+        base = np.concatenate([np.stack([c00, c10, c11], 1), np.stack([c00, c11, c01], 1)])
+        P = ref[base]
+        n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+        flip = n[np.arange(len(tri)), axis] * sign < 0
+        tri[flip] = tri[flip][:, [0, 2, 1]]
+        return tri
+
+    def reference_positions(self) -> NDArray[np.float64]:
+        """``(N + S, 3)`` mm: lattice nodes at their cell centres, surface nodes on the
+        polycube surface (half a step outward along each of their outer faces' axes).
+        Lattice nodes of no cell keep their lattice position."""
+        lat = self.lattice
+        ref = lat.lattice_positions
+        return np.concatenate([ref, ref[self.outer] + 0.5 * lat.h * self.outward_axes])
+
+    def counts(self) -> dict[str, int]:
+        return {"cells": len(self.cells), "lattice_nodes_used": len(self.used), "surface_nodes": len(self.outer),
+                "tets": len(self.tets), "surface_triangles": len(self.surface)}
+
+
+def _signed_volumes(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+    return _signed_volumes_of(X[tets])
+
+
+def _signed_volumes_of(P: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(..., 4, 3)`` vertex positions -> signed volumes."""
+    return np.einsum("...j,...j->...", np.cross(P[..., 1, :] - P[..., 0, :], P[..., 2, :] - P[..., 0, :]),
+                     P[..., 3, :] - P[..., 0, :]) / 6.0
+
+
+def signed_volumes(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+    """``(T,)`` signed tetrahedron volumes, mm^3 (positive: right-handed)."""
+    return _signed_volumes(np.asarray(X, dtype=np.float64), np.asarray(tets, dtype=np.int64))
