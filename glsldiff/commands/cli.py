@@ -20,6 +20,7 @@ from glsldiff.bench import forward as forward_bench
 from glsldiff.bench import polygrid as polygrid_study
 from glsldiff.bench.convergence import convergence_bench
 from glsldiff.bench.sphere import sphere_study
+from glsldiff.bench.sphere_lights import DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study
 from glsldiff.commands.inverse import add_parsers
 from glsldiff.core import io
 from glsldiff.core.io import check_output_folder, keep_created_folders, remove_created_folders
@@ -129,6 +130,23 @@ def cmd_bench_sphere(args: argparse.Namespace) -> int:
           "nodes; glsl_vs_direct: GPU Jacobi vs the direct (SuperLU, or pyamg above 20k nodes) solve "
           "of the same system.")
     print(f"wrote sphere.csv and sphere.png to {args.out}/")
+    return 0
+
+
+def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
+    out = check_output_folder(args.out)
+    rows = sphere_light_study(ns=args.n, polygrid_ns=args.polygrid_n, cube_size=args.cube_size,
+                              cube_sizes=args.cube_sizes, n_fixed=args.n_fixed, polygrid_n_fixed=args.polygrid_n_fixed,
+                              radius=args.radius, discretisations=args.discretisations, out=out,
+                              progress=lambda line: print(line, file=sys.stderr, flush=True))
+    cols = ("discretisation", "series", "n", "cube_mm", "h_mm", "nodes", "inverted", "light", "rel_rms", "rel_max",
+            "solve_s")
+    print_table(f"sphere R = {args.radius} mm under lights: exitant bracket B vs the exact series",
+                [{k: r[k] for k in cols} for r in rows])
+    print("rel_rms = ||B - B_series|| / ||B_series||, rel_max = max |B - B_series| / max |B_series| over the "
+          "surface (fem) or boundary (paper, conservative) nodes; exact discrete solves, so discretisation "
+          "error only. series n: fixed polycube, more nodes per cube; series cubes: n fixed, smaller cubes.")
+    print(f"wrote sphere_lights.csv and sphere_lights.png to {out}/")
     return 0
 
 
@@ -243,6 +261,22 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_sphere)
+
+    b = bsub.add_parser("sphere-lights", help="sphere under directional lights and a spot vs the exact series: "
+                                               "fem (tetrahedra) and the lattice stencils, both refinements")
+    b.add_argument("--n", type=A.integer(2, 64), nargs="+", default=[2, 4, 8], help="fem nodes per cube edge")
+    b.add_argument("--polygrid-n", type=A.integer(2, 64), nargs="+", default=[4, 6, 8],
+                   help="lattice-stencil nodes per cube edge")
+    b.add_argument("--cube-size", type=A.positive, default=5.0, help="cube edge of series n, mm")
+    b.add_argument("--cube-sizes", type=A.positive, nargs="*", default=[5.0, 3.333, 2.5],
+                   help="cube edges of series cubes, mm")
+    b.add_argument("--n-fixed", type=A.integer(2, 64), default=2, help="fem nodes per cube edge of series cubes")
+    b.add_argument("--polygrid-n-fixed", type=A.integer(2, 64), default=4,
+                   help="lattice-stencil nodes per cube edge of series cubes")
+    b.add_argument("--radius", type=A.positive, default=10.0, help="sphere radius, mm")
+    b.add_argument("--discretisations", nargs="+", default=list(SPHERE_DISCRETISATIONS), choices=SPHERE_DISCRETISATIONS)
+    b.add_argument("--out", default="bench-out")
+    b.set_defaults(func=cmd_bench_sphere_lights)
 
     b = bsub.add_parser("convergence", help="figure 15: single, hierarchical, adaptive, multigrid vs scipy, "
                                              "error against work and time")

@@ -1,4 +1,4 @@
-"""Built polygrids through the on-disk cache (:mod:`glsldiff.core.cache`): the polycube
+"""Built polygrids and tetrahedral (pillowed) grids through the on-disk cache (:mod:`glsldiff.core.cache`): the polycube
 search, mapping and weights of a mesh take tens of seconds (13 s for the default bunny), the
 same every run.
 
@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 
 from glsldiff.core import cache
+from glsldiff.grids.fem_grid import FemGrid, build_fem_grid
 from glsldiff.grids.polygrid import Polygrid, build_polygrid
 from glsldiff.mesh import Mesh
 
@@ -19,19 +20,28 @@ from glsldiff.mesh import Mesh
 CACHE_VERSION = 1
 
 
-def polygrid_key(mesh: Mesh, **params: Any) -> str:
-    """Hex digest of the mesh's arrays and the build parameters."""
-    return cache.digest(f"polygrid v{CACHE_VERSION}", np.asarray(mesh.vertices, dtype=np.float64),
+def polygrid_key(mesh: Mesh, kind: str = "polygrid", **params: Any) -> str:
+    """Hex digest of the grid kind, the mesh's arrays and the build parameters."""
+    return cache.digest(f"{kind} v{CACHE_VERSION}", np.asarray(mesh.vertices, dtype=np.float64),
                         np.asarray(mesh.faces, dtype=np.int64), sorted(params.items()))
+
+
+def _cached(kind: str, build: Any, cls: type, mesh: Mesh, params: dict[str, Any]) -> tuple[Any, bool]:
+    key = polygrid_key(mesh, kind, **params)
+    grid = cache.load(kind, key, cls)
+    if grid is not None:
+        return grid, True
+    grid = build(mesh, **params)
+    cache.store(kind, key, grid)
+    return grid, False
 
 
 def cached_polygrid(mesh: Mesh, **params: Any) -> tuple[Polygrid, bool]:
     """:func:`~glsldiff.grids.polygrid.build_polygrid` ``(mesh, **params)`` through the cache;
     returns the polygrid and whether it came from the cache."""
-    key = polygrid_key(mesh, **params)
-    pg = cache.load("polygrid", key, Polygrid)
-    if pg is not None:
-        return pg, True
-    pg = build_polygrid(mesh, **params)
-    cache.store("polygrid", key, pg)
-    return pg, False
+    return _cached("polygrid", build_polygrid, Polygrid, mesh, params)
+
+
+def cached_fem_grid(mesh: Mesh, **params: Any) -> tuple[FemGrid, bool]:
+    """:func:`~glsldiff.grids.fem_grid.build_fem_grid` ``(mesh, **params)`` through the cache."""
+    return _cached("femgrid", build_fem_grid, FemGrid, mesh, params)

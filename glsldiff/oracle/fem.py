@@ -14,16 +14,25 @@ Units: lengths mm, ``K`` and ``A`` in mm, ``b`` in mm^2 times the source's units
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+import pyamg
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
+from glsldiff.oracle.assembly import LinearSystem
+from glsldiff.system.report import REFERENCE_TOL, SolveReport
+from glsldiff.system.tet_problem import TetProblem
 
-__all__ = ["TetGeometry", "assemble_p1"]
+__all__ = ["TetGeometry", "assemble_p1", "assemble_tet", "solve_tet_direct", "DIRECT_MAX_NODES"]
+
+#: Above this many unknowns per channel the reference solve is pyamg (SuperLU fills in).
+DIRECT_MAX_NODES = 20_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -92,3 +101,40 @@ def assemble_p1(geo: TetGeometry, kappa: ArrayLike, mu: ArrayLike, q: ArrayLike,
     q_n = np.broadcast_to(np.asarray(q, dtype=np.float64), (n,))
     A = geo.stiffness(kappa) + sp.diags(mu_n * geo.node_volumes + geo.node_areas / (2.0 * C))
     return A.tocsr(), geo.node_areas * q_n / (2.0 * C)
+
+
+def assemble_tet(problem: TetProblem) -> LinearSystem:
+    """The :class:`~glsldiff.oracle.assembly.LinearSystem` (three channels, channel-major, over
+    the grid's active nodes) of a :class:`~glsldiff.system.tet_problem.TetProblem`."""
+    g = problem.grid
+    geo = TetGeometry(np.asarray(g.positions, dtype=np.float64), np.asarray(g.tets), np.asarray(g.surface))
+    active = np.flatnonzero(g.active)
+    q = problem.node_source()
+    blocks, rhs = [], []
+    for c in range(3):
+        A, b = assemble_p1(geo, problem.kappa[:, c], problem.mu[:, c], q[:, c], problem.C)
+        blocks.append(A[active][:, active])
+        rhs.append(b[active])
+    A = sp.block_diag(blocks, format="csr")
+    return LinearSystem(A, np.concatenate(rhs), A.diagonal(), active)
+
+
+def solve_tet_direct(problem: TetProblem) -> tuple[NDArray[np.float64], SolveReport]:
+    """Exact discrete solution (SuperLU per channel; pyamg to a 1e-12 residual above
+    :data:`~glsldiff.oracle.solvers.DIRECT_MAX_NODES` nodes): fluence ``(n, 3)`` and report."""
+    t0 = time.perf_counter()
+    s = assemble_tet(problem)
+    x = np.zeros(3 * s.n)
+    for c in range(3):
+        A, b = s.block(c)
+        if s.n <= DIRECT_MAX_NODES:
+            x[c * s.n:(c + 1) * s.n] = spla.splu(A.tocsc()).solve(b)
+        else:
+            ml = pyamg.smoothed_aggregation_solver(A, symmetry="symmetric")
+            x[c * s.n:(c + 1) * s.n] = ml.solve(b, tol=REFERENCE_TOL, maxiter=200, accel="cg")
+    phi = np.zeros((problem.n_nodes, 3))
+    phi[s.active] = x.reshape(3, s.n).T
+    rep = SolveReport(method="scipy-direct" if s.n <= DIRECT_MAX_NODES else "pyamg-sa-cg", nodes=s.n, sweeps=0,
+                      residual=s.residual(x), seconds=time.perf_counter() - t0, converged=True,
+                      radiance=problem.exitant_radiance(phi))
+    return phi, rep

@@ -49,7 +49,7 @@ from glsldiff import gl
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
-from glsldiff.grids.cache import cached_polygrid
+from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.lights import DirectLight, EnvironmentLight, ProjectorLight, projector_factor
@@ -59,9 +59,12 @@ from glsldiff.render.materials import node_material, surface_reflectance
 from glsldiff.render.pass1 import incident_light, visibility
 from glsldiff.render.report import RenderReport
 from glsldiff.render.scene import Scene
-from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, vertex_interpolation
+from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
 from glsldiff.solve.multilevel import MultilevelDiffusion
+from glsldiff.oracle.fem import assemble_tet
+from glsldiff.solve.gather import GlslSparse
 from glsldiff.system.problem import DiffusionProblem
+from glsldiff.system.tet_problem import TetProblem
 from glsldiff.system.report import CURRENT
 
 
@@ -119,22 +122,28 @@ class Renderer:
         else:
             src = m.source if m.source in SAMPLE_MESHES else str(scene.resolve(m.source))
             mesh = load_mesh(src, size_mm=m.size_mm)
-        self._say(f"setup: polygrid of {m.source} (n = {g.n}, about {g.cubes} cubes): building it takes "
+        fem = g.discretisation == "fem"
+        what = "tetrahedral polygrid" if fem else "polygrid"
+        self._say(f"setup: {what} of {m.source} (n = {g.n}, about {g.cubes} cubes): building it takes "
                   "seconds to minutes the first time, then it is read from the cache")
         t0 = time.perf_counter()
-        pg, cached = cached_polygrid(mesh, n=g.n, n_cubes=g.cubes)
-        self._say(f"setup: polygrid {'read from the cache' if cached else 'built'} in "
+        pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
+        self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
                   f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
-        hier = Hierarchy.build(pg, g.levels)   # levels = 1: the polygrid alone
-        render_mesh = subdivide(mesh, pg.lattice.h)
+        hier = None if fem else Hierarchy.build(pg, g.levels)   # levels = 1: the polygrid alone
+        h = pg.h if fem else pg.lattice.h
+        render_mesh = subdivide(mesh, h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
+        interp = (surface_interpolation(v, pg.boundary_positions, pg.surface_triangles) if fem
+                  else vertex_interpolation(v, pg.boundary_positions))
         self._geo = {"mesh": mesh, "render_mesh": render_mesh, "pg": pg, "hier": hier, "vertices": v, "faces": f,
-                     "normals": render_mesh.vertex_normals, "interp": vertex_interpolation(v, pg.boundary_positions)}
+                     "normals": render_mesh.vertex_normals, "interp": interp, "fem": fem}
 
     def _material(self, scene: Scene) -> None:
         pg = self._geo["pg"]
         kappa, mu, info = node_material(scene, pg.positions, pg)
-        self._mat = {"kappa": kappa.reshape(pg.shape + (3,)), "mu": mu.reshape(pg.shape + (3,)), "info": info}
+        shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
+        self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
         if self._solver is not None:
             self._solver.release()
             self._solver = None
@@ -162,17 +171,19 @@ class Renderer:
             self._status(line)
 
     def _pass2(self, scene: Scene, warm: bool) -> None:
-        pg, opts = self._geo["pg"], scene.options
-        self._say(f"pass 2: {opts.scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
+        pg, opts, fem = self._geo["pg"], scene.options, self._geo["fem"]
+        scheme = "single-level damped Jacobi (tetrahedra)" if fem else opts.scheme
+        self._say(f"pass 2: {scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
         gl.make_current(self.ctx)
         x0: Any = CURRENT if warm and opts.scheme != "multigrid" else None
-        key = cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", pg.positions, pg.weights, self._mat["kappa"],
-                           self._mat["mu"], self._q, scene.material.eta, opts.scheme, opts.precision, opts.tol)
+        key = cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", scene.polygrid.discretisation, pg.positions,
+                           pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q,
+                           scene.material.eta, opts.scheme, opts.precision, opts.tol)
         if self._solver is None:
-            problem = DiffusionProblem(pg, self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
-                                       stencil="conservative")
-            self._solver = MultilevelDiffusion(self._geo["hier"], problem, opts.scheme, ctx=self.ctx, precision=opts.precision)
+            self._solver = self._fem_solver(scene) if fem else self._lattice_solver(scene)
             x0 = None
+        elif fem:
+            self._solver.set_b(self._fem_rhs(scene))
         else:
             self._solver.set_q(self._q)
         self._from_cache = False
@@ -187,8 +198,34 @@ class Renderer:
                               "--allow-unconverged writes the unconverged image")
         if rep.status == "converged" and not self._from_cache:
             cache.store("pass2", key, np.asarray(phi))
-        self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
+        if fem:
+            full = np.zeros((len(pg.positions), 3))
+            full[self._fem_active] = phi
+            self._phi_b = full[pg.surface_nodes]
+        else:
+            self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
         self._solve_report = rep
+
+    def _lattice_solver(self, scene: Scene) -> MultilevelDiffusion:
+        opts = scene.options
+        problem = DiffusionProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q,
+                                   eta=scene.material.eta, stencil=scene.polygrid.discretisation)
+        return MultilevelDiffusion(self._geo["hier"], problem, opts.scheme, ctx=self.ctx, precision=opts.precision)
+
+    def _fem_problem(self, scene: Scene) -> TetProblem:
+        return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta)
+
+    def _fem_rhs(self, scene: Scene) -> NDArray[np.float64]:
+        """``(n_active, 3)`` right-hand side of the P1 system for the current source."""
+        return assemble_tet(self._fem_problem(scene)).b.reshape(3, -1).T
+
+    def _fem_solver(self, scene: Scene) -> GlslSparse:
+        if scene.options.precision != "fp32":
+            raise InputError(f"{scene.source}: [options].precision = {scene.options.precision!r}: the fem "
+                             "discretisation solves in fp32 only; use precision = \"fp32\"")
+        system = assemble_tet(self._fem_problem(scene))
+        self._fem_active = system.active
+        return GlslSparse([system.block(c)[0] for c in range(3)], system.b.reshape(3, -1).T, ctx=self.ctx)
 
     @staticmethod
     def _shader_lights(scene: Scene) -> list[DirectLight]:

@@ -16,6 +16,7 @@ silently ignored).
     n = 8                     # nodes per cube edge
     cubes = 253               # polycube target cube count
     levels = 3                # hierarchy levels (1 = single resolution)
+    discretisation = "conservative"   # conservative | paper (6-point lattice) | fem (tetrahedra)
 
     [material]                # exactly one of: preset / sigma_a + sigma_s_prime / volume / procedural
     preset = "marble"
@@ -92,6 +93,9 @@ from numpy.typing import NDArray
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_image, read_npz
 from glsldiff.grids.polygrid import node_budget_problem
+
+#: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem).
+DISCRETISATIONS = ("conservative", "paper", "fem")
 from glsldiff.mesh import SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.physics.exitance import EXITANT
@@ -119,6 +123,7 @@ class PolygridSpec:
     n: int = 8
     cubes: int = 253
     levels: int = 3
+    discretisation: str = "conservative"
 
 
 @dataclass(frozen=True)
@@ -415,10 +420,14 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     mesh = MeshSpec(source, m.number("size_mm", 100.0, MIN_SIZE_MM, hi=MAX_SIZE_MM))
 
     g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
+    disc = g.string("discretisation", "conservative", DISCRETISATIONS)
     n = g.integer("n", 8, 2)
-    if n % 2:
+    levels = g.integer("levels", 3 if disc != "fem" else 1, 1)
+    if disc == "fem" and levels != 1:
+        g.fail("levels", "the fem discretisation solves on one level for now; use levels = 1")
+    if n % 2 and disc != "fem":
         g.fail("n", f"must be even (the hierarchy halves it), got {n}")
-    poly = PolygridSpec(n, g.integer("cubes", 253, 1), g.integer("levels", 3, 1))
+    poly = PolygridSpec(n, g.integer("cubes", 253, 1), levels, disc)
     problem = node_budget_problem(poly.cubes, n)
     if problem:
         g.fail("n", problem)
@@ -426,6 +435,9 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
         g.fail("levels", f"{poly.levels} levels need n >= {2 ** poly.levels}, got n = {n}")
 
     material = _material(_Table(src, "material", data.get("material", {}), _keys(MaterialSpec)), base_dir)
+    if disc == "fem" and (material.volume is not None or isinstance(material.reflectance, str)):
+        g.fail("discretisation", "a [material].volume or reflectance map is mapped through the lattice's "
+                                 "shell (shell texture functions); use discretisation = \"conservative\" with it")
     raw = data.get("lights", [])
     if not isinstance(raw, list):
         raise InputError(f"{src}: [[lights]]: must be an array of tables ([[lights]]), got {type(raw).__name__}")

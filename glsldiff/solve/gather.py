@@ -1,0 +1,594 @@
+"""Damped Jacobi in GLSL for a general sparse system with RGB channels ("gather": ELLPACK in
+textures), e.g. the P1 finite-element systems of :func:`glsldiff.oracle.fem.assemble_p1`.
+
+The system is one ``n x n`` matrix per colour channel, all three with the same sparsity
+pattern, and ``b`` as ``(n, 3)``. Node ``i`` lives at texel ``(i % W, i // W)`` of ``W x H``
+RGBA32F textures (``W`` the smallest power of two >= ``sqrt(n)``, so that the shader finds a
+neighbour's texel with a mask and a shift: llvmpipe has no vector integer division, and
+``j % W, j / W`` halved its sweep rate):
+
+``u_src`` / ``u_self``
+    the iterate ``x`` (a :class:`glsldiff.gl.PingPong` pair), rgb = channels;
+``u_diag``, ``u_b``
+    ``a_ii`` and ``b_i`` per channel (padding texels ``i >= n``: ``a_ii = 1``, ``b = 0``);
+``u_coef``
+    a 2-D texture array of ``K`` layers, ``K`` the most off-diagonal entries of a row
+    (ELLPACK): layer ``k`` at node ``i``'s texel holds the ``k``-th off-diagonal entry of row
+    ``i``, rgb = ``a_ij`` of the three channels, alpha = ``j`` as a float (exact for ``n <=
+    2^24``), and ``-1`` for an empty slot. Empty slots come last; the shader stops at the
+    first. Off-diagonal entries that are zero in all three channels (stored zeros, e.g. the
+    face diagonals of Kuhn tetrahedra on an undistorted cube) get no slot.
+
+A sweep is one full-screen quad (``shaders/quad.vert`` + ``shaders/gather.frag`` in its
+``JACOBI`` mode)::
+
+    x_i <- x_i + omega (b_i - a_ii x_i - sum_j a_ij x_j) / a_ii
+
+with texel fetches per node and sweep: ``x_i``, ``a_ii``, ``b_i`` and two per used slot
+(coefficient texel, ``x_j``), plus one for the first empty slot of a row shorter than ``K``:
+``3 + 2 k_i (+1)``, ``k_i`` the row's off-diagonal count.
+
+The packing (:func:`pack_nodes`, :func:`pack_ell`), the upload (:func:`upload_ell`) and the pass
+(:class:`GatherProgram`: one program, the operation chosen by the uniform ``u_mode``) are shared
+with the multigrid V-cycle of :mod:`glsldiff.solve.gather_multigrid`, whose restriction ``P^T``,
+prolongation ``P`` and dense coarsest-level inverse are rectangular "matrices" in the same
+format (every entry in a slot, ``APPLY`` and ``ADD`` modes) and whose residual is the
+``RESIDUAL`` mode. The source vector of a pass may have its own power-of-two width
+(``u_src_shift``): a level's texture gathers from a coarser or finer level's.
+
+Damping. For a symmetric positive definite ``A`` the eigenvalues ``lambda`` of ``D^-1 A``
+are real and positive, and damped Jacobi multiplies the error's component along each
+eigenvector by ``1 - omega lambda``. It converges iff ``omega lambda_max < 2``. On a
+7-point Laplacian ``lambda_max < 2`` (plain Jacobi, ``omega = 1``, converges), but the P1
+matrices of distorted tetrahedra have positive off-diagonal entries and reach
+``lambda_max(D^-1 A) > 2``, where plain Jacobi diverges (measured on the 10 mm sphere grids,
+5 mm cubes: 2.02 at n = 3, 2.43 at n = 8; 2.22 and 3.07 with an earlier mapping).
+``omega="auto"`` takes
+
+    omega = min(1, 1.9 / lambda_max)
+
+with ``lambda_max`` estimated on the CPU (Lanczos, :func:`jacobi_lambda_max`, the largest over
+the channels). Reasons: the slow (smooth) error modes contract by ``1 - omega lambda_min`` per
+sweep, so ``omega`` should be as large as the fast modes allow; ``1.9 / lambda_max`` keeps the
+fast modes' factor ``|1 - omega lambda|`` <= 0.9 (damped 200x per 50-sweep residual check, so
+they never dominate it) and leaves a 5 % margin for the estimate (a Lanczos Ritz value is a
+lower bound of ``lambda_max``; ARPACK's is converged to 1e-3). The optimum ``2 / (lambda_max +
+lambda_min)`` is ``2 / 1.9 (1 - lambda_min / lambda_max)`` times it, i.e. at most 5 % larger
+where Jacobi is slow (``lambda_min << lambda_max``), and would need ``lambda_min``, an expensive
+estimate (measured on the n = 8 sphere: 1070 sweeps to a 1e-4 residual with omega = 0.78
+(auto), 1280 with 0.651, 1660 with 0.5; omega = 1 diverges). The cap at 1 makes ``"auto"``
+plain Jacobi, the project's relaxation, wherever that converges with the same margin
+(``lambda_max <= 1.9``); on 7-point Laplacians (``lambda_max`` 1.95-1.99) auto's omega
+0.95-0.97 costs about 4 % more sweeps than plain Jacobi. The omega used is
+:attr:`GlslSparse.omega` and is part of the report's method string
+(``"glsl-gather-fp32(omega=0.7806)"``).
+
+Convergence is checked as for every relaxation, by :func:`glsldiff.oracle.solvers.relax`: the
+iterate is read back every ``check_every`` sweeps and its Jacobi-scaled residual ``max_c
+||D^-1 (b - A x)|| / ||D^-1 b||`` evaluated in float64 on the CPU system.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Callable, Sequence
+
+import moderngl
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff import gl
+from glsldiff.core.errors import InputError, SolverError
+from glsldiff.oracle.assembly import LinearSystem
+from glsldiff.oracle.solvers import Callback, relax
+from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
+
+__all__ = ["GlslSparse", "jacobi_lambda_max", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
+           "node_rhs", "check_symmetric", "distinct", "texture_width", "pack_nodes", "EllPack", "pack_ell",
+           "GatherMatrix", "upload_ell", "GatherProgram", "JACOBI", "RESIDUAL", "APPLY", "ADD"]
+
+PRECISIONS = ("fp32",)
+MAX_NODES = 1 << 24       # neighbour indices are stored as floats (exact integers below 2^24)
+OMEGA_TARGET = 1.9        # omega = min(1, OMEGA_TARGET / lambda_max) for omega="auto"
+_DENSE_EIG = 400          # below this many unknowns the eigenvalue is computed densely
+Matrices = sp.spmatrix | sp.sparray | NDArray | Sequence[sp.spmatrix | sp.sparray | NDArray]
+Start = ArrayLike | str | None  # x0: (n, 3) array, CURRENT, or None (zero)
+JACOBI, RESIDUAL, APPLY, ADD = 0, 1, 2, 3   # gather.frag u_mode
+
+
+# ---- the damping ----------------------------------------------------------------------------
+def jacobi_lambda_max(A: sp.spmatrix | sp.sparray, tol: float = 1e-3) -> float:
+    """Largest eigenvalue of ``D^-1 A`` (``D = diag(A)``) of a symmetric ``A`` with positive
+    diagonal: the largest eigenvalue of the similar ``D^-1/2 A D^-1/2``, by Lanczos (ARPACK,
+    ``tol`` relative; dense below 400 unknowns). If ARPACK does not converge, its best Ritz
+    value, or the Gershgorin bound ``max_i sum_j |a_ij| / a_ii`` if it has none."""
+    A = sp.csr_matrix(A, dtype=np.float64)
+    d = A.diagonal()
+    s = sp.diags(1.0 / np.sqrt(d))
+    S = (s @ A @ s).tocsr()
+    n = S.shape[0]
+    if n <= _DENSE_EIG:
+        return float(np.linalg.eigvalsh(S.toarray()).max())
+    v0 = np.random.default_rng(0).standard_normal(n)
+    try:
+        return float(spla.eigsh(S, k=1, which="LA", tol=tol, ncv=min(n - 1, 24), maxiter=50 * n,
+                                v0=v0, return_eigenvectors=False)[0])
+    except spla.ArpackNoConvergence as exc:
+        if len(exc.eigenvalues):
+            return float(np.max(exc.eigenvalues))
+        return float((abs(A).sum(axis=1).A1 / d).max())
+
+
+def auto_omega(lambda_max: float) -> float:
+    """``min(1, 1.9 / lambda_max)``: the damping of ``omega="auto"`` (module docstring)."""
+    return min(1.0, OMEGA_TARGET / lambda_max)
+
+
+# ---- input checks ---------------------------------------------------------------------------
+def channel_matrices(matrices: Matrices, who: str = "GlslSparse") -> list[sp.csr_matrix]:
+    """The three channel matrices of ``matrices`` (one for all channels, or three), checked
+    (square, real, finite, one stored pattern, positive diagonal, ``1 <= n <= MAX_NODES``) and
+    converted to float64 CSR with sorted indices; ``who`` names the solver in messages."""
+    if sp.issparse(matrices) or (isinstance(matrices, np.ndarray) and matrices.ndim == 2):
+        items = [matrices] * 3
+    elif isinstance(matrices, (list, tuple)) and len(matrices) == 3:
+        items = list(matrices)
+    else:
+        raise InputError("matrices: give one n x n sparse matrix (used for all three channels) or a "
+                         f"list of three (R, G, B), not {type(matrices).__name__}"
+                         + (f" of length {len(matrices)}" if isinstance(matrices, (list, tuple)) else ""))
+    out = []
+    for c, m in enumerate(items):
+        try:
+            M = sp.csr_matrix(m if sp.issparse(m) else np.asarray(m), copy=True)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"matrix of channel {c} is not a 2-D matrix ({exc})") from exc
+        if M.ndim != 2 or M.shape[0] != M.shape[1]:
+            raise InputError(f"matrix of channel {c} has shape {M.shape}; it must be square (n x n)")
+        if np.iscomplexobj(M.data) or M.data.dtype.kind not in "biuf":
+            raise InputError(f"matrix of channel {c} has dtype {M.data.dtype}; it must be real")
+        M = M.astype(np.float64)
+        M.sum_duplicates()
+        M.sort_indices()
+        bad = ~np.isfinite(M.data)
+        if bad.any():
+            k = int(np.argmax(bad))
+            row = int(np.searchsorted(M.indptr, k, side="right") - 1)
+            raise InputError(f"matrix of channel {c} has {int(bad.sum())} non-finite (NaN/inf) entries, "
+                             f"the first at row {row}, column {int(M.indices[k])}")
+        out.append(M)
+    n = out[0].shape[0]
+    for c, M in enumerate(out[1:], start=1):
+        if M.shape != out[0].shape:
+            raise InputError(f"matrix of channel {c} is {M.shape}, channel 0's {out[0].shape}; all three "
+                             "must be n x n with the same n")
+        if not (np.array_equal(M.indptr, out[0].indptr) and np.array_equal(M.indices, out[0].indices)):
+            rows = np.flatnonzero(np.diff(M.indptr) != np.diff(out[0].indptr))
+            if rows.size == 0:
+                starts = out[0].indptr[:-1]
+                diff = np.flatnonzero(M.indices != out[0].indices)
+                rows = np.searchsorted(starts, diff, side="right") - 1
+            i = int(rows[0])
+            cols = [M.indices[M.indptr[i]:M.indptr[i + 1]], out[0].indices[out[0].indptr[i]:out[0].indptr[i + 1]]]
+            raise InputError(f"the channel matrices must share one sparsity pattern (stored entries): "
+                             f"channel {c} differs from channel 0 first in row {i} (columns "
+                             f"{cols[0].tolist()} vs {cols[1].tolist()}); store explicit zeros to align them")
+    if n < 1 or n > MAX_NODES:
+        raise InputError(f"the system has n = {n} unknowns; {who} takes 1 .. {MAX_NODES} "
+                         "(neighbour indices are stored as exact float integers)")
+    for c, M in enumerate(out):
+        d = M.diagonal()
+        bad = ~(d > 0)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise InputError(f"matrix of channel {c} has {int(bad.sum())} zero or negative diagonal entries "
+                             f"(first: row {i}, a_ii = {d[i]:g}); Jacobi divides by the diagonal, and a "
+                             "symmetric positive definite matrix has a positive one")
+    return out
+
+
+def node_rhs(b: ArrayLike, n: int) -> NDArray[np.float64]:
+    """``b`` as a checked ``(n, 3)`` float64 array (``(n,)``: the same for all channels)."""
+    arr = np.asarray(b, dtype=np.float64)
+    if arr.shape == (n,):
+        arr = np.repeat(arr[:, None], 3, axis=1)
+    if arr.shape != (n, 3):
+        raise InputError(f"b has shape {arr.shape}, expected ({n}, 3) (or ({n},) for all channels)")
+    if not np.isfinite(arr).all():
+        raise InputError(f"b has {int((~np.isfinite(arr)).sum())} non-finite (NaN/inf) values")
+    return arr
+
+
+def texture_width(n: int, max_size: int) -> tuple[int, int]:
+    """``(W, H)`` of the textures of ``n`` nodes: ``W`` the smallest power of two >= ``sqrt(n)``."""
+    w = 1 << max(0, math.ceil(math.log2(math.sqrt(n))))   # a power of two >= sqrt(n): shifts, no division
+    h = math.ceil(n / w)
+    if w > max_size or h > max_size:
+        raise InputError(f"n = {n} unknowns need a {w} x {h} texture; this context allows {max_size}")
+    return w, h
+
+
+def check_symmetric(mats: list[sp.csr_matrix], need: str, hint: str) -> None:
+    """InputError ``"{need}; channel c has |A - A^T| up to ...; {hint}"`` unless every matrix is
+    symmetric to 1e-10 of its largest entry."""
+    for c, M in enumerate(mats):
+        asym = abs(M - M.T).max() if M.nnz else 0.0
+        if asym > 1e-10 * abs(M).max():
+            raise InputError(f"{need}; channel {c} has |A - A^T| up to {asym:.3g}; {hint}")
+
+
+# ---- packing: node textures and ELLPACK slot layers (every gather operator) ----------------
+def pack_nodes(values: NDArray, size: tuple[int, int], pad: float = 0.0) -> NDArray[np.float32]:
+    """``(n, 3)`` node values -> ``(H, W, 4)`` texels (node ``i`` at ``(i % W, i // W)``;
+    alpha 0; padding texels ``i >= n`` get ``pad``)."""
+    W, H = size
+    vals = np.asarray(values)
+    out = np.zeros((H * W, 4), dtype=np.float32)
+    out[:, :3] = pad
+    out[:len(vals), :3] = vals
+    return out.reshape(H, W, 4)
+
+
+@dataclass
+class EllPack:
+    """The slot layers of a (possibly rectangular) matrix with RGB channels.
+
+    ``coef`` ``(max(K, 1), H, W, 4)``: layer ``k`` at row ``i``'s texel holds rgb = the ``k``-th
+    stored entry of row ``i`` (columns ascending) in the three channels, alpha = its column as a
+    float, ``-1`` for an empty slot; ``slots`` = ``K``, the longest row; ``row_slots`` the used
+    slots per row."""
+
+    coef: NDArray[np.float32]
+    slots: int
+    row_slots: NDArray[np.int64]
+
+
+def _aligned(mats: Sequence[sp.csr_matrix]) -> tuple[NDArray, NDArray, NDArray]:
+    """``(rows, cols, vals (nnz, 3))`` of three matrices on one pattern: channel 0's when all
+    share it (the checked systems), else the union of the stored entries (Galerkin products,
+    whose pattern scipy trims of exact cancellations per channel)."""
+    M0 = mats[0]
+    if all(np.array_equal(M.indptr, M0.indptr) and np.array_equal(M.indices, M0.indices) for M in mats[1:]):
+        rows = np.repeat(np.arange(M0.shape[0]), np.diff(M0.indptr))
+        return rows, M0.indices.astype(np.int64), np.stack([M.data for M in mats], axis=1)
+    U = sp.csr_matrix(sum(abs(M) for M in mats))
+    U.sum_duplicates()
+    U.sort_indices()
+    rows = np.repeat(np.arange(U.shape[0]), np.diff(U.indptr))
+    cols = U.indices.astype(np.int64)
+    vals = np.stack([np.asarray(M[rows, cols]).ravel() for M in mats], axis=1)
+    return rows, cols, vals
+
+
+def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
+             diagonal: bool) -> EllPack:
+    """The :class:`EllPack` of the ``rows x cols`` matrices ``mats`` (three channels; rows laid
+    out in the ``size`` textures). ``diagonal=False``: the diagonal gets no slot (a system
+    matrix: ``a_ii`` goes to its own texture); ``True``: every entry does (restriction,
+    prolongation, a dense inverse). Entries zero in all channels get no slot; ``cols`` must be
+    at most 2^24 (exact float indices)."""
+    W, H = size
+    mats = [sp.csr_matrix(M, dtype=np.float64) for M in mats]
+    for M in mats:
+        M.sum_duplicates()
+        M.sort_indices()
+    n_rows, n_cols = mats[0].shape
+    if n_rows > W * H or n_cols > MAX_NODES:
+        raise InputError(f"a {n_rows} x {n_cols} matrix does not fit {W} x {H} texels / float indices")
+    rows, cols, vals = _aligned(mats)
+    keep = np.any(vals != 0.0, axis=1)
+    if not diagonal:
+        keep &= cols != rows
+    rows, cols, vals = rows[keep], cols[keep], vals[keep]
+    counts = np.bincount(rows, minlength=n_rows)
+    K = int(counts.max()) if counts.size else 0
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.arange(rows.size) - start[rows]
+    coef = np.zeros((max(K, 1), H * W, 4), dtype=np.float32)
+    coef[..., 3] = -1.0
+    coef[slot, rows, :3] = vals
+    coef[slot, rows, 3] = cols
+    return EllPack(coef.reshape(max(K, 1), H, W, 4), K, counts)
+
+
+# ---- GPU: uploaded slot layers and the gather pass -----------------------------------------
+@dataclass
+class GatherMatrix:
+    """An :class:`EllPack` on the GPU: the texture array and ``slots`` (``K``)."""
+
+    texture: moderngl.TextureArray
+    slots: int
+
+
+def upload_ell(ctx: moderngl.Context, pack: EllPack, resources: gl.Resources) -> GatherMatrix:
+    """Upload ``pack`` as an RGBA32F texture array (nearest, clamped), owned by ``resources``.
+
+    Raises
+    ------
+    InputError
+        ``K`` exceeds the context's ``GL_MAX_ARRAY_TEXTURE_LAYERS``."""
+    max_layers = int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
+    if pack.slots > max_layers:
+        raise InputError(f"a row has {pack.slots} entries in slots; this context's texture arrays "
+                         f"hold at most {max_layers} layers")
+    L, H, W, _ = pack.coef.shape
+    tex = ctx.texture_array((W, H, L), 4, pack.coef.tobytes(), dtype="f4", alignment=1)
+    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    tex.repeat_x = tex.repeat_y = False
+    return GatherMatrix(resources.add(tex), pack.slots)
+
+
+class GatherProgram:
+    """``shaders/gather.frag`` on a full-viewport quad: one pass per :meth:`draw` (module
+    docstring; the modes are :data:`JACOBI`, :data:`RESIDUAL`, :data:`APPLY`, :data:`ADD`).
+    Its GPU objects go to ``resources``. Texture units: 0 ``u_src``, 1 ``u_self``, 2
+    ``u_diag``, 3 ``u_b``, 4 ``u_coef``."""
+
+    def __init__(self, ctx: moderngl.Context, resources: gl.Resources) -> None:
+        self.ctx = ctx
+        self.prog = resources.add(gl.program(ctx, "quad.vert", "gather.frag"))
+        gl.set_uniforms(self.prog, {"u_size": (1.0, 1.0), "u_src": 0, "u_self": 1, "u_diag": 2, "u_b": 3,
+                                    "u_coef": 4})
+        self._vbo = resources.add(ctx.buffer(np.array([0, 0, 1, 0, 0, 1, 1, 1], dtype="f4").tobytes()))
+        self.vao = resources.add(ctx.vertex_array(self.prog, [(self._vbo, "2f", "in_pos")]))
+        self._u = {name: self.prog[name] for name in ("u_slots", "u_src_shift", "u_mode", "u_omega")
+                   if name in self.prog}
+        self._set: dict[str, float] = {}
+
+    def _uniform(self, name: str, value: float) -> None:
+        if name in self._u and self._set.get(name) != value:
+            self._u[name].value = value
+            self._set[name] = value
+
+    def draw(self, mode: int, target: moderngl.Framebuffer, size: tuple[int, int], matrix: GatherMatrix,
+             src: moderngl.Texture, src_size: tuple[int, int], own: moderngl.Texture | None = None,
+             diag: moderngl.Texture | None = None, b: moderngl.Texture | None = None,
+             omega: float = 1.0) -> None:
+        """Render ``mode`` of ``matrix`` gathering ``src`` (``src_size`` texels, power-of-two
+        width) into ``target`` (``size``); ``own`` (x at the target's nodes; default ``src``),
+        ``diag`` and ``b`` as the mode needs them. The caller binds no framebuffer back: wrap
+        passes in :func:`glsldiff.gl.keep_framebuffer`."""
+        target.use()
+        self.ctx.viewport = (0, 0, *size)
+        src.use(0)
+        (src if own is None else own).use(1)
+        if diag is not None:
+            diag.use(2)
+        if b is not None:
+            b.use(3)
+        matrix.texture.use(4)
+        self._uniform("u_mode", mode)
+        self._uniform("u_slots", matrix.slots)
+        self._uniform("u_src_shift", src_size[0].bit_length() - 1)
+        self._uniform("u_omega", float(omega))
+        self.vao.render(moderngl.TRIANGLE_STRIP)
+
+
+def parse_start(x0: Start, set_initial: Callable[[ArrayLike | None], None]) -> None:
+    """The ``x0`` argument of a GLSL solve: :data:`CURRENT` leaves the GPU iterate, an array or
+    ``None`` (zero) is written by ``set_initial``."""
+    if isinstance(x0, str):
+        if x0 != CURRENT:
+            raise InputError(f"x0={x0!r}: give an (n, 3) array, None (zero) or {CURRENT!r}")
+    else:
+        set_initial(x0)
+
+
+# ---- the solver -----------------------------------------------------------------------------
+class GlslSparse:
+    """Damped Jacobi relaxation of ``A_c x_c = b_c`` (c = R, G, B) in one fragment shader
+    (module docstring: packing, fetch count, the omega rule).
+
+    GPU objects (textures, ping-pong pair, program, buffer, vertex array) belong to this
+    object; call :meth:`release` (or use it as a context manager).
+
+    Parameters
+    ----------
+    matrices
+        One ``n x n`` sparse matrix (all channels) or three (R, G, B) with the same stored
+        pattern; real, finite, positive diagonal (symmetric positive definite for the
+        convergence guarantee; symmetric required for ``omega="auto"``).
+    b
+        ``(n, 3)`` right-hand side (``(n,)``: the same for all channels).
+    ctx
+        A moderngl context; default :func:`glsldiff.gl.get_context`.
+    precision
+        ``"fp32"`` (textures and arithmetic); nothing else.
+    omega
+        Damping in (0, 2), or ``"auto"`` (``min(1, 1.9 / lambda_max(D^-1 A))``).
+
+    Attributes
+    ----------
+    n, slots
+        Unknowns per channel; ``K``, the texture array's layers (most off-diagonals of a row).
+    size
+        ``(W, H)`` of the textures.
+    omega
+        The damping used.
+    lambda_max
+        The estimate of ``lambda_max(D^-1 A)`` (largest over the channels) behind
+        ``omega="auto"``; ``None`` for a given omega.
+    system
+        The CPU :class:`LinearSystem` (block diagonal over channels, channel-major) whose
+        residual the solve checks.
+    """
+
+    method = "glsl-gather"
+
+    def __init__(self, matrices: Matrices, b: ArrayLike, ctx: moderngl.Context | None = None,
+                 precision: str = "fp32", omega: float | str = "auto") -> None:
+        if precision not in PRECISIONS:
+            raise InputError(f"precision={precision!r}: GlslSparse supports only {PRECISIONS}")
+        mats = channel_matrices(matrices)
+        n = mats[0].shape[0]
+        bb = node_rhs(b, n)
+        if isinstance(omega, str):
+            if omega != "auto":
+                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'")
+            check_symmetric(mats, "omega='auto' needs symmetric matrices (real eigenvalues of D^-1 A)",
+                            "give omega as a number")
+            self.lambda_max: float | None = max(jacobi_lambda_max(M) for M in distinct(mats))
+            self.omega = auto_omega(self.lambda_max)
+        else:
+            try:
+                w = float(omega)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'") from exc
+            if not 0.0 < w < 2.0:
+                raise InputError(f"omega={omega!r} must be in (0, 2) (damped Jacobi diverges outside)")
+            self.lambda_max, self.omega = None, w
+        self.precision, self.n = precision, n
+        self.ctx = ctx if ctx is not None else gl.get_context()
+        gl.make_current(self.ctx)
+        self.size = texture_width(n, int(self.ctx.info["GL_MAX_TEXTURE_SIZE"]))
+        pack = pack_ell(mats, self.size, diagonal=False)
+        self.slots, self._row_slots = pack.slots, pack.row_slots
+        self.fetches = 3 + 2 * self._row_slots.astype(np.float64) + (self._row_slots < self.slots)
+        diag = np.stack([M.diagonal() for M in mats], axis=1)
+        self.system = LinearSystem(A=sp.block_diag(mats, format="csr"), b=bb.T.reshape(-1),
+                                   diag=diag.T.reshape(-1), active=np.arange(n))
+        self._gpu = gl.Resources()
+        try:
+            self._coef = upload_ell(self.ctx, pack, self._gpu)
+            self._diag = self._gpu.add(gl.float_texture(self.ctx, self.size, pack_nodes(diag, self.size, pad=1.0)))
+            self._b = self._gpu.add(gl.float_texture(self.ctx, self.size, pack_nodes(bb, self.size)))
+            self.state = self._gpu.add(gl.PingPong.create(self.ctx, self.size, "fp32"))
+            self._pass = GatherProgram(self.ctx, self._gpu)
+        except Exception:
+            self._gpu.release()
+            raise
+        self.sweeps_run = 0        # sweeps since creation
+        self.sweep_seconds = 0.0   # wall time inside sweep(), GPU finished
+
+    # ---- state ------------------------------------------------------------------------------
+    @property
+    def updated_nodes(self) -> int:
+        """Nodes each sweep updates (all unknowns)."""
+        return self.n
+
+    @property
+    def mean_fetches(self) -> float:
+        """Texel fetches per node and sweep, averaged over the nodes (module docstring)."""
+        return float(self.fetches.mean())
+
+    def set_b(self, b: ArrayLike) -> None:
+        """Replace the right-hand side (``(n, 3)``, or ``(n,)`` for all channels)."""
+        gl.make_current(self.ctx)
+        bb = node_rhs(b, self.n)
+        self._b.write(pack_nodes(bb, self.size).tobytes(), alignment=1)
+        self.system.b = bb.T.reshape(-1)
+
+    def set_initial(self, x: ArrayLike | None) -> None:
+        """Start the next sweeps from ``x`` (``(n, 3)``) or from zero."""
+        gl.make_current(self.ctx)
+        if x is None:
+            vals = np.zeros((self.n, 3))
+        else:
+            vals = np.asarray(x, dtype=np.float64)
+            if vals.shape != (self.n, 3):
+                raise InputError(f"x0 has shape {vals.shape}, expected ({self.n}, 3)")
+            if not np.isfinite(vals).all():
+                raise InputError("x0 has non-finite (NaN/inf) values")
+        self.state.write(pack_nodes(vals, self.size))
+
+    def unknown(self) -> NDArray[np.float64]:
+        """The current iterate, ``(n, 3)`` float64."""
+        gl.make_current(self.ctx)
+        return self.state.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
+
+    # ---- sweeps -----------------------------------------------------------------------------
+    def sweep(self, n: int = 1) -> None:
+        """Run ``n`` damped Jacobi sweeps (one full-screen quad each)."""
+        gl.make_current(self.ctx)
+        t0 = time.perf_counter()
+        with gl.keep_framebuffer(self.ctx):
+            for _ in range(n):
+                self._pass.draw(JACOBI, self.state.dst, self.size, self._coef, self.state.src, self.size,
+                                diag=self._diag, b=self._b, omega=self.omega)
+                self.state.swap()
+            self.sweeps_run += n
+            self.ctx.finish()  # sweeps are timed: wait for the GPU
+        self.sweep_seconds += time.perf_counter() - t0
+
+    def solve(self, tol: float = RELAX_TOL, maxiter: int = MAXITER, x0: Start = None,
+              callback: Callback | None = None, residuals: list[float] | None = None, *,
+              check_every: int = 50) -> tuple[NDArray[np.float64], SolveReport]:
+        """Relax until the Jacobi-scaled residual is <= ``tol`` or ``maxiter`` sweeps ran
+        (:func:`glsldiff.oracle.solvers.relax`).
+
+        ``x0``: ``(n, 3)`` initial iterate, ``None`` (zero) or :data:`CURRENT` (continue from
+        the buffers); ``callback(x)`` after each check with the channel-major unknown vector;
+        ``residuals`` gets the residual history. Returns ``x`` ``(n, 3)`` and the report
+        (``method`` ``"glsl-gather-fp32(omega=...)"``, ``work`` = sweeps times ``n``).
+
+        Raises
+        ------
+        SolverError
+            The iteration diverged (``omega lambda_max(D^-1 A) >= 2``, or not positive definite).
+        """
+        t0 = time.perf_counter()
+        parse_start(x0, self.set_initial)
+        system, name = self.system, f"GLSL gather Jacobi (omega={self.omega:.4g})"
+
+        def advance(k: int) -> NDArray[np.float64]:
+            self.sweep(k)
+            return self.unknown().T.reshape(-1)
+
+        try:
+            result = relax(system, advance, self.unknown().T.reshape(-1), tol=tol, maxiter=maxiter,
+                           check_every=check_every, callback=callback, residuals=residuals, name=name)
+        except SolverError as exc:
+            lam = "" if self.lambda_max is None else f" (estimate {self.lambda_max:.4g})"
+            raise SolverError(f"{exc}: damped Jacobi needs omega * lambda_max(D^-1 A) < 2 and A positive "
+                              f"definite; omega = {self.omega:.4g}{lam}; try omega='auto'") from exc
+        rep = SolveReport(f"{self.method}-{self.precision}(omega={self.omega:.4g})", nodes=self.n,
+                          sweeps=result.iterations, residual=result.residual,
+                          seconds=time.perf_counter() - t0, converged=result.converged,
+                          history=result.history, status=result.status,
+                          error_estimate=result.error_estimate, work=result.iterations * self.n)
+        return result.x.reshape(3, self.n).T.copy(), rep
+
+    # ---- lifetime ---------------------------------------------------------------------------
+    def release(self) -> None:
+        """Free every GPU object this solver created."""
+        gl.make_current(self.ctx)
+        self._gpu.release()
+
+    def __enter__(self) -> "GlslSparse":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def distinct(mats: list[sp.csr_matrix]) -> list[sp.csr_matrix]:
+    """The channel matrices, each distinct one once (one matrix given for all channels)."""
+    out: list[sp.csr_matrix] = []
+    for M in mats:
+        if not any(np.array_equal(M.data, o.data) for o in out):
+            out.append(M)
+    return out
+
+
+def sweep_rate(solver: object, sweeps: int = 50, repeats: int = 3) -> float:
+    """Node updates per second of ``solver``'s sweeps on its context: the best of ``repeats``
+    runs of ``sweeps`` sweeps (GPU finished, no read-backs) after one warm-up sweep. Works
+    for any solver with ``sweep(n)``, ``updated_nodes``, ``unknown()`` and ``state`` (a
+    :class:`glsldiff.gl.PingPong`): :class:`GlslSparse` and
+    :class:`glsldiff.solve.jacobi.GlslDiffusion`. The iterate is restored afterwards."""
+    if sweeps < 1 or repeats < 1:
+        raise InputError(f"sweeps={sweeps}, repeats={repeats}: both must be >= 1")
+    saved = solver.state.read()  # type: ignore[attr-defined]
+    try:
+        solver.sweep(1)  # type: ignore[attr-defined]
+        best = float("inf")
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            solver.sweep(sweeps)  # type: ignore[attr-defined]
+            best = min(best, time.perf_counter() - t0)
+    finally:
+        solver.state.write(saved)  # type: ignore[attr-defined]
+    return sweeps * int(solver.updated_nodes) / best  # type: ignore[attr-defined]

@@ -1,0 +1,88 @@
+"""The tetrahedral (P1) discretisation in scenes and the renderer: [polygrid] discretisation = "fem"."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from glsldiff.bench.sphere_lights import sphere_light_study
+from glsldiff.commands.cli import main
+from glsldiff.core.errors import InputError
+from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.mesh import sphere_mesh
+from glsldiff.oracle.fem import solve_tet_direct
+from glsldiff.render.renderer import Renderer
+from glsldiff.render.scene import parse_scene
+from glsldiff.render.shading import surface_interpolation
+
+LIGHT = [{"type": "directional", "direction": [0.3, 0.4, 1.0], "irradiance": [1.0, 1.0, 1.0]}]
+
+
+def _scene(**polygrid):
+    return {"mesh": {"source": "sphere", "size_mm": 20.0},
+            "polygrid": {"n": 3, "cubes": 64, "discretisation": "fem", **polygrid},
+            "lights": LIGHT, "output": {"width": 48, "height": 48}}
+
+
+def test_scene_options():
+    s = parse_scene(_scene())
+    assert s.polygrid.discretisation == "fem" and s.polygrid.n == 3 and s.polygrid.levels == 1
+    assert parse_scene({"mesh": {"source": "sphere"}, "lights": LIGHT}).polygrid.discretisation == "conservative"
+    with pytest.raises(InputError, match=r"\[polygrid\]\.levels: the fem discretisation solves on one level"):
+        parse_scene(_scene(levels=3))
+    with pytest.raises(InputError, match=r"\[polygrid\]\.discretisation: 'fvm' is not one of conservative, paper, fem"):
+        parse_scene(_scene(discretisation="fvm"))
+    with pytest.raises(InputError, match=r"n: must be even"):
+        parse_scene({**_scene(), "polygrid": {"n": 3, "discretisation": "conservative"}})
+
+
+def test_surface_interpolation_follows_the_surface():
+    """Weights sum to 1 and reproduce a linear function of position at vertices on the surface
+    triangles; a vertex takes only the three nodes of the triangle under it."""
+    g = build_fem_grid(sphere_mesh(10.0, subdivisions=3), n=2, cube_size=5.0)
+    nodes, tri = g.boundary_positions, g.surface_triangles
+    rng = np.random.default_rng(1)
+    t = rng.integers(0, len(tri), 200)
+    w = rng.dirichlet(np.ones(3), 200)
+    pts = np.einsum("ij,ijk->ik", w, nodes[tri[t]])
+    W = surface_interpolation(pts, nodes, tri)
+    np.testing.assert_allclose(np.asarray(W.sum(axis=1)).ravel(), 1.0, rtol=1e-12)
+    f = nodes @ np.array([0.3, -1.2, 0.7]) + 2.0
+    np.testing.assert_allclose(W @ f, pts @ np.array([0.3, -1.2, 0.7]) + 2.0, rtol=0, atol=1e-9)
+    assert np.diff(W.indptr).max() <= 3
+
+
+def test_render_pass2_equals_the_direct_solve(tmp_path, monkeypatch):
+    """The GLSL pass 2 of a fem scene equals the direct P1 solve at the surface nodes (<= 1e-3
+    relative at tol 1e-5); the image is finite and lit."""
+    monkeypatch.setenv("GLSLDIFF_CACHE", "off")
+    scene = parse_scene({**_scene(), "options": {"tol": 1e-5}})
+    with Renderer() as r:
+        img, rep = r.render(scene)
+        assert rep.solver.converged and rep.solver.method.startswith("glsl-gather")
+        phi_ref, _ = solve_tet_direct(r._fem_problem(scene))
+        ref = phi_ref[r.polygrid.surface_nodes]
+        assert np.linalg.norm(r._phi_b - ref) / np.linalg.norm(ref) < 1e-3
+    assert np.isfinite(img).all() and img.max() > 0
+
+
+def test_fem_command_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.setenv("GLSLDIFF_CACHE", "off")
+    path = tmp_path / "s.toml"
+    path.write_text('[mesh]\nsource = "sphere"\nsize_mm = 20\n[polygrid]\nn = 2\ncubes = 64\n'
+                    'discretisation = "fem"\n[[lights]]\ntype = "directional"\ndirection = [0, 0, 1]\n'
+                    '[output]\nwidth = 32\nheight = 32\n')
+    assert main(["render", str(path), "-o", str(tmp_path / "a.exr")]) == 0
+    assert "tetrahedral polygrid built" in capsys.readouterr().err
+    assert (tmp_path / "a.exr").is_file() and (tmp_path / "a.png").is_file()
+
+
+def test_fem_sphere_converges_under_a_directional_light():
+    """Exitant bracket vs the exact series, light onto a polycube face: the P1 error falls with
+    n and is far below the conservative lattice stencil's at equal spacing. Measured: fem
+    3.8 % / 2.1 % at n = 2 / 4 (h 2.5 / 1.25 mm), conservative lattice 29 % at n = 4."""
+    rows = sphere_light_study(ns=(2, 4), polygrid_ns=(4,), cube_sizes=(), lights=("face",),
+                              discretisations=("fem", "conservative"))
+    fem = [r["rel_rms"] for r in rows if r["discretisation"] == "fem"]
+    lattice = [r["rel_rms"] for r in rows if r["discretisation"] == "conservative"]
+    assert fem[1] < 0.7 * fem[0] and fem[1] < 0.03, fem
+    assert lattice[0] > 4 * fem[1], (lattice, fem)
