@@ -1,0 +1,558 @@
+"""Algebraic multigrid V-cycles in GLSL for a general sparse symmetric system with RGB channels
+(the systems of :class:`glsldiff.solve.gather.GlslSparse`, e.g. P1 finite elements on a
+tetrahedral grid), every pass a gather of :mod:`glsldiff.solve.gather`.
+
+Hierarchy (CPU, once per matrix)
+    Smoothed aggregation (pyamg) on the channel-mean matrix ``(A_R + A_G + A_B) / 3`` gives the
+    prolongations ``P_l`` (``n_l x n_{l+1}``), shared by the three channels (one pattern,
+    similar values); the coarse operators are Galerkin per channel, ``A_{l+1} = P_l^T A_l P_l``.
+    Strength of connection: ``"evolution"`` by default. pyamg's default (``"symmetric"``,
+    theta 0) aggregates ~27 fine nodes of a P1 matrix (18 off-diagonals per row) per coarse
+    node, and its V-cycles need 2x as many cycles and grow with the grid (measured on the 10 mm
+    sphere, 4 Jacobi sweeps per cycle: 22 cycles to 1e-4 at n = 6 and 27 at n = 8, against 11
+    and 13 with "evolution"). The coarsening stops at ``max_coarse`` unknowns (default 300).
+Coarsest level
+    Solved exactly, on the GPU, by one pass: ``x_c = A_c^-1 b_c`` with the dense inverse of
+    each channel's ``A_c`` stored as an ``n_c``-slot gather (``n_c^2`` multiply-adds, a few
+    hundred thousand for 300 unknowns: well under a fine sweep's cost). No read-back per cycle,
+    and no coarse-level iteration to tune: damped Jacobi on the coarsest operator (condition
+    number ~10^2 - 10^3) would need hundreds of sweeps per cycle, one draw each; a CPU solve a
+    read-back and an upload per cycle. ``max_coarse`` is capped by the texture-array layers
+    (``GL_MAX_ARRAY_TEXTURE_LAYERS``, 2048 on llvmpipe).
+GPU storage, per level ``l`` (node ``i`` at texel ``(i % W_l, i // W_l)``, ``W_l`` a power of two)
+    ``x`` (ping-pong pair), ``b``, ``r`` and ``a_ii`` (RGBA32F textures; ``b``, ``r`` render
+    targets), the off-diagonal slots of ``A_l`` (the three channels in rgb), and for
+    ``l < L-1`` the slots of ``P_l`` (rows: level ``l``'s nodes) and of ``R_l = P_l^T`` (rows:
+    level ``l+1``'s nodes) with the shared value in all three channels; on levels ``l >= 1``
+    also ``omega_l D_l^-1`` as a one-slot gather (the first pre-smoothing sweep from ``x = 0``);
+    at the coarsest the dense inverse. All are :class:`~glsldiff.solve.gather.EllPack` layers
+    packed by :func:`~glsldiff.solve.gather.pack_ell` and drawn by
+    :class:`~glsldiff.solve.gather.GatherProgram` (``shaders/gather.frag``).
+V-cycle (``pre``/``post`` damped Jacobi sweeps, default 2/2), every step one full-screen pass
+    down, ``l = 0 .. L-2``: ``pre`` sweeps on ``A_l x_l = b_l`` (``l >= 1``: the first from
+    ``x_l = 0``, ``x_l = omega_l D_l^-1 b_l``, an ``APPLY``); ``r_l = b_l - A_l x_l``
+    (``RESIDUAL``); ``b_{l+1} = P_l^T r_l`` (``APPLY`` of ``R_l``); coarsest: ``x = A^-1 b``
+    (``APPLY``); up, ``l = L-2 .. 0``: ``x_l += P_l x_{l+1}`` (``ADD``), ``post`` sweeps.
+    With one level (``n <= max_coarse``) a cycle is the dense solve.
+Smoothing damping
+    ``omega="auto"`` takes, per level, ``omega_l = 1.6 / lambda_max(D_l^-1 A_l)`` (Lanczos,
+    :func:`~glsldiff.solve.gather.jacobi_lambda_max`, the largest over the channels). A smoother
+    must damp the upper half of the spectrum (what the coarse grid cannot represent); the
+    classic ``4/3 / lambda_max`` balances ``|1 - omega lambda|`` over ``[lambda_max / 2,
+    lambda_max]``, and 1.6 trades a little of that for the middle of the spectrum, which on
+    these aggregation hierarchies the coarse correction represents poorly (measured, 10 mm
+    sphere n = 8, V(2,2): 15 cycles to 1e-4 with 4/3, 13 with 1.6, ... with 1.8).
+
+Convergence is checked by :func:`glsldiff.oracle.solvers.relax` as for every relaxation: the
+fine iterate is read back every ``check_every`` cycles (default 1) and its Jacobi-scaled
+residual evaluated in float64 on the CPU system; ``maxiter`` and the report's ``sweeps`` count
+V-cycles.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import moderngl
+import numpy as np
+import scipy.sparse as sp
+from numpy.typing import ArrayLike, NDArray
+
+from glsldiff import gl
+from glsldiff.core.errors import InputError, SolverError
+from glsldiff.oracle.assembly import LinearSystem
+from glsldiff.oracle.solvers import Callback, relax
+from glsldiff.solve.gather import (ADD, APPLY, JACOBI, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram, Matrices,
+                                   Start, channel_matrices, check_symmetric, distinct, jacobi_lambda_max, node_rhs,
+                                   pack_ell, pack_nodes, parse_start, texture_width, upload_ell)
+from glsldiff.system.report import MAXITER, RELAX_TOL, SolveReport
+
+__all__ = ["GlslSparseMultigrid", "MultigridLevel", "build_prolongations", "galerkin", "smoother_omega",
+           "SMOOTH_TARGET", "MAX_COARSE", "AMG_DEFAULTS"]
+
+SMOOTH_TARGET = 1.6       # omega_l = SMOOTH_TARGET / lambda_max(D_l^-1 A_l) for omega="auto"
+MAX_COARSE = 300          # coarsest level: at most this many unknowns (a dense inverse on the GPU)
+AMG_DEFAULTS: dict[str, Any] = {"strength": "evolution"}   # pyamg.smoothed_aggregation_solver options
+
+
+# ---- the hierarchy (CPU) --------------------------------------------------------------------
+def build_prolongations(A: sp.spmatrix | sp.sparray, max_coarse: int = MAX_COARSE, max_levels: int = 10,
+                        amg: dict[str, Any] | None = None) -> list[sp.csr_matrix]:
+    """Smoothed-aggregation prolongations ``P_0, P_1, ...`` of the symmetric matrix ``A`` (pyamg;
+    ``amg``: further options of ``pyamg.smoothed_aggregation_solver``, default
+    :data:`AMG_DEFAULTS`); empty when ``A`` has at most ``max_coarse`` unknowns."""
+    try:
+        import pyamg  # optional dependency (the validation extra)
+    except ImportError as exc:
+        raise SolverError("GlslSparseMultigrid builds its hierarchy with pyamg: pip install "
+                          "'glsldiff[validation]' (or pass prolongations=...)") from exc
+    opts = {**AMG_DEFAULTS, **(amg or {})}
+    ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric", max_coarse=max_coarse,
+                                           max_levels=max_levels, keep=False, **opts)
+    return [sp.csr_matrix(lv.P, dtype=np.float64) for lv in ml.levels[:-1]]
+
+
+def galerkin(A: sp.spmatrix | sp.sparray, P: sp.spmatrix | sp.sparray) -> sp.csr_matrix:
+    """``P^T A P`` (CSR, sorted, symmetrised against rounding)."""
+    Ac = sp.csr_matrix(P.T @ (A @ P))
+    Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
+    Ac.sum_duplicates()
+    Ac.sort_indices()
+    return Ac
+
+
+def smoother_omega(mats: Sequence[sp.csr_matrix], target: float = SMOOTH_TARGET) -> tuple[float, float]:
+    """``(omega, lambda_max)``: ``target / lambda_max(D^-1 A)``, the largest over the distinct
+    channel matrices (the ``omega="auto"`` smoothing damping, module docstring)."""
+    lam = max(jacobi_lambda_max(M) for M in distinct(list(mats)))
+    return target / lam, lam
+
+
+@dataclass
+class MultigridLevel:
+    """One level of the hierarchy (CPU side).
+
+    Attributes
+    ----------
+    n
+        Unknowns per channel.
+    A
+        The three channel matrices (level 0: the system's; else Galerkin).
+    P
+        Prolongation to this level from the next coarser one (``n x n_next``, shared by the
+        channels); ``None`` at the coarsest.
+    omega, lambda_max
+        Smoothing damping and the ``lambda_max(D^-1 A)`` estimate behind it (``None`` for a
+        given omega; both ``nan`` at the coarsest, which is solved exactly).
+    slots
+        ``K`` of the level's gather: off-diagonals of ``A`` per row; at the coarsest, ``n``
+        (the dense inverse's rows).
+    p_slots, r_slots
+        ``K`` of ``P`` (its longest row) and of ``R = P^T`` (its longest column); 0 at the coarsest.
+    size
+        ``(W, H)`` of the level's textures.
+    inverse
+        At the coarsest: ``A^-1`` per channel (dense, float64); else ``None``.
+    """
+
+    n: int
+    A: list[sp.csr_matrix]
+    P: sp.csr_matrix | None
+    omega: float
+    lambda_max: float | None
+    slots: int = 0
+    p_slots: int = 0
+    r_slots: int = 0
+    size: tuple[int, int] = (0, 0)
+    inverse: list[NDArray[np.float64]] | None = field(default=None, repr=False)
+
+    @property
+    def coarsest(self) -> bool:
+        return self.P is None
+
+    def as_dict(self, level: int) -> dict[str, object]:
+        """The report's view of the level."""
+        return {"level": level, "n": self.n, "nodes": self.n, "slots": self.slots,
+                "omega": self.omega, "lambda_max": self.lambda_max, "p_slots": self.p_slots,
+                "r_slots": self.r_slots, "texture": f"{self.size[0]}x{self.size[1]}",
+                "smoother": "dense inverse" if self.coarsest else "damped Jacobi"}
+
+
+@dataclass
+class _GpuLevel:
+    """A level's textures, framebuffers and gathers."""
+
+    size: tuple[int, int]
+    x: gl.PingPong
+    b: moderngl.Texture
+    b_fbo: moderngl.Framebuffer
+    diag: moderngl.Texture
+    A: GatherMatrix | None                 # off-diagonals (None at the coarsest)
+    r: moderngl.Texture | None = None
+    r_fbo: moderngl.Framebuffer | None = None
+    P: GatherMatrix | None = None          # rows here, columns on the next level
+    R: GatherMatrix | None = None          # rows on the next level, columns here
+    first: GatherMatrix | None = None      # omega D^-1 (levels >= 1): the first sweep from 0
+    inverse: GatherMatrix | None = None    # the coarsest level's dense inverse
+
+
+# ---- the solver -----------------------------------------------------------------------------
+class GlslSparseMultigrid:
+    """Algebraic-multigrid V-cycles for ``A_c x_c = b_c`` (c = R, G, B), every pass a gather
+    fragment shader (module docstring: hierarchy, storage, cycle, coarsest solve, damping).
+
+    GPU objects belong to this object; call :meth:`release` (or use it as a context manager).
+
+    Parameters
+    ----------
+    matrices
+        One ``n x n`` sparse matrix (all channels) or three (R, G, B) with the same stored
+        pattern; real, finite, symmetric, positive diagonal (positive definite for convergence).
+    b
+        ``(n, 3)`` right-hand side (``(n,)``: the same for all channels).
+    ctx
+        A moderngl context; default :func:`glsldiff.gl.get_context`.
+    precision
+        ``"fp32"`` only.
+    omega
+        Smoothing damping: ``"auto"`` (per level, ``1.6 / lambda_max(D_l^-1 A_l)``) or one float
+        in (0, 2) for every level.
+    pre, post
+        Damped Jacobi sweeps before and after the coarse correction on every level but the
+        coarsest (defaults 2, 2; ``pre + post >= 1``).
+    max_coarse, max_levels
+        Coarsening stops at ``max_coarse`` unknowns (the dense coarsest solve; at most the
+        context's texture-array layers) or ``max_levels`` levels.
+    amg
+        Further options of ``pyamg.smoothed_aggregation_solver`` (default :data:`AMG_DEFAULTS`).
+    prolongations
+        The ``P_l`` to use instead of pyamg's (``n_l x n_{l+1}`` each, finest first).
+
+    Attributes
+    ----------
+    n, levels
+        Unknowns per channel; the :class:`MultigridLevel` list (finest first).
+    pre, post
+        The V-cycle's sweeps.
+    system
+        The CPU :class:`LinearSystem` whose residual the solve checks.
+    setup_seconds
+        CPU hierarchy time per stage (``"pyamg"``, ``"galerkin"``, ``"omega"``, ``"inverse"``,
+        ``"pack"``) and ``"upload"`` (GPU objects); :attr:`hierarchy_seconds` sums the CPU ones.
+    cycles_run, cycle_seconds
+        V-cycles since creation and the wall time inside :meth:`cycle` (GPU finished).
+    level_seconds
+        Per level, the time of its passes when :attr:`profile` is true (a ``finish`` after each
+        level's down and up phase; off by default).
+    """
+
+    method = "glsl-gather-multigrid"
+
+    def __init__(self, matrices: Matrices, b: ArrayLike, ctx: moderngl.Context | None = None,
+                 precision: str = "fp32", omega: float | str = "auto", pre: int = 2, post: int = 2,
+                 max_coarse: int = MAX_COARSE, max_levels: int = 10, amg: dict[str, Any] | None = None,
+                 prolongations: Sequence[sp.spmatrix | sp.sparray] | None = None) -> None:
+        if precision not in PRECISIONS:
+            raise InputError(f"precision={precision!r}: GlslSparseMultigrid supports only {PRECISIONS}")
+        for name, v in (("pre", pre), ("post", post)):
+            if not isinstance(v, (int, np.integer)) or v < 0:
+                raise InputError(f"{name}={v!r} must be an integer >= 0")
+        if pre + post < 1:
+            raise InputError("pre + post must be >= 1 (a V-cycle without smoothing does not converge)")
+        if not isinstance(max_levels, (int, np.integer)) or max_levels < 1:
+            raise InputError(f"max_levels={max_levels!r} must be an integer >= 1")
+        mats = channel_matrices(matrices, "GlslSparseMultigrid")
+        check_symmetric(mats, "GlslSparseMultigrid needs symmetric matrices (Galerkin coarse operators "
+                        "and a symmetric smoother)", "symmetrise the system")
+        n = mats[0].shape[0]
+        bb = node_rhs(b, n)
+        fixed: float | None = None
+        if isinstance(omega, str):
+            if omega != "auto":
+                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'")
+        else:
+            try:
+                fixed = float(omega)
+            except (TypeError, ValueError) as exc:
+                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'") from exc
+            if not 0.0 < fixed < 2.0:
+                raise InputError(f"omega={omega!r} must be in (0, 2) (damped Jacobi diverges outside)")
+        self.precision, self.n, self.pre, self.post = precision, n, int(pre), int(post)
+        self.ctx = ctx if ctx is not None else gl.get_context()
+        gl.make_current(self.ctx)
+        max_layers = int(self.ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
+        if not 1 <= max_coarse <= max_layers:
+            raise InputError(f"max_coarse={max_coarse!r} must be in 1 .. {max_layers} (the coarsest level's "
+                             "dense inverse is a gather of max_coarse slots: texture-array layers)")
+        max_size = int(self.ctx.info["GL_MAX_TEXTURE_SIZE"])
+        self.setup_seconds: dict[str, float] = {}
+
+        # hierarchy
+        t0 = time.perf_counter()
+        if prolongations is None:
+            mean = mats[0].copy()
+            mean.data = (mats[0].data + mats[1].data + mats[2].data) / 3.0
+            Ps = build_prolongations(mean, max_coarse, max_levels, amg) if n > max_coarse else []
+        else:
+            Ps = [sp.csr_matrix(P, dtype=np.float64) for P in prolongations]
+            rows = n
+            for l, P in enumerate(Ps):
+                if P.shape[0] != rows or P.shape[1] < 1:
+                    raise InputError(f"prolongations[{l}] is {P.shape}; it must be {rows} x n_coarse")
+                if not np.isfinite(P.data).all():
+                    raise InputError(f"prolongations[{l}] has non-finite entries")
+                rows = P.shape[1]
+            if rows > max_coarse:
+                raise InputError(f"the coarsest level of the given prolongations has {rows} unknowns; "
+                                 f"at most max_coarse = {max_coarse} (a dense inverse)")
+        self.setup_seconds["pyamg"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        As = [mats]
+        for P in Ps:
+            As.append([galerkin(A, P) for A in As[-1]])
+        self.setup_seconds["galerkin"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        self.levels: list[MultigridLevel] = []
+        for l, A in enumerate(As):
+            P = Ps[l] if l < len(Ps) else None
+            if P is None:
+                w, lam = math.nan, math.nan
+            elif fixed is None:
+                w, lam = smoother_omega(A)
+            else:
+                w, lam = fixed, None
+            self.levels.append(MultigridLevel(A[0].shape[0], A, P, w, lam,
+                                              size=texture_width(A[0].shape[0], max_size)))
+        self.setup_seconds["omega"] = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        last = self.levels[-1]
+        try:
+            last.inverse = [np.linalg.inv(A.toarray()) for A in last.A]
+        except np.linalg.LinAlgError as exc:
+            raise SolverError(f"the coarsest operator ({last.n} unknowns) is singular: {exc}") from exc
+        self.setup_seconds["inverse"] = time.perf_counter() - t0
+
+        # packing (CPU) and upload
+        t0 = time.perf_counter()
+        packs = []
+        for l, lv in enumerate(self.levels):
+            pk: dict[str, Any] = {"diag": np.stack([A.diagonal() for A in lv.A], axis=1)}
+            if lv.coarsest:
+                pk["inverse"] = pack_ell([sp.csr_matrix(M) for M in lv.inverse], lv.size, diagonal=True)
+                lv.slots = pk["inverse"].slots
+            else:
+                pk["A"] = pack_ell(lv.A, lv.size, diagonal=False)
+                nxt = self.levels[l + 1]
+                pk["P"] = pack_ell([lv.P] * 3, lv.size, diagonal=True)
+                pk["R"] = pack_ell([sp.csr_matrix(lv.P.T)] * 3, nxt.size, diagonal=True)
+                lv.slots, lv.p_slots, lv.r_slots = pk["A"].slots, pk["P"].slots, pk["R"].slots
+                if l > 0 and self.pre > 0:
+                    inv_d = lv.omega / pk["diag"]
+                    pk["first"] = pack_ell([sp.diags(inv_d[:, c]).tocsr() for c in range(3)], lv.size, diagonal=True)
+            packs.append(pk)
+        self.setup_seconds["pack"] = time.perf_counter() - t0
+        for lv in self.levels:
+            if lv.slots > max_layers or lv.r_slots > max_layers:
+                raise InputError(f"a level of {lv.n} unknowns needs {max(lv.slots, lv.r_slots)} slots; this context's "
+                                 f"texture arrays hold at most {max_layers} layers (lower max_coarse or change amg)")
+        diag0 = packs[0]["diag"]
+        self.system = LinearSystem(A=sp.block_diag(mats, format="csr"), b=bb.T.reshape(-1),
+                                   diag=diag0.T.reshape(-1), active=np.arange(n))
+        t0 = time.perf_counter()
+        self._gpu = gl.Resources()
+        try:
+            self._pass = GatherProgram(self.ctx, self._gpu)
+            self._levels: list[_GpuLevel] = []
+            for l, (lv, pk) in enumerate(zip(self.levels, packs)):
+                ctx, res, size = self.ctx, self._gpu, lv.size
+                btex = res.add(gl.float_texture(ctx, size, pack_nodes(bb, size) if l == 0 else None))
+                g = _GpuLevel(size=size, x=res.add(gl.PingPong.create(ctx, size, "fp32")), b=btex,
+                              b_fbo=res.add(ctx.framebuffer(color_attachments=[btex])),
+                              diag=res.add(gl.float_texture(ctx, size, pack_nodes(pk["diag"], size, pad=1.0))),
+                              A=upload_ell(ctx, pk["A"], res) if "A" in pk else None)
+                if l > 0:
+                    g.b_fbo.clear(0.0, 0.0, 0.0, 0.0)
+                if lv.coarsest:
+                    g.inverse = upload_ell(ctx, pk["inverse"], res)
+                else:
+                    g.r = res.add(gl.float_texture(ctx, size))
+                    g.r_fbo = res.add(ctx.framebuffer(color_attachments=[g.r]))
+                    g.P = upload_ell(ctx, pk["P"], res)
+                    g.R = upload_ell(ctx, pk["R"], res)
+                    if "first" in pk:
+                        g.first = upload_ell(ctx, pk["first"], res)
+                self._levels.append(g)
+            if self.ctx.fbo is not None and isinstance(self.ctx.fbo.mglo, moderngl.InvalidObject):
+                self.ctx.detect_framebuffer(0).use()
+            self.ctx.finish()
+        except Exception:
+            self._gpu.release()
+            raise
+        self.setup_seconds["upload"] = time.perf_counter() - t0
+        self.cycles_run = 0
+        self.cycle_seconds = 0.0
+        self.profile = False
+        self.level_seconds = np.zeros(len(self.levels))
+
+    # ---- state ------------------------------------------------------------------------------
+    @property
+    def hierarchy_seconds(self) -> float:
+        """CPU time of the hierarchy: pyamg, Galerkin products, omega estimates, the dense
+        inverse and the packing (the upload not included)."""
+        return sum(v for k, v in self.setup_seconds.items() if k != "upload")
+
+    @property
+    def omegas(self) -> list[float]:
+        """Smoothing damping per level (``nan`` at the coarsest)."""
+        return [lv.omega for lv in self.levels]
+
+    @property
+    def operator_complexity(self) -> float:
+        """Stored entries of all levels' ``A`` over the finest's (one channel)."""
+        return sum(lv.A[0].nnz for lv in self.levels) / self.levels[0].A[0].nnz
+
+    @property
+    def state(self) -> gl.PingPong:
+        """The finest level's iterate (ping-pong pair)."""
+        return self._levels[0].x
+
+    def describe(self) -> str:
+        """One line per level: unknowns, slots, omega, transfer slots."""
+        out = [f"V({self.pre},{self.post}), {len(self.levels)} levels, operator complexity "
+               f"{self.operator_complexity:.2f}, hierarchy {self.hierarchy_seconds:.2f} s"]
+        for l, lv in enumerate(self.levels):
+            if lv.coarsest:
+                out.append(f"  level {l}: n={lv.n}, dense inverse ({lv.slots} slots)")
+            else:
+                out.append(f"  level {l}: n={lv.n}, K={lv.slots}, omega={lv.omega:.4g}, P slots {lv.p_slots}, "
+                           f"P^T slots {lv.r_slots}")
+        return "\n".join(out)
+
+    def set_b(self, b: ArrayLike) -> None:
+        """Replace the right-hand side (``(n, 3)``, or ``(n,)`` for all channels)."""
+        gl.make_current(self.ctx)
+        bb = node_rhs(b, self.n)
+        g = self._levels[0]
+        g.b.write(pack_nodes(bb, g.size).tobytes(), alignment=1)
+        self.system.b = bb.T.reshape(-1)
+
+    def set_initial(self, x: ArrayLike | None) -> None:
+        """Start the next cycles from ``x`` (``(n, 3)``) or from zero."""
+        gl.make_current(self.ctx)
+        if x is None:
+            vals = np.zeros((self.n, 3))
+        else:
+            vals = np.asarray(x, dtype=np.float64)
+            if vals.shape != (self.n, 3):
+                raise InputError(f"x0 has shape {vals.shape}, expected ({self.n}, 3)")
+            if not np.isfinite(vals).all():
+                raise InputError("x0 has non-finite (NaN/inf) values")
+        self._levels[0].x.write(pack_nodes(vals, self._levels[0].size))
+
+    def unknown(self) -> NDArray[np.float64]:
+        """The current fine iterate, ``(n, 3)`` float64."""
+        gl.make_current(self.ctx)
+        return self._levels[0].x.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
+
+    def level_unknown(self, level: int, what: str = "x") -> NDArray[np.float64]:
+        """``x``, ``b`` or ``r`` of a level as ``(n_l, 3)`` (diagnostics and tests)."""
+        gl.make_current(self.ctx)
+        g, n = self._levels[level], self.levels[level].n
+        tex = {"x": g.x.src, "b": g.b, "r": g.r}[what]
+        if tex is None:
+            raise InputError(f"level {level} has no {what!r} texture")
+        W, H = g.size
+        return np.frombuffer(tex.read(alignment=1), dtype="f4").reshape(-1, 4)[:n, :3].astype(np.float64)
+
+    # ---- cycles -----------------------------------------------------------------------------
+    def _smooth(self, g: _GpuLevel, omega: float, sweeps: int) -> None:
+        for _ in range(sweeps):
+            self._pass.draw(JACOBI, g.x.dst, g.size, g.A, g.x.src, g.size, diag=g.diag, b=g.b, omega=omega)
+            g.x.swap()
+
+    def _mark(self, level: int, t: float) -> float:
+        if not self.profile:
+            return t
+        self.ctx.finish()
+        now = time.perf_counter()
+        self.level_seconds[level] += now - t
+        return now
+
+    def _vcycle(self) -> None:
+        draw, levels, L = self._pass.draw, self._levels, len(self._levels)
+        t = time.perf_counter()
+        for l in range(L - 1):
+            g, nxt, lv = levels[l], levels[l + 1], self.levels[l]
+            sweeps = self.pre
+            if l > 0:          # x_l = 0: the first sweep is x = omega D^-1 b
+                if sweeps > 0:
+                    draw(APPLY, g.x.dst, g.size, g.first, g.b, g.size)
+                    g.x.swap()
+                    sweeps -= 1
+                else:
+                    g.x.framebuffers[g.x.index].clear(0.0, 0.0, 0.0, 0.0)
+            self._smooth(g, lv.omega, sweeps)
+            draw(RESIDUAL, g.r_fbo, g.size, g.A, g.x.src, g.size, diag=g.diag, b=g.b)
+            draw(APPLY, nxt.b_fbo, nxt.size, g.R, g.r, g.size)
+            t = self._mark(l, t)
+        c = levels[-1]
+        draw(APPLY, c.x.dst, c.size, c.inverse, c.b, c.size)
+        c.x.swap()
+        t = self._mark(L - 1, t)
+        for l in range(L - 2, -1, -1):
+            g, nxt = levels[l], levels[l + 1]
+            draw(ADD, g.x.dst, g.size, g.P, nxt.x.src, nxt.size, own=g.x.src)
+            g.x.swap()
+            self._smooth(g, self.levels[l].omega, self.post)
+            t = self._mark(l, t)
+
+    def cycle(self, n: int = 1) -> None:
+        """Run ``n`` V-cycles on the GPU (no read-back)."""
+        gl.make_current(self.ctx)
+        t0 = time.perf_counter()
+        with gl.keep_framebuffer(self.ctx):
+            for _ in range(n):
+                self._vcycle()
+            self.cycles_run += n
+            self.ctx.finish()  # cycles are timed: wait for the GPU
+        self.cycle_seconds += time.perf_counter() - t0
+
+    def solve(self, tol: float = RELAX_TOL, maxiter: int = MAXITER, x0: Start = None,
+              callback: Callback | None = None, residuals: list[float] | None = None, *,
+              check_every: int = 1) -> tuple[NDArray[np.float64], SolveReport]:
+        """V-cycles until the Jacobi-scaled residual is <= ``tol`` or ``maxiter`` cycles ran
+        (:func:`glsldiff.oracle.solvers.relax`; the arguments as :meth:`GlslSparse.solve`'s,
+        counting V-cycles). Returns ``x`` ``(n, 3)`` and the report: ``method``
+        ``"glsl-gather-multigrid-fp32(V(2,2),levels=L)"``, ``sweeps`` = cycles, ``levels`` one
+        dict per level (``n``/``nodes``, ``slots``, ``omega``, ``sweeps`` run, ...), ``work`` =
+        node updates (smoothing sweeps times unknowns summed over levels, plus one per coarsest
+        unknown and cycle).
+
+        Raises
+        ------
+        SolverError
+            The iteration diverged (not positive definite, or omega too large).
+        """
+        t0 = time.perf_counter()
+        parse_start(x0, self.set_initial)
+        name = f"GLSL gather multigrid V({self.pre},{self.post})"
+        seconds0 = self.level_seconds.copy()
+
+        def advance(k: int) -> NDArray[np.float64]:
+            self.cycle(k)
+            return self.unknown().T.reshape(-1)
+
+        try:
+            result = relax(self.system, advance, self.unknown().T.reshape(-1), tol=tol, maxiter=maxiter,
+                           check_every=check_every, callback=callback, residuals=residuals, name=name)
+        except SolverError as exc:
+            raise SolverError(f"{exc}: the V-cycle needs symmetric positive definite matrices and a smoothing "
+                              f"omega below 2 / lambda_max(D^-1 A) (omegas {self.omegas})") from exc
+        cycles = result.iterations
+        levels = []
+        for l, lv in enumerate(self.levels):
+            d = lv.as_dict(l)
+            sweeps = cycles * (1 if lv.coarsest else self.pre + self.post)
+            d.update(updated=lv.n, sweeps=sweeps, residual=math.nan,
+                     seconds=float(self.level_seconds[l] - seconds0[l]) if self.profile else math.nan)
+            levels.append(d)
+        rep = SolveReport(f"{self.method}-{self.precision}(V({self.pre},{self.post}),levels={len(self.levels)})",
+                          nodes=self.n, sweeps=cycles, residual=result.residual,
+                          seconds=time.perf_counter() - t0, converged=result.converged,
+                          history=result.history, status=result.status, error_estimate=result.error_estimate,
+                          levels=levels, work=int(sum(int(d["sweeps"]) * int(d["n"]) for d in levels)))
+        return result.x.reshape(3, self.n).T.copy(), rep
+
+    # ---- lifetime ---------------------------------------------------------------------------
+    def release(self) -> None:
+        """Free every GPU object this solver created."""
+        gl.make_current(self.ctx)
+        self._gpu.release()
+
+    def __enter__(self) -> "GlslSparseMultigrid":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
