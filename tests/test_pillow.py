@@ -116,3 +116,25 @@ def test_p1_is_exact_for_a_constant_without_absorption():
     A, b = assemble_p1(TetGeometry(g.positions, g.tets, g.surface), 0.3, 0.0, 1.0, 2.0)
     phi = spla.spsolve(A[act][:, act].tocsc(), b[act])
     np.testing.assert_allclose(phi, 1.0, rtol=1e-10)
+
+
+@pytest.mark.parametrize("extents", [(100.0, 100.0, 100.0), (100.0, 100.0, 2.0)], ids=["cube", "tile"])
+def test_box_keeps_its_edges_and_corners(extents):
+    """A box mesh with a target cube count gets the exact polycube (the cube edge snapped to
+    divide its extents) and its surface nodes keep the box's corners and edges: every box
+    corner is a surface node, every surface node lies on the box surface, and no tetrahedron
+    is inverted."""
+    from glsldiff.mesh import box_mesh
+
+    mesh = box_mesh(extents)
+    g = build_fem_grid(mesh, n=2, n_cubes=400)
+    ext = np.asarray(extents)
+    r = ext / g.polycube.size
+    np.testing.assert_allclose(r, np.round(r), atol=1e-9)
+    S = g.boundary_positions
+    d = np.min(np.linalg.norm(S[None] - mesh.vertices[:, None], axis=2), axis=1)
+    assert d.max() < 1e-6 * ext.max()                  # the 8 corners
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
+    on_face = np.min(np.minimum(np.abs(S - lo), np.abs(S - hi)), axis=1)
+    assert on_face.max() < 1e-6 * ext.max()
+    assert g.quality.inverted == 0 and g.quality.corner_nodes == 8

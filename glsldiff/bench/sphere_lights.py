@@ -92,8 +92,8 @@ def polygrid_case(mesh: Any, n: int, polycube: Any, stencil: str) -> Case:
     def solve(q: NDArray[np.float64]) -> NDArray[np.float64]:
         qs = np.repeat(q[:, None], 3, axis=1)
         p = DiffusionProblem(pg, KAPPA, MU, qs, eta=ETA, stencil=stencil)
-        phi, _ = solve_reference(p)
-        phi_b = np.asarray(p.to_phi(phi)).reshape(-1, 3)[pg.lattice.boundary]
+        phi, _ = solve_reference(p)                      # fluence (already converted from kappa phi)
+        phi_b = np.asarray(phi).reshape(-1, 3)[pg.lattice.boundary]
         return exitant_bracket(phi_b, qs, ETA, "p1", C)[:, 0]
     return Case(pg.boundary_positions, solve, {"h_mm": pg.lattice.h, "nodes": int(pg.n_active),
                                                "surface_nodes": len(pg.boundary_positions),

@@ -9,7 +9,10 @@ Mapping (:func:`map_pillow`):
 
 1. **Surface nodes** go to the closest mesh point of their reference position on the
    polycube surface, then a few rounds of Laplacian smoothing over the surface triangles,
-   each followed by re-projection (as the paper's boundary relaxation, Turk 1992).
+   each followed by re-projection (as the paper's boundary relaxation, Turk 1992). Copies of
+   polycube edges that land on a crease of the mesh are re-projected onto the creases, copies
+   of polycube corners that land on a mesh corner stay there (:mod:`glsldiff.mesh.features`):
+   a box keeps its edges and corners.
 2. **Lattice nodes**: the harmonic map with the surface nodes fixed: graph Laplacian of the
    lattice links plus the links from each outer lattice node to its surface copy, weighted 2
    (springs of half the length: the outer layer settles about half a spacing under the
@@ -40,6 +43,7 @@ from glsldiff.grids.lattice import Lattice
 from glsldiff.grids.pillow import PillowComplex, signed_volumes
 from glsldiff.grids.polycube import Polycube, polycube_from_mesh
 from glsldiff.mesh import Mesh, closest_points
+from glsldiff.mesh.features import Features, mesh_features
 
 __all__ = ["FemGrid", "MappingQuality", "build_fem_grid", "map_pillow"]
 
@@ -55,6 +59,8 @@ class MappingQuality:
     surface_spacing: float = float("nan")   # mean surface edge length
     surface_spacing_cv: float = float("nan")
     untangled: int = 0                      # inverted tetrahedra before the untangling step
+    crease_nodes: int = 0                   # surface nodes kept on a mesh crease
+    corner_nodes: int = 0                   # surface nodes kept on a mesh corner
     seconds: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, object]:
@@ -140,6 +146,21 @@ def _quality(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.floa
     return signed_volumes(X, tets) * 6.0 * np.sqrt(2.0) / np.maximum(mean, 1e-300) ** 3
 
 
+def _feature_nodes(cx: PillowComplex, mesh: Mesh, xs: NDArray[np.float64], features: Features
+                   ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Surface nodes that stay on a crease / a corner of the mesh during relaxation: copies of
+    polycube edge nodes (two outward axes) whose projection lies on a crease, and copies of
+    polycube corner nodes (three axes) whose projection is a mesh corner. (Face nodes that the
+    projection funnels onto a crease stay free and spread back onto the faces.)"""
+    tol = 1e-6 * float(np.ptp(mesh.vertices, axis=0).max())
+    axes = np.count_nonzero(cx.outward_axes, axis=1)
+    _, d_crease = features.closest_on_creases(xs)
+    d_corner, _ = features.corner_distance(xs)
+    corner = (axes >= 3) & (d_corner <= tol)
+    crease = (axes >= 2) & (d_crease <= tol) & ~corner
+    return crease, corner
+
+
 def _harmonic_interior(cx: PillowComplex, X: NDArray[np.float64], copy_weight: float) -> NDArray[np.float64]:
     """Lattice node positions ``(N, 3)``: the harmonic map (graph Laplacian over the lattice
     links, weight 1, and the links from outer nodes to their surface copies, ``copy_weight``)
@@ -205,7 +226,7 @@ def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[n
 
 
 def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_step: float = 0.5,
-               copy_weight: float = 2.0, untangle_fraction: float = 0.1
+               copy_weight: float = 2.0, untangle_fraction: float = 0.1, crease_deg: float = 45.0
                ) -> tuple[NDArray[np.float64], NDArray[np.float64], MappingQuality]:
     """Positions of every node of ``cx`` in ``mesh`` and the surface normals (module docstring).
 
@@ -216,12 +237,18 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     t0 = time.perf_counter()
     N = cx.n_lattice
     X = cx.reference_positions()
+    features = mesh_features(mesh, crease_deg)
     S = len(cx.outer)
     xs, _, _, nrm = closest_points(mesh, X[N:])
+    on_crease, on_corner = _feature_nodes(cx, mesh, xs, features)
+    q.crease_nodes, q.corner_nodes = int(on_crease.sum()), int(on_corner.sum())
     M = _surface_smoother(cx.surface, N, S)
     for _ in range(relax_iterations):
-        xs = xs + relax_step * (M @ xs - xs)
-        xs, _, _, nrm = closest_points(mesh, xs)
+        moved = xs + relax_step * (M @ xs - xs)
+        moved[on_corner] = xs[on_corner]
+        xs, _, _, nrm = closest_points(mesh, moved)
+        if on_crease.any():
+            xs[on_crease] = features.closest_on_creases(moved[on_crease])[0]
     X[N:] = xs
     e = np.concatenate([cx.surface[:, [0, 1]], cx.surface[:, [1, 2]], cx.surface[:, [2, 0]]])
     L = np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1)

@@ -293,6 +293,29 @@ def _search_size(mesh: Mesh, n_cubes: int, threshold: float, samples: int,
     return best[1]
 
 
+def snap_to_extents(size: float, extents: NDArray[np.float64], band: float = 0.25, tol: float = 0.01) -> float:
+    """A cube edge within ``(1 +- band)`` of ``size`` that divides all three bounding-box
+    extents into whole numbers of cubes, if there is one (the closest to ``size``); else
+    ``size``. With the grid centred on the bounding box, a box-shaped mesh then gets the exact
+    polycube (its faces on cube faces, its edges on cube edges) instead of a bevelled one. A
+    box thinner than ``size`` may take its thickness as the edge (a 100 x 100 x 2 mm tile:
+    2 mm), so that it is one whole cube thick rather than a partial one."""
+    ext = np.asarray(extents, dtype=np.float64)
+    best = None
+    thin = float(ext.min())
+    for e in ext:
+        for k in range(max(1, math.floor(e / size / (1 + band))), math.ceil(e / size / (1 - band)) + 1):
+            c = e / k
+            # a box thinner than the cube: its thickness (whole) is also a candidate
+            if abs(c / size - 1) > band and not (size > thin and math.isclose(c, thin)):
+                continue
+            r = ext / c
+            if np.all((np.abs(r - np.round(r)) <= tol) & (np.round(r) >= 1)):
+                if best is None or abs(c - size) < abs(best - size):
+                    best = c
+    return float(size if best is None else best)
+
+
 def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int | None = None,
                        threshold: float = 0.5, samples: int = 4) -> Polycube:
     """Polycube approximating a closed mesh, with the mesh's topology.
@@ -340,8 +363,8 @@ def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int 
     want = (1, 0, mesh.genus)
     failures = []
     for t in tried:
-        s = float(cube_size) if cube_size is not None else _search_size(mesh, int(n_cubes), t,
-                                                                         samples, cache)
+        s = float(cube_size) if cube_size is not None else snap_to_extents(
+            _search_size(mesh, int(n_cubes), t, samples, cache), ext)
         fr = _fractions(mesh, s, samples, cache)
         cubes, frac, occ = _build(mesh, fr, t)
         if len(cubes) == 0:

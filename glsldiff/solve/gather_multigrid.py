@@ -343,29 +343,8 @@ class GlslSparseMultigrid:
         t0 = time.perf_counter()
         self._gpu = gl.Resources()
         try:
-            self._pass = GatherProgram(self.ctx, self._gpu)
-            self._levels: list[_GpuLevel] = []
-            for l, (lv, pk) in enumerate(zip(self.levels, packs)):
-                ctx, res, size = self.ctx, self._gpu, lv.size
-                btex = res.add(gl.float_texture(ctx, size, pack_nodes(bb, size) if l == 0 else None))
-                g = _GpuLevel(size=size, x=res.add(gl.PingPong.create(ctx, size, "fp32")), b=btex,
-                              b_fbo=res.add(ctx.framebuffer(color_attachments=[btex])),
-                              diag=res.add(gl.float_texture(ctx, size, pack_nodes(pk["diag"], size, pad=1.0))),
-                              A=upload_ell(ctx, pk["A"], res) if "A" in pk else None)
-                if l > 0:
-                    g.b_fbo.clear(0.0, 0.0, 0.0, 0.0)
-                if lv.coarsest:
-                    g.inverse = upload_ell(ctx, pk["inverse"], res)
-                else:
-                    g.r = res.add(gl.float_texture(ctx, size))
-                    g.r_fbo = res.add(ctx.framebuffer(color_attachments=[g.r]))
-                    g.P = upload_ell(ctx, pk["P"], res)
-                    g.R = upload_ell(ctx, pk["R"], res)
-                    if "first" in pk:
-                        g.first = upload_ell(ctx, pk["first"], res)
-                self._levels.append(g)
-            if self.ctx.fbo is not None and isinstance(self.ctx.fbo.mglo, moderngl.InvalidObject):
-                self.ctx.detect_framebuffer(0).use()
+            with gl.keep_framebuffer(self.ctx):
+                self._upload(packs, bb)
             self.ctx.finish()
         except Exception:
             self._gpu.release()
@@ -375,6 +354,30 @@ class GlslSparseMultigrid:
         self.cycle_seconds = 0.0
         self.profile = False
         self.level_seconds = np.zeros(len(self.levels))
+
+    def _upload(self, packs: list[dict[str, Any]], bb: NDArray[np.float64]) -> None:
+        """Create the GPU objects of every level (owned by ``self._gpu``)."""
+        self._pass = GatherProgram(self.ctx, self._gpu)
+        self._levels: list[_GpuLevel] = []
+        for l, (lv, pk) in enumerate(zip(self.levels, packs)):
+            ctx, res, size = self.ctx, self._gpu, lv.size
+            btex = res.add(gl.float_texture(ctx, size, pack_nodes(bb, size) if l == 0 else None))
+            g = _GpuLevel(size=size, x=res.add(gl.PingPong.create(ctx, size, "fp32")), b=btex,
+                          b_fbo=res.add(ctx.framebuffer(color_attachments=[btex])),
+                          diag=res.add(gl.float_texture(ctx, size, pack_nodes(pk["diag"], size, pad=1.0))),
+                          A=upload_ell(ctx, pk["A"], res) if "A" in pk else None)
+            if l > 0:
+                g.b_fbo.clear(0.0, 0.0, 0.0, 0.0)
+            if lv.coarsest:
+                g.inverse = upload_ell(ctx, pk["inverse"], res)
+            else:
+                g.r = res.add(gl.float_texture(ctx, size))
+                g.r_fbo = res.add(ctx.framebuffer(color_attachments=[g.r]))
+                g.P = upload_ell(ctx, pk["P"], res)
+                g.R = upload_ell(ctx, pk["R"], res)
+                if "first" in pk:
+                    g.first = upload_ell(ctx, pk["first"], res)
+            self._levels.append(g)
 
     # ---- state ------------------------------------------------------------------------------
     @property
