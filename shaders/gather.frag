@@ -9,9 +9,10 @@
 //     1 RESIDUAL  b_i - a_ii x_i - y_i                          (u_src = x)
 //     2 APPLY     y_i                                           (restriction, dense coarse solve)
 //     3 ADD       x_i + y_i                                     (prolongation-correction)
-// with x_i = u_self at the node's texel. JACOBI and RESIDUAL store a matrix's off-diagonal
-// entries in the slots and a_ii in u_diag; APPLY and ADD store every entry of a (rectangular)
-// matrix in the slots.
+//     4 MATVEC    a_ii x_i + y_i                                (A x; u_src = x)
+// with x_i = u_self at the node's texel. JACOBI, RESIDUAL and MATVEC store a matrix's
+// off-diagonal entries in the slots and a_ii in u_diag; APPLY and ADD store every entry of a
+// (rectangular) matrix in the slots.
 //
 // Slot k of node i is layer k of u_coef at the node's texel: rgb = m_ij of the three channels,
 // a = the column j as a float (exact below 2^24), -1 for an empty slot; a row's empty slots come
@@ -20,19 +21,20 @@
 // llvmpipe has no vector integer division). Padding texels (i >= n) hold a_ii = 1, b = 0 and no
 // slots, so they stay 0 in every mode.
 // Fetches per node: 2 per used slot (+1 for the first empty slot of a row shorter than u_slots),
-// plus x_i, a_ii, b_i (JACOBI, RESIDUAL) or x_i (ADD).
+// plus x_i, a_ii, b_i (JACOBI, RESIDUAL), x_i, a_ii (MATVEC) or x_i (ADD).
 #define JACOBI 0
 #define RESIDUAL 1
 #define APPLY 2
 #define ADD 3
+#define MATVEC 4
 uniform sampler2D u_src;            // v, the gathered vector (rgb)
-uniform sampler2D u_self;           // x at this node (rgb): JACOBI, RESIDUAL, ADD
-uniform sampler2D u_diag;           // a_ii (rgb): JACOBI, RESIDUAL
+uniform sampler2D u_self;           // x at this node (rgb): JACOBI, RESIDUAL, ADD, MATVEC
+uniform sampler2D u_diag;           // a_ii (rgb): JACOBI, RESIDUAL, MATVEC
 uniform sampler2D u_b;              // b (rgb): JACOBI, RESIDUAL
 uniform sampler2DArray u_coef;      // u_slots layers: rgb m_ij, a = j or -1
 uniform int u_slots;                // layers of u_coef
 uniform int u_src_shift;            // log2 of u_src's width
-uniform int u_mode;                 // JACOBI, RESIDUAL, APPLY, ADD
+uniform int u_mode;                 // JACOBI, RESIDUAL, APPLY, ADD, MATVEC
 uniform float u_omega;              // damping (JACOBI)
 layout(location = 0) out vec4 f_color;
 
@@ -56,6 +58,10 @@ void main() {
         return;
     }
     vec3 d = texelFetch(u_diag, p, 0).rgb;
+    if (u_mode == MATVEC) {
+        f_color = vec4(d * x + y, 0.0);
+        return;
+    }
     vec3 r = texelFetch(u_b, p, 0).rgb - d * x - y;
     f_color = vec4(u_mode == RESIDUAL ? r : x + u_omega * r / d, 0.0);
 }

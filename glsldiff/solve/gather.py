@@ -88,7 +88,8 @@ from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparse", "jacobi_lambda_max", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
            "node_rhs", "check_symmetric", "distinct", "texture_width", "pack_nodes", "EllPack", "pack_ell",
-           "GatherMatrix", "upload_ell", "GatherProgram", "JACOBI", "RESIDUAL", "APPLY", "ADD"]
+           "GatherMatrix", "upload_ell", "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY", "ADD",
+           "MATVEC"]
 
 PRECISIONS = ("fp32",)
 MAX_NODES = 1 << 24       # neighbour indices are stored as floats (exact integers below 2^24)
@@ -96,7 +97,7 @@ OMEGA_TARGET = 1.9        # omega = min(1, OMEGA_TARGET / lambda_max) for omega=
 _DENSE_EIG = 400          # below this many unknowns the eigenvalue is computed densely
 Matrices = sp.spmatrix | sp.sparray | NDArray | Sequence[sp.spmatrix | sp.sparray | NDArray]
 Start = ArrayLike | str | None  # x0: (n, 3) array, CURRENT, or None (zero)
-JACOBI, RESIDUAL, APPLY, ADD = 0, 1, 2, 3   # gather.frag u_mode
+JACOBI, RESIDUAL, APPLY, ADD, MATVEC = 0, 1, 2, 3, 4   # gather.frag u_mode
 
 
 # ---- the damping ----------------------------------------------------------------------------
@@ -323,7 +324,8 @@ def upload_ell(ctx: moderngl.Context, pack: EllPack, resources: gl.Resources) ->
 
 class GatherProgram:
     """``shaders/gather.frag`` on a full-viewport quad: one pass per :meth:`draw` (module
-    docstring; the modes are :data:`JACOBI`, :data:`RESIDUAL`, :data:`APPLY`, :data:`ADD`).
+    docstring; the modes are :data:`JACOBI`, :data:`RESIDUAL`, :data:`APPLY`, :data:`ADD`,
+    :data:`MATVEC`).
     Its GPU objects go to ``resources``. Texture units: 0 ``u_src``, 1 ``u_self``, 2
     ``u_diag``, 3 ``u_b``, 4 ``u_coef``."""
 
