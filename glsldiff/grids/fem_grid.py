@@ -37,6 +37,7 @@ import scipy.optimize as so
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
@@ -60,6 +61,8 @@ class MappingQuality:
     surface_spacing_cv: float = float("nan")
     untangled: int = 0                      # inverted tetrahedra before the untangling step
     crease_nodes: int = 0                   # surface nodes kept on a mesh crease
+    coverage_max: float = float("nan")      # largest mesh-vertex-to-nearest-surface-node distance / h
+    coverage_p99: float = float("nan")      # its 99th percentile
     corner_nodes: int = 0                   # surface nodes kept on a mesh corner
     seconds: dict[str, float] = field(default_factory=dict)
 
@@ -253,6 +256,8 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     e = np.concatenate([cx.surface[:, [0, 1]], cx.surface[:, [1, 2]], cx.surface[:, [2, 0]]])
     L = np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1)
     q.surface_spacing, q.surface_spacing_cv = float(L.mean()), float(L.std() / L.mean())
+    gap, _ = cKDTree(xs).query(mesh.vertices)
+    q.coverage_max, q.coverage_p99 = float(gap.max() / cx.lattice.h), float(np.percentile(gap, 99) / cx.lattice.h)
     q.seconds["surface"] = time.perf_counter() - t0
 
     t1 = time.perf_counter()

@@ -64,17 +64,18 @@ from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.solvers import Callback, relax
-from glsldiff.solve.gather import (ADD, APPLY, JACOBI, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram, Matrices,
-                                   Start, channel_matrices, check_symmetric, distinct, jacobi_lambda_max, node_rhs,
-                                   pack_ell, pack_nodes, parse_start, texture_width, upload_ell)
+from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
+                                   Matrices, Start, channel_matrices, check_symmetric, distinct, jacobi_lambda_max,
+                                   node_rhs, pack_ell, pack_nodes, parse_start, texture_width, upload_ell)
 from glsldiff.system.report import MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparseMultigrid", "MultigridLevel", "build_prolongations", "galerkin", "smoother_omega",
-           "SMOOTH_TARGET", "MAX_COARSE", "AMG_DEFAULTS"]
+           "SMOOTH_TARGET", "MAX_COARSE", "AMG_DEFAULTS", "ACCELERATIONS"]
 
 SMOOTH_TARGET = 1.6       # omega_l = SMOOTH_TARGET / lambda_max(D_l^-1 A_l) for omega="auto"
 MAX_COARSE = 300          # coarsest level: at most this many unknowns (a dense inverse on the GPU)
-AMG_DEFAULTS: dict[str, Any] = {"strength": "evolution"}   # pyamg.smoothed_aggregation_solver options
+AMG_DEFAULTS: dict[str, Any] = {"strength": "evolution", "smooth": ("energy", {"degree": 1})}
+ACCELERATIONS = ("cg", None)   # conjugate gradients preconditioned by one V-cycle, or plain V-cycles
 
 
 # ---- the hierarchy (CPU) --------------------------------------------------------------------
@@ -169,13 +170,91 @@ class _GpuLevel:
     b: moderngl.Texture
     b_fbo: moderngl.Framebuffer
     diag: moderngl.Texture
-    A: GatherMatrix | None                 # off-diagonals (None at the coarsest)
+    A: GatherMatrix | None                 # off-diagonals (None at a coarsest level below 0)
     r: moderngl.Texture | None = None
     r_fbo: moderngl.Framebuffer | None = None
     P: GatherMatrix | None = None          # rows here, columns on the next level
     R: GatherMatrix | None = None          # rows on the next level, columns here
-    first: GatherMatrix | None = None      # omega D^-1 (levels >= 1): the first sweep from 0
+    first: GatherMatrix | None = None      # omega D^-1: the first sweep from x = 0
     inverse: GatherMatrix | None = None    # the coarsest level's dense inverse
+
+
+class _Quad:
+    """A fragment shader of ``shaders/`` on a full-viewport unit quad (``quad.vert``)."""
+
+    def __init__(self, ctx: moderngl.Context, resources: gl.Resources, fragment: str,
+                 units: dict[str, int]) -> None:
+        self.ctx = ctx
+        self.prog = resources.add(gl.program(ctx, "quad.vert", fragment))
+        gl.set_uniforms(self.prog, {"u_size": (1.0, 1.0), **units})
+        vbo = resources.add(ctx.buffer(np.array([0, 0, 1, 0, 0, 1, 1, 1], dtype="f4").tobytes()))
+        self.vao = resources.add(ctx.vertex_array(self.prog, [(vbo, "2f", "in_pos")]))
+
+    def draw(self, target: moderngl.Framebuffer, size: tuple[int, int], textures: Sequence[moderngl.Texture],
+             uniforms: dict[str, Any]) -> None:
+        target.use()
+        self.ctx.viewport = (0, 0, *size)
+        for unit, tex in enumerate(textures):
+            tex.use(unit)
+        for name, value in uniforms.items():
+            if name in self.prog:
+                self.prog[name].value = value
+        self.vao.render(moderngl.TRIANGLE_STRIP)
+
+
+@dataclass
+class _Target:
+    """A texture with its framebuffer."""
+
+    tex: moderngl.Texture
+    fbo: moderngl.Framebuffer
+
+    @classmethod
+    def create(cls, ctx: moderngl.Context, res: gl.Resources, size: tuple[int, int]) -> "_Target":
+        tex = res.add(gl.float_texture(ctx, size))
+        fbo = res.add(ctx.framebuffer(color_attachments=[tex]))
+        fbo.clear(0.0, 0.0, 0.0, 0.0)
+        return cls(tex, fbo)
+
+
+class _ConjugateGradients:
+    """Preconditioned conjugate gradients on the GPU, per channel: the iterate ``x``, residual
+    ``r``, direction ``p`` (ping-pong pairs), ``q = A p``, and the dot products ``rho = r.z``
+    (two one-texel targets: this and the previous iteration's) and ``p.q``, reduced by
+    ``gather_reduce.frag`` in two passes (chunks of ``c = ceil(sqrt(n))``, then the
+    ``ceil(n / c)`` partial sums) and used by ``gather_axpy.frag`` without a read-back."""
+
+    def __init__(self, ctx: moderngl.Context, res: gl.Resources, n: int, size: tuple[int, int]) -> None:
+        self.n, self.size = n, size
+        self.x = res.add(gl.PingPong.create(ctx, size, "fp32"))
+        self.r = res.add(gl.PingPong.create(ctx, size, "fp32"))
+        self.p = res.add(gl.PingPong.create(ctx, size, "fp32"))
+        self.q = _Target.create(ctx, res, size)
+        self.chunk = max(1, math.isqrt(n - 1) + 1)
+        self.partials = -(-n // self.chunk)
+        self.partial = _Target.create(ctx, res, (1 << max(0, (self.partials - 1).bit_length()), 1))
+        self.rho = [_Target.create(ctx, res, (1, 1)), _Target.create(ctx, res, (1, 1))]
+        self.pq = _Target.create(ctx, res, (1, 1))
+        self.reduce = _Quad(ctx, res, "gather_reduce.frag", {"u_a": 0, "u_b": 1})
+        self.axpy = _Quad(ctx, res, "gather_axpy.frag", {"u_a": 0, "u_b": 1, "u_num": 2, "u_den": 3})
+        self.started = False
+
+    def dot(self, a: moderngl.Texture, b: moderngl.Texture, out: _Target) -> None:
+        """``out`` = per-channel ``a . b`` over the ``n`` nodes (two passes)."""
+        W = self.size[0]
+        self.reduce.draw(self.partial.fbo, (self.partials, 1), [a, b],
+                         {"u_product": 1, "u_count": self.n, "u_chunk": self.chunk,
+                          "u_src_shift": W.bit_length() - 1})
+        pw = self.partial.tex.size[0]
+        self.reduce.draw(out.fbo, (1, 1), [self.partial.tex, self.partial.tex],
+                         {"u_product": 0, "u_count": self.partials, "u_chunk": self.partials,
+                          "u_src_shift": pw.bit_length() - 1})
+
+    def update(self, pair: gl.PingPong, a: moderngl.Texture, b: moderngl.Texture, num: _Target, den: _Target,
+               scale: float) -> None:
+        """``pair`` <- ``a + scale (num / den) b`` (``a`` may be ``pair.src``)."""
+        self.axpy.draw(pair.dst, self.size, [a, b, num.tex, den.tex], {"u_scale": float(scale)})
+        pair.swap()
 
 
 # ---- the solver -----------------------------------------------------------------------------
@@ -233,7 +312,7 @@ class GlslSparseMultigrid:
     def __init__(self, matrices: Matrices, b: ArrayLike, ctx: moderngl.Context | None = None,
                  precision: str = "fp32", omega: float | str = "auto", pre: int = 2, post: int = 2,
                  max_coarse: int = MAX_COARSE, max_levels: int = 10, amg: dict[str, Any] | None = None,
-                 prolongations: Sequence[sp.spmatrix | sp.sparray] | None = None) -> None:
+                 prolongations: Sequence[sp.spmatrix | sp.sparray] | None = None, accel: str | None = "cg") -> None:
         if precision not in PRECISIONS:
             raise InputError(f"precision={precision!r}: GlslSparseMultigrid supports only {PRECISIONS}")
         for name, v in (("pre", pre), ("post", post)):
@@ -243,6 +322,11 @@ class GlslSparseMultigrid:
             raise InputError("pre + post must be >= 1 (a V-cycle without smoothing does not converge)")
         if not isinstance(max_levels, (int, np.integer)) or max_levels < 1:
             raise InputError(f"max_levels={max_levels!r} must be an integer >= 1")
+        if accel not in ACCELERATIONS:
+            raise InputError(f"accel={accel!r}: give 'cg' (conjugate gradients, one V-cycle per iteration) or None "
+                             "(plain V-cycles)")
+        if accel == "cg" and pre != post:
+            raise InputError(f"accel='cg' needs a symmetric V-cycle (pre == post), not pre={pre}, post={post}")
         mats = channel_matrices(matrices, "GlslSparseMultigrid")
         check_symmetric(mats, "GlslSparseMultigrid needs symmetric matrices (Galerkin coarse operators "
                         "and a symmetric smoother)", "symmetrise the system")
@@ -259,7 +343,7 @@ class GlslSparseMultigrid:
                 raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'") from exc
             if not 0.0 < fixed < 2.0:
                 raise InputError(f"omega={omega!r} must be in (0, 2) (damped Jacobi diverges outside)")
-        self.precision, self.n, self.pre, self.post = precision, n, int(pre), int(post)
+        self.precision, self.n, self.pre, self.post, self.accel = precision, n, int(pre), int(post), accel
         self.ctx = ctx if ctx is not None else gl.get_context()
         gl.make_current(self.ctx)
         max_layers = int(self.ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
@@ -319,16 +403,17 @@ class GlslSparseMultigrid:
         packs = []
         for l, lv in enumerate(self.levels):
             pk: dict[str, Any] = {"diag": np.stack([A.diagonal() for A in lv.A], axis=1)}
+            if l == 0 or not lv.coarsest:
+                pk["A"] = pack_ell(lv.A, lv.size, diagonal=False)
             if lv.coarsest:
                 pk["inverse"] = pack_ell([sp.csr_matrix(M) for M in lv.inverse], lv.size, diagonal=True)
                 lv.slots = pk["inverse"].slots
             else:
-                pk["A"] = pack_ell(lv.A, lv.size, diagonal=False)
                 nxt = self.levels[l + 1]
                 pk["P"] = pack_ell([lv.P] * 3, lv.size, diagonal=True)
                 pk["R"] = pack_ell([sp.csr_matrix(lv.P.T)] * 3, nxt.size, diagonal=True)
                 lv.slots, lv.p_slots, lv.r_slots = pk["A"].slots, pk["P"].slots, pk["R"].slots
-                if l > 0 and self.pre > 0:
+                if self.pre > 0:
                     inv_d = lv.omega / pk["diag"]
                     pk["first"] = pack_ell([sp.diags(inv_d[:, c]).tocsr() for c in range(3)], lv.size, diagonal=True)
             packs.append(pk)
@@ -378,6 +463,7 @@ class GlslSparseMultigrid:
                 if "first" in pk:
                     g.first = upload_ell(ctx, pk["first"], res)
             self._levels.append(g)
+        self._cg = _ConjugateGradients(self.ctx, self._gpu, self.n, self.levels[0].size) if self.accel else None
 
     # ---- state ------------------------------------------------------------------------------
     @property
@@ -398,8 +484,8 @@ class GlslSparseMultigrid:
 
     @property
     def state(self) -> gl.PingPong:
-        """The finest level's iterate (ping-pong pair)."""
-        return self._levels[0].x
+        """The iterate (ping-pong pair): the conjugate gradients' ``x``, or the finest level's."""
+        return self._levels[0].x if self._cg is None else self._cg.x
 
     def describe(self) -> str:
         """One line per level: unknowns, slots, omega, transfer slots."""
@@ -420,6 +506,8 @@ class GlslSparseMultigrid:
         g = self._levels[0]
         g.b.write(pack_nodes(bb, g.size).tobytes(), alignment=1)
         self.system.b = bb.T.reshape(-1)
+        if self._cg is not None:
+            self._cg.started = False
 
     def set_initial(self, x: ArrayLike | None) -> None:
         """Start the next cycles from ``x`` (``(n, 3)``) or from zero."""
@@ -432,12 +520,14 @@ class GlslSparseMultigrid:
                 raise InputError(f"x0 has shape {vals.shape}, expected ({self.n}, 3)")
             if not np.isfinite(vals).all():
                 raise InputError("x0 has non-finite (NaN/inf) values")
-        self._levels[0].x.write(pack_nodes(vals, self._levels[0].size))
+        self.state.write(pack_nodes(vals, self._levels[0].size))
+        if self._cg is not None:
+            self._cg.started = False
 
     def unknown(self) -> NDArray[np.float64]:
         """The current fine iterate, ``(n, 3)`` float64."""
         gl.make_current(self.ctx)
-        return self._levels[0].x.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
+        return self.state.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
 
     def level_unknown(self, level: int, what: str = "x") -> NDArray[np.float64]:
         """``x``, ``b`` or ``r`` of a level as ``(n_l, 3)`` (diagnostics and tests)."""
@@ -450,9 +540,9 @@ class GlslSparseMultigrid:
         return np.frombuffer(tex.read(alignment=1), dtype="f4").reshape(-1, 4)[:n, :3].astype(np.float64)
 
     # ---- cycles -----------------------------------------------------------------------------
-    def _smooth(self, g: _GpuLevel, omega: float, sweeps: int) -> None:
+    def _smooth(self, g: _GpuLevel, b: moderngl.Texture, omega: float, sweeps: int) -> None:
         for _ in range(sweeps):
-            self._pass.draw(JACOBI, g.x.dst, g.size, g.A, g.x.src, g.size, diag=g.diag, b=g.b, omega=omega)
+            self._pass.draw(JACOBI, g.x.dst, g.size, g.A, g.x.src, g.size, diag=g.diag, b=b, omega=omega)
             g.x.swap()
 
     def _mark(self, level: int, t: float) -> float:
@@ -463,41 +553,76 @@ class GlslSparseMultigrid:
         self.level_seconds[level] += now - t
         return now
 
-    def _vcycle(self) -> None:
+    def _vcycle(self, b0: moderngl.Texture, zero: bool) -> None:
+        """One V-cycle on the finest level's ``x`` with right-hand side ``b0`` (level 0's ``b``,
+        or the conjugate gradients' residual), from ``x = 0`` when ``zero``."""
         draw, levels, L = self._pass.draw, self._levels, len(self._levels)
         t = time.perf_counter()
         for l in range(L - 1):
             g, nxt, lv = levels[l], levels[l + 1], self.levels[l]
+            b = b0 if l == 0 else g.b
             sweeps = self.pre
-            if l > 0:          # x_l = 0: the first sweep is x = omega D^-1 b
+            if l > 0 or zero:      # x_l = 0: the first sweep is x = omega D^-1 b
                 if sweeps > 0:
-                    draw(APPLY, g.x.dst, g.size, g.first, g.b, g.size)
+                    draw(APPLY, g.x.dst, g.size, g.first, b, g.size)
                     g.x.swap()
                     sweeps -= 1
                 else:
                     g.x.framebuffers[g.x.index].clear(0.0, 0.0, 0.0, 0.0)
-            self._smooth(g, lv.omega, sweeps)
-            draw(RESIDUAL, g.r_fbo, g.size, g.A, g.x.src, g.size, diag=g.diag, b=g.b)
+            self._smooth(g, b, lv.omega, sweeps)
+            draw(RESIDUAL, g.r_fbo, g.size, g.A, g.x.src, g.size, diag=g.diag, b=b)
             draw(APPLY, nxt.b_fbo, nxt.size, g.R, g.r, g.size)
             t = self._mark(l, t)
         c = levels[-1]
-        draw(APPLY, c.x.dst, c.size, c.inverse, c.b, c.size)
+        draw(APPLY, c.x.dst, c.size, c.inverse, b0 if L == 1 else c.b, c.size)
         c.x.swap()
         t = self._mark(L - 1, t)
         for l in range(L - 2, -1, -1):
             g, nxt = levels[l], levels[l + 1]
             draw(ADD, g.x.dst, g.size, g.P, nxt.x.src, nxt.size, own=g.x.src)
             g.x.swap()
-            self._smooth(g, self.levels[l].omega, self.post)
+            self._smooth(g, b0 if l == 0 else g.b, self.levels[l].omega, self.post)
             t = self._mark(l, t)
 
+    def _cg_start(self) -> None:
+        """``r = b - A x``, ``z = M r`` (a V-cycle from 0), ``p = z``, ``rho = r.z``."""
+        cg, g = self._cg, self._levels[0]
+        self._pass.draw(RESIDUAL, cg.r.dst, g.size, g.A, cg.x.src, g.size, diag=g.diag, b=g.b)
+        cg.r.swap()
+        self._vcycle(cg.r.src, zero=True)
+        z = g.x.src
+        cg.update(cg.p, z, z, cg.pq, cg.pq, 0.0)           # p = z
+        cg.dot(cg.r.src, z, cg.rho[0])
+        cg.started = True
+
+    def _cg_step(self) -> None:
+        """One iteration: ``q = A p``, ``alpha = rho / p.q``, ``x += alpha p``, ``r -= alpha q``,
+        ``z = M r``, ``rho' = r.z``, ``p = z + (rho' / rho) p``."""
+        cg, g = self._cg, self._levels[0]
+        self._pass.draw(MATVEC, cg.q.fbo, g.size, g.A, cg.p.src, g.size, diag=g.diag)
+        cg.dot(cg.p.src, cg.q.tex, cg.pq)
+        cg.update(cg.x, cg.x.src, cg.p.src, cg.rho[0], cg.pq, 1.0)
+        cg.update(cg.r, cg.r.src, cg.q.tex, cg.rho[0], cg.pq, -1.0)
+        self._vcycle(cg.r.src, zero=True)
+        z = g.x.src
+        cg.dot(cg.r.src, z, cg.rho[1])
+        cg.update(cg.p, z, cg.p.src, cg.rho[1], cg.rho[0], 1.0)
+        cg.rho.reverse()
+
     def cycle(self, n: int = 1) -> None:
-        """Run ``n`` V-cycles on the GPU (no read-back)."""
+        """Run ``n`` iterations on the GPU (no read-back): V-cycles, or conjugate-gradient
+        iterations (one V-cycle each; the first after :meth:`set_initial`, :meth:`set_b` or a
+        solve's start also computes the residual and the first direction)."""
         gl.make_current(self.ctx)
         t0 = time.perf_counter()
         with gl.keep_framebuffer(self.ctx):
             for _ in range(n):
-                self._vcycle()
+                if self._cg is None:
+                    self._vcycle(self._levels[0].b, zero=False)
+                else:
+                    if not self._cg.started:
+                        self._cg_start()
+                    self._cg_step()
             self.cycles_run += n
             self.ctx.finish()  # cycles are timed: wait for the GPU
         self.cycle_seconds += time.perf_counter() - t0
@@ -520,7 +645,10 @@ class GlslSparseMultigrid:
         """
         t0 = time.perf_counter()
         parse_start(x0, self.set_initial)
-        name = f"GLSL gather multigrid V({self.pre},{self.post})"
+        if self._cg is not None:
+            self._cg.started = False     # conjugate gradients restart from the current x
+        kind = f"V({self.pre},{self.post})" if self._cg is None else f"PCG,V({self.pre},{self.post})"
+        name = f"GLSL gather multigrid {kind}"
         seconds0 = self.level_seconds.copy()
 
         def advance(k: int) -> NDArray[np.float64]:
@@ -541,7 +669,7 @@ class GlslSparseMultigrid:
             d.update(updated=lv.n, sweeps=sweeps, residual=math.nan,
                      seconds=float(self.level_seconds[l] - seconds0[l]) if self.profile else math.nan)
             levels.append(d)
-        rep = SolveReport(f"{self.method}-{self.precision}(V({self.pre},{self.post}),levels={len(self.levels)})",
+        rep = SolveReport(f"{self.method}-{self.precision}({kind},levels={len(self.levels)})",
                           nodes=self.n, sweeps=cycles, residual=result.residual,
                           seconds=time.perf_counter() - t0, converged=result.converged,
                           history=result.history, status=result.status, error_estimate=result.error_estimate,
