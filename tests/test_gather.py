@@ -21,7 +21,7 @@ from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import TetGeometry, assemble_p1
-from glsldiff.solve.gather import GlslSparse, jacobi_lambda_max, sweep_rate
+from glsldiff.solve.gather import GlslSparse, jacobi_lambda_max, pack_ell, pack_nodes, sweep_rate
 from glsldiff.system.report import CURRENT
 
 
@@ -140,6 +140,32 @@ def test_one_sweep_equals_numpy_damped_jacobi(ctx):
     assert rel(x1 - x0, want - x0) < 3e-6     # the increment itself, per channel
     for c in range(3):
         assert rel(x1[:, c] - x0[:, c], want[:, c] - x0[:, c]) < 3e-6, c
+
+
+def test_pack_ell_rectangular_and_union_pattern():
+    """The shared packing: a rectangular matrix with every entry in a slot, channels with
+    different stored patterns (the union is packed, an entry zero in all channels gets no
+    slot); unpacking the layers gives the matrices back (float32), rows in node order."""
+    A = sp.random(50, 30, density=0.1, random_state=3, format="csr")
+    B = A.tolil()
+    B[3, 7] = 2.0              # only in channel 1
+    B[10, :] = 0.0             # a row empty in channel 1
+    B = B.tocsr()
+    B.eliminate_zeros()
+    C = (3.0 * A).tolil()
+    C[3, 7] = 0.0
+    C = C.tocsr()              # stores an explicit zero at (3, 7)
+    pack = pack_ell([A, B, C], (8, 7), diagonal=True)
+    counts = np.diff((abs(A) + abs(B) + abs(C)).tocsr().indptr)
+    assert pack.slots == counts.max() and np.array_equal(pack.row_slots, counts)
+    coef = pack.coef.reshape(pack.coef.shape[0], -1, 4)
+    assert coef.shape[1] == 56 and (coef[:, 50:, 3] == -1).all()      # padding rows: no slots
+    out = np.zeros((3, 50, 30))
+    for k, i in zip(*np.nonzero(coef[..., 3] >= 0)):
+        out[:, i, int(coef[k, i, 3])] += coef[k, i, :3]
+    for c, M in enumerate((A, B, C)):
+        assert np.allclose(out[c], M.toarray(), rtol=1e-7, atol=0)
+    assert pack_nodes(np.ones((50, 3)), (8, 7), pad=2.0)[6, 7, 0] == 2.0
 
 
 # ---- 2. converged solves --------------------------------------------------------------------

@@ -19,6 +19,7 @@ from glsldiff.bench import demo
 from glsldiff.bench import forward as forward_bench
 from glsldiff.bench import polygrid as polygrid_study
 from glsldiff.bench.convergence import convergence_bench
+from glsldiff.bench.meshes import MESHES as BENCH_MESHES, mesh_bench
 from glsldiff.bench.sphere import sphere_study
 from glsldiff.bench.sphere_lights import DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study
 from glsldiff.commands.inverse import add_parsers
@@ -150,6 +151,15 @@ def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_meshes(args: argparse.Namespace) -> int:
+    out = check_output_folder(args.out)
+    rows = mesh_bench(args.meshes, args.cubes, args.n, out, args.size,
+                      progress=lambda line: print(line, file=sys.stderr, flush=True))
+    print_table("tetrahedral polygrid on meshes (fem discretisation; coverage in lattice spacings h)", rows)
+    print(f"wrote meshes.csv, meshes.png and the renders to {out}/")
+    return 0
+
+
 def cmd_bench_convergence(args: argparse.Namespace) -> int:
     summary, _, extra = convergence_bench(args.models, check_output_folder(args.out), target=args.target, hole_n=args.hole_n,
                                           bunny_n=args.bunny_n, maxiter=args.max_sweeps)
@@ -277,6 +287,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--discretisations", nargs="+", default=list(SPHERE_DISCRETISATIONS), choices=SPHERE_DISCRETISATIONS)
     b.add_argument("--out", default="bench-out")
     b.set_defaults(func=cmd_bench_sphere_lights)
+
+    b = bsub.add_parser("meshes", help="tetrahedral polygrid on sample and generated meshes: quality, coverage, "
+                                        "front- and back-lit renders")
+    b.add_argument("--meshes", nargs="+", default=list(BENCH_MESHES), choices=BENCH_MESHES)
+    b.add_argument("--cubes", type=A.integer(1), nargs="+", default=[1600], help="target cube counts")
+    b.add_argument("--n", type=A.integer(2, 16), default=2, help="nodes per cube edge")
+    b.add_argument("--size", type=A.integer(16, 2048), default=256, help="render side, px")
+    b.add_argument("--out", default="bench-out")
+    _add_gl(b)
+    b.set_defaults(func=cmd_bench_meshes)
 
     b = bsub.add_parser("convergence", help="figure 15: single, hierarchical, adaptive, multigrid vs scipy, "
                                              "error against work and time")

@@ -14,6 +14,7 @@ Units: lengths mm, ``K`` and ``A`` in mm, ``b`` in mm^2 times the source's units
 """
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -30,6 +31,8 @@ from glsldiff.system.report import REFERENCE_TOL, SolveReport
 from glsldiff.system.tet_problem import TetProblem
 
 __all__ = ["TetGeometry", "assemble_p1", "assemble_tet", "solve_tet_direct", "DIRECT_MAX_NODES"]
+
+logger = logging.getLogger(__name__)
 
 #: Above this many unknowns per channel the reference solve is pyamg (SuperLU fills in).
 DIRECT_MAX_NODES = 20_000
@@ -53,17 +56,25 @@ class TetGeometry:
         return np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0]) / 6.0
 
     @cached_property
+    def degenerate(self) -> NDArray[np.bool_]:
+        """``(T,)`` tetrahedra of (numerically) zero volume: they carry no stiffness or mass
+        (their gradients are undefined; a flat tetrahedron of a collapsed mapping)."""
+        v = np.abs(self.volumes)
+        return v <= 1e-12 * float(v.max(initial=0.0))
+
+    @cached_property
     def local_stiffness(self) -> NDArray[np.float64]:
-        """``(T, 4, 4)`` ``V_t grad(l_i).grad(l_j)`` (mm) of each tetrahedron."""
+        """``(T, 4, 4)`` ``V_t grad(l_i).grad(l_j)`` (mm) of each tetrahedron (0 for
+        :attr:`degenerate` ones)."""
         P = self.positions[self.tets]
         D = P[:, 1:] - P[:, :1]
-        bad = np.abs(self.volumes) <= 1e-12 * np.max(np.abs(self.volumes))
-        if bad.any():
-            raise InputError(f"{int(bad.sum())} tetrahedra have zero volume; the mesh is degenerate there")
-        G = np.empty((len(P), 4, 3))
-        G[:, 1:] = np.transpose(np.linalg.inv(D), (0, 2, 1))
+        ok = ~self.degenerate
+        out = np.zeros((len(P), 4, 4))
+        G = np.empty((int(ok.sum()), 4, 3))
+        G[:, 1:] = np.transpose(np.linalg.inv(D[ok]), (0, 2, 1))
         G[:, 0] = -G[:, 1:].sum(axis=1)
-        return np.abs(self.volumes)[:, None, None] * np.einsum("tik,tjk->tij", G, G)
+        out[ok] = np.abs(self.volumes[ok])[:, None, None] * np.einsum("tik,tjk->tij", G, G)
+        return out
 
     @cached_property
     def node_volumes(self) -> NDArray[np.float64]:
@@ -99,8 +110,8 @@ def assemble_p1(geo: TetGeometry, kappa: ArrayLike, mu: ArrayLike, q: ArrayLike,
     n = len(geo.positions)
     mu_n = np.broadcast_to(np.asarray(mu, dtype=np.float64), (n,))
     q_n = np.broadcast_to(np.asarray(q, dtype=np.float64), (n,))
-    A = geo.stiffness(kappa) + sp.diags(mu_n * geo.node_volumes + geo.node_areas / (2.0 * C))
-    return A.tocsr(), geo.node_areas * q_n / (2.0 * C)
+    A = (geo.stiffness(kappa) + sp.diags(mu_n * geo.node_volumes + geo.node_areas / (2.0 * C))).tocsr()
+    return A, geo.node_areas * q_n / (2.0 * C)
 
 
 def assemble_tet(problem: TetProblem) -> LinearSystem:
@@ -109,6 +120,8 @@ def assemble_tet(problem: TetProblem) -> LinearSystem:
     g = problem.grid
     geo = TetGeometry(np.asarray(g.positions, dtype=np.float64), np.asarray(g.tets), np.asarray(g.surface))
     active = np.flatnonzero(g.active)
+    if geo.degenerate.any():
+        logger.info("%d tetrahedra of zero volume carry no stiffness or mass", int(geo.degenerate.sum()))
     q = problem.node_source()
     blocks, rhs = [], []
     for c in range(3):
@@ -116,7 +129,11 @@ def assemble_tet(problem: TetProblem) -> LinearSystem:
         blocks.append(A[active][:, active])
         rhs.append(b[active])
     A = sp.block_diag(blocks, format="csr")
-    return LinearSystem(A, np.concatenate(rhs), A.diagonal(), active)
+    diag = A.diagonal()
+    if not np.all(diag > 0):
+        raise InputError(f"{int((diag <= 0).sum() // 3)} nodes belong only to tetrahedra of zero volume; the "
+                         "grid's mapping collapsed there (try another cube count or n)")
+    return LinearSystem(A, np.concatenate(rhs), diag, active)
 
 
 def solve_tet_direct(problem: TetProblem) -> tuple[NDArray[np.float64], SolveReport]:

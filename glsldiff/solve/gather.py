@@ -255,13 +255,14 @@ def _aligned(mats: Sequence[sp.csr_matrix]) -> tuple[NDArray, NDArray, NDArray]:
     if all(np.array_equal(M.indptr, M0.indptr) and np.array_equal(M.indices, M0.indices) for M in mats[1:]):
         rows = np.repeat(np.arange(M0.shape[0]), np.diff(M0.indptr))
         return rows, M0.indices.astype(np.int64), np.stack([M.data for M in mats], axis=1)
-    U = sp.csr_matrix(sum(abs(M) for M in mats))
-    U.sum_duplicates()
-    U.sort_indices()
-    rows = np.repeat(np.arange(U.shape[0]), np.diff(U.indptr))
-    cols = U.indices.astype(np.int64)
-    vals = np.stack([np.asarray(M[rows, cols]).ravel() for M in mats], axis=1)
-    return rows, cols, vals
+    n_cols = M0.shape[1]
+    keys = [np.repeat(np.arange(M.shape[0], dtype=np.int64), np.diff(M.indptr)) * n_cols + M.indices
+            for M in mats]       # row-major entry keys, ascending (sorted indices)
+    union = np.unique(np.concatenate(keys))
+    vals = np.zeros((union.size, len(mats)))
+    for c, (k, M) in enumerate(zip(keys, mats)):
+        vals[np.searchsorted(union, k), c] = M.data
+    return union // n_cols, union % n_cols, vals
 
 
 def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,

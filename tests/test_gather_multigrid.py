@@ -1,0 +1,331 @@
+"""Tests for glsldiff.solve.gather_multigrid (GlslSparseMultigrid: algebraic-multigrid V-cycles,
+plain or as the preconditioner of conjugate gradients, every pass a gather fragment shader).
+
+References: a numpy V-cycle written here (Galerkin operators recomputed from the solver's
+prolongations, its per-level omegas, the coarsest level solved by LAPACK), a numpy
+preconditioned CG with that V-cycle, scipy's sparse LU (converged solves), numpy damped
+Jacobi (the single-level sweep counts). Systems: the P1 system of
+glsldiff.oracle.fem.assemble_p1 on pillowed sphere grids (kappa, mu per channel), 3-D 7-point
+Laplacians + mass + Robin diagonal (kappa per channel), with pyamg's hierarchy or with a
+piecewise-constant aggregation given as ``prolongations``.
+"""
+from __future__ import annotations
+
+import moderngl
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from glsldiff.core.errors import InputError
+from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.mesh import sphere_mesh
+from glsldiff.oracle.fem import TetGeometry, assemble_p1
+from glsldiff.solve.gather import GlslSparse, auto_omega, jacobi_lambda_max
+from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
+from glsldiff.system.report import CURRENT
+
+KAPPA_MU = ((0.3, 0.05), (0.2, 0.1), (0.45, 0.02))
+
+
+# ---- systems --------------------------------------------------------------------------------
+def laplacian7(m: int, kappa: float, mu: float, robin: float, h: float = 0.5) -> sp.csr_matrix:
+    """``m^3`` 7-point ``-div(kappa grad)`` + ``mu`` (finite volumes, mm) with ``robin h^2`` added
+    on the diagonal per boundary face of a node."""
+    e = np.ones(m)
+    T = sp.diags([-e[:-1], 2 * e, -e[:-1]], [-1, 0, 1])
+    I = sp.identity(m)
+    L = (sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)) * kappa * h
+    idx = np.indices((m, m, m)).reshape(3, -1)
+    faces = ((idx == 0) | (idx == m - 1)).sum(axis=0)
+    return (L + sp.diags(mu * h**3 + robin * h**2 * faces)).tocsr()
+
+
+def aggregation(m: int) -> sp.csr_matrix:
+    """Piecewise-constant prolongation of an ``m^3`` grid from its ``(m/2)^3`` 2x2x2 blocks."""
+    idx = np.indices((m, m, m)).reshape(3, -1) // 2
+    c = m // 2
+    agg = (idx[0] * c + idx[1]) * c + idx[2]
+    return sp.csr_matrix((np.ones(m**3), (np.arange(m**3), agg)), shape=(m**3, c**3))
+
+
+def p1_system(subdivisions: int, n: int) -> tuple[list[sp.csr_matrix], np.ndarray]:
+    """The P1 system of a 10 mm sphere (5 mm cubes, ``n`` nodes per cube edge) on the active
+    nodes, kappa and mu per channel, a random boundary source."""
+    g = build_fem_grid(sphere_mesh(10.0, subdivisions=subdivisions), n=n, cube_size=5.0)
+    act = np.flatnonzero(g.active)
+    geo = TetGeometry(g.positions, g.tets, g.surface)
+    q = np.random.default_rng(5).uniform(0.5, 1.5, len(g.positions))
+    mats, bs = [], []
+    for kappa, mu in KAPPA_MU:
+        A, b = assemble_p1(geo, kappa, mu, q, 2.0)
+        mats.append(A[act][:, act].tocsr())
+        bs.append(b[act])
+    return mats, np.stack(bs, axis=1)
+
+
+def lit_laplacians(m: int, kappas=((0.3, 0.3), (0.2, 0.5), (0.5, 0.2))) -> tuple[list[sp.csr_matrix], np.ndarray]:
+    mats = [laplacian7(m, kappa, mu, 0.25) for kappa, mu in kappas]
+    b = np.zeros((m**3, 3))
+    b[: m * m] = np.random.default_rng(3).uniform(0.5, 1.0, (m * m, 3))   # the z = 0 face lit
+    return mats, b
+
+
+def spsolve3(mats: list[sp.csr_matrix], b: np.ndarray) -> np.ndarray:
+    return np.stack([spla.spsolve(M.tocsc(), b[:, c]) for c, M in enumerate(mats)], axis=1)
+
+
+def rel(x: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.linalg.norm(x - ref) / np.linalg.norm(ref))
+
+
+@pytest.fixture(scope="module")
+def fem_system():
+    """Sphere grid subdivisions 3, n = 3 (1376 unknowns)."""
+    return p1_system(3, 3)
+
+
+# ---- the numpy reference --------------------------------------------------------------------
+def galerkin_levels(A: sp.csr_matrix, Ps: list[sp.csr_matrix]) -> list[sp.csr_matrix]:
+    out = [A]
+    for P in Ps:
+        out.append((P.T @ out[-1] @ P).tocsr())
+    return out
+
+
+def numpy_vcycle(As, Ps, omegas, pre, post, b, x=None, l=0):
+    """One V-cycle in float64 (``x = None``: from zero; the coarsest level solved exactly)."""
+    A = As[l]
+    if l == len(As) - 1:
+        return np.linalg.solve(A.toarray(), b)
+    d = A.diagonal()
+    x = np.zeros_like(b) if x is None else x.copy()
+    for _ in range(pre):
+        x = x + omegas[l] * (b - A @ x) / d
+    xc = numpy_vcycle(As, Ps, omegas, pre, post, Ps[l].T @ (b - A @ x), None, l + 1)
+    x = x + Ps[l] @ xc
+    for _ in range(post):
+        x = x + omegas[l] * (b - A @ x) / d
+    return x
+
+
+def numpy_pcg(As, Ps, omegas, nu, b, x, iterations):
+    """Conjugate gradients preconditioned by one V(nu, nu)-cycle from zero, float64."""
+    M = lambda r: numpy_vcycle(As, Ps, omegas, nu, nu, r)  # noqa: E731
+    A = As[0]
+    r = b - A @ x
+    z = M(r)
+    p, rho = z.copy(), r @ z
+    for _ in range(iterations):
+        q = A @ p
+        alpha = rho / (p @ q)
+        x, r = x + alpha * p, r - alpha * q
+        z = M(r)
+        rho, rho_old = r @ z, rho
+        p = z + rho / rho_old * p
+    return x
+
+
+def reference(s: GlslSparseMultigrid, mats, c: int):
+    """Per channel: the Galerkin operators recomputed from the solver's P, its P and omegas."""
+    Ps = [lv.P for lv in s.levels[:-1]]
+    return galerkin_levels(mats[c], Ps), Ps, [lv.omega for lv in s.levels[:-1]]
+
+
+# ---- 1. the operator ------------------------------------------------------------------------
+@pytest.mark.parametrize("case, pre, post", [("p1", 2, 2), ("p1", 3, 1), ("laplacian", 0, 3)])
+def test_one_vcycle_equals_numpy(ctx, fem_system, case, pre, post):
+    """One GLSL V-cycle from a random iterate = the numpy V-cycle with the same P, Galerkin
+    A_c, omegas and sweeps, per channel, to 1e-6 (measured ~1e-7, fp32). P1: pyamg's
+    hierarchy (3 levels); Laplacian 8^3: a given 2x2x2 aggregation, 3 levels (8^3, 4^3, 2^3),
+    pre = 0 (the coarse iterates are cleared, not swept from zero)."""
+    if case == "p1":
+        mats, b = fem_system
+        kw = {}
+    else:
+        mats, b = lit_laplacians(8)
+        kw = {"prolongations": [aggregation(8), aggregation(4)]}
+    n = mats[0].shape[0]
+    x0 = np.random.default_rng(2).uniform(-1, 1, (n, 3)).astype(np.float32).astype(np.float64)
+    with GlslSparseMultigrid(mats, b, ctx=ctx, pre=pre, post=post, accel=None, **kw) as s:
+        assert len(s.levels) == 3 and s.levels[-1].P is None
+        for c in range(3):
+            As, Ps, _ = reference(s, mats, c)
+            for lv, A in zip(s.levels, As):       # the solver's coarse operators are Galerkin
+                assert abs(lv.A[c] - A).max() <= 1e-12 * abs(A).max()
+        for lv in s.levels[:-1]:                  # the report's per-level data
+            K = np.diff((lv.A[0] != 0).astype(int).indptr).max() - 1
+            assert lv.slots == K and 0 < lv.omega < 1.0 / lv.lambda_max * 2
+        assert s.levels[-1].slots == s.levels[-1].n
+        s.set_initial(x0)
+        s.cycle(1)
+        x1 = s.unknown()
+        want = np.stack([numpy_vcycle(*reference(s, mats, c), pre, post, b[:, c], x0[:, c]) for c in range(3)],
+                        axis=1)
+    for c in range(3):
+        assert rel(x1[:, c], want[:, c]) < 1e-6, c
+        assert rel(x1[:, c] - x0[:, c], want[:, c] - x0[:, c]) < 1e-6, c
+
+
+def test_pcg_iterations_equal_numpy(ctx, fem_system):
+    """Three GLSL conjugate-gradient iterations (dot products reduced on the GPU, no read-back)
+    from a random iterate = numpy PCG with the numpy V-cycle, per channel, to 2e-6 (measured
+    ~2e-7)."""
+    mats, b = fem_system
+    n = mats[0].shape[0]
+    x0 = np.random.default_rng(4).uniform(-1, 1, (n, 3)).astype(np.float32).astype(np.float64)
+    with GlslSparseMultigrid(mats, b, ctx=ctx, accel="cg") as s:
+        s.set_initial(x0)
+        s.cycle(3)
+        x3 = s.unknown()
+        want = np.stack([numpy_pcg(*reference(s, mats, c), 2, b[:, c], x0[:, c], 3) for c in range(3)], axis=1)
+    for c in range(3):
+        assert rel(x3[:, c] - x0[:, c], want[:, c] - x0[:, c]) < 2e-6, c
+
+
+# ---- 2. converged solves --------------------------------------------------------------------
+@pytest.mark.parametrize("accel", ["cg", None])
+def test_converged_p1_equals_spsolve(ctx, fem_system, accel):
+    """P1 sphere system, kappa and mu per channel: the converged solve = sparse LU to 1e-4 in
+    every channel (residual at the fp32 floor, ~1e-6); the report counts cycles and names the
+    levels."""
+    mats, b = fem_system
+    with GlslSparseMultigrid(mats, b, ctx=ctx, accel=accel) as s:
+        x, rep = s.solve(tol=1e-6)
+    assert rep.status in ("converged", "stalled") and rep.residual < 1e-5, rep.summary()
+    kind = "PCG,V(2,2)" if accel else "V(2,2)"
+    assert rep.method == f"glsl-gather-multigrid-fp32({kind},levels={len(s.levels)})" and "cycles" in rep.summary()
+    assert [lv["n"] for lv in rep.levels] == [lv.n for lv in s.levels]
+    assert rep.levels[0]["sweeps"] == 4 * rep.sweeps and rep.levels[-1]["sweeps"] == rep.sweeps
+    assert rep.levels[0]["slots"] == s.levels[0].slots and rep.levels[0]["omega"] == s.levels[0].omega
+    ref = spsolve3(mats, b)
+    for c in range(3):
+        assert rel(x[:, c], ref[:, c]) < 1e-4, c
+
+
+def test_converged_laplacian_equals_spsolve(ctx):
+    """7-point Laplacian + mass + Robin diagonal, 12^3, kappa per channel: converged = sparse
+    LU to 1e-4."""
+    mats, b = lit_laplacians(12)
+    with GlslSparseMultigrid(mats, b, ctx=ctx) as s:
+        x, rep = s.solve(tol=1e-6)
+    assert rep.status in ("converged", "stalled") and rep.residual < 1e-5, rep.summary()
+    assert rel(x, spsolve3(mats, b)) < 1e-4
+
+
+# ---- 3. warm starts -------------------------------------------------------------------------
+@pytest.mark.parametrize("accel", ["cg", None])
+def test_warm_starts_and_set_b(ctx, fem_system, accel):
+    """x0 = the converged answer: 0 cycles; CURRENT continues where the last solve stopped (CG
+    restarts its directions: at most 2 cycles more than a cold solve); set_b(2 b) doubles the
+    answer."""
+    mats, b = fem_system
+    with GlslSparseMultigrid(mats, b, ctx=ctx, accel=accel) as s:
+        x, rep = s.solve(tol=1e-5)
+        assert rep.converged
+        x2, rep2 = s.solve(tol=1e-5, x0=x)
+        assert rep2.sweeps == 0 and rep2.converged and np.array_equal(x2, x)
+
+        _, cold = s.solve(tol=1e-5)
+        _, part = s.solve(tol=1e-2)
+        _, cont = s.solve(tol=1e-5, x0=CURRENT)
+        assert cont.history[0] == (0, pytest.approx(part.residual, rel=1e-6))
+        assert cont.converged and cold.sweeps <= part.sweeps + cont.sweeps <= cold.sweeps + (2 if accel else 1)
+
+        s.set_b(2.0 * b)
+        x3, rep3 = s.solve(tol=1e-5, x0=CURRENT)
+        assert rep3.history[0][1] > 0.1       # the old answer is far from the new one
+        assert rel(x3, 2.0 * x) < 2e-4
+
+
+# ---- 4. refinement --------------------------------------------------------------------------
+def jacobi_sweeps(A: sp.csr_matrix, b: np.ndarray, tol: float = 1e-4, every: int = 10) -> int:
+    """Damped Jacobi sweeps (GlslSparse's auto omega) to a Jacobi-scaled residual <= tol, in
+    float64, counted in steps of ``every``."""
+    omega = auto_omega(jacobi_lambda_max(A))
+    d = A.diagonal()
+    x, ref, k = np.zeros_like(b), np.linalg.norm(b / d), 0
+    while np.linalg.norm((b - A @ x) / d) > tol * ref:
+        for _ in range(every):
+            x += omega * (b - A @ x) / d
+        k += every
+    return k
+
+
+def test_cycles_flat_under_refinement(ctx, fem_system, record_property):
+    """Cycles to 1e-4 as the grid is refined (h halved): Laplacian 16^3 -> 32^3 (kappa 0.5, mu
+    0.001: diffusion length 22 mm > the 16 mm cube, so the Laplacian dominates) and the P1
+    sphere n = 3 -> 6. Multigrid (both accelerations) grows by less than 2x, single-level
+    Jacobi sweeps by more than 2.5x (measured in numpy on the Laplacian; ~4x asymptotically).
+    Measured: Laplacian PCG 4 -> 4, V-cycles 6 -> 6, Jacobi 360 -> 1130 sweeps; sphere PCG
+    5 -> 6, V-cycles 7 -> 10."""
+    counts: dict[str, list[int]] = {}
+    lap = [lit_laplacians(m, kappas=((0.5, 0.001),) * 3) for m in (16, 32)]
+    sph = [fem_system, p1_system(3, 6)]
+    for name, systems in (("laplacian", lap), ("sphere", sph)):
+        for accel in ("cg", None):
+            key = f"{name}-{accel or 'v'}"
+            for mats, b in systems:
+                with GlslSparseMultigrid(mats, b, ctx=ctx, accel=accel) as s:
+                    _, rep = s.solve(tol=1e-4)
+                assert rep.converged, rep.summary()
+                counts.setdefault(key, []).append(rep.sweeps)
+    counts["laplacian-jacobi"] = [jacobi_sweeps(mats[0], b[:, 0]) for mats, b in lap]
+    record_property("cycles", counts)
+    print(counts)
+    for key, (coarse, fine) in counts.items():
+        if key.endswith("jacobi"):
+            assert fine > 2.5 * coarse, counts
+        else:
+            assert fine < 2 * coarse, counts
+
+
+# ---- 5. bad input ---------------------------------------------------------------------------
+def test_bad_input(ctx, fem_system):
+    """One InputError per malformed input, before any GPU object is made."""
+    mats, b = fem_system
+    n = mats[0].shape[0]
+    with pytest.raises(InputError, match="pre \\+ post must be >= 1"):
+        GlslSparseMultigrid(mats, b, ctx=ctx, pre=0, post=0, accel=None)
+    with pytest.raises(InputError, match="accel='cg' needs a symmetric V-cycle"):
+        GlslSparseMultigrid(mats, b, ctx=ctx, pre=1, post=2)
+    with pytest.raises(InputError, match="accel='bicg'"):
+        GlslSparseMultigrid(mats, b, ctx=ctx, accel="bicg")
+    with pytest.raises(InputError, match=r"omega=2.5 must be in \(0, 2\)"):
+        GlslSparseMultigrid(mats, b, ctx=ctx, omega=2.5)
+    with pytest.raises(InputError, match="max_coarse=4096 must be in 1 .."):
+        GlslSparseMultigrid(mats, b, ctx=ctx, max_coarse=4096)
+    asym = mats[0].tolil()
+    asym[0, 1] = asym[0, 1] * 1.5
+    with pytest.raises(InputError, match="needs symmetric matrices"):
+        GlslSparseMultigrid(asym.tocsr(), b, ctx=ctx)
+    with pytest.raises(InputError, match=rf"prolongations\[0\] is \({n - 1}, 10\)"):
+        GlslSparseMultigrid(mats, b, ctx=ctx, prolongations=[sp.random(n - 1, 10, density=0.1, format="csr")])
+    with pytest.raises(InputError, match="coarsest level of the given prolongations has 500"):
+        GlslSparseMultigrid(mats, b, ctx=ctx, prolongations=[sp.random(n, 500, density=0.1, format="csr")])
+    with pytest.raises(InputError, match=r"b has shape \(5, 3\)"):
+        GlslSparseMultigrid(mats, b[:5], ctx=ctx)
+
+
+# ---- 6. one level, lifetime -----------------------------------------------------------------
+def test_single_level_release_and_profile(ctx):
+    """n <= max_coarse: one level, a cycle is the dense solve (one cycle to the fp32 floor, both
+    accelerations); release frees the GPU objects; profile times each level; GlslSparse (whose
+    packing the multigrid shares) still matches."""
+    mats, b = lit_laplacians(5)
+    ref = spsolve3(mats, b)
+    for accel in ("cg", None):
+        with GlslSparseMultigrid(mats, b, ctx=ctx, accel=accel) as s:
+            assert len(s.levels) == 1 and s.levels[0].slots == 125
+            x, rep = s.solve(tol=1e-5)
+            assert rep.converged and rep.sweeps == 1 and rel(x, ref) < 1e-5
+            tex = s.state.textures[0]
+        assert isinstance(tex.mglo, moderngl.InvalidObject)
+    mats, b = lit_laplacians(10)
+    with GlslSparseMultigrid(mats, b, ctx=ctx, max_coarse=100) as s:
+        s.profile = True
+        _, rep = s.solve(tol=1e-4)
+        assert rep.converged and all(lv["seconds"] > 0 for lv in rep.levels) and "levels" in s.describe()
+    with GlslSparse(mats, b, ctx=ctx) as g:
+        x, _ = g.solve(tol=1e-6)
+    assert rel(x, spsolve3(mats, b)) < 1e-4
