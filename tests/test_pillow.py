@@ -138,3 +138,16 @@ def test_box_keeps_its_edges_and_corners(extents):
     on_face = np.min(np.minimum(np.abs(S - lo), np.abs(S - hi)), axis=1)
     assert on_face.max() < 1e-6 * ext.max()
     assert g.quality.inverted == 0 and g.quality.corner_nodes == 8
+
+
+def test_zero_volume_tetrahedra_carry_nothing():
+    """A flat tetrahedron (four coplanar corners) gets no stiffness or mass; the others are
+    assembled as before; a node that only a flat tetrahedron uses is refused by assemble_tet."""
+    X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]], dtype=float)
+    good = np.array([[0, 1, 2, 3]])
+    geo_good = TetGeometry(X[:4], good, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
+    geo_both = TetGeometry(X, np.array([[0, 1, 2, 3], [0, 1, 4, 2]]), geo_good.surface)
+    assert geo_both.degenerate.tolist() == [False, True]
+    K1, K2 = geo_good.stiffness(1.0).toarray(), geo_both.stiffness(1.0).toarray()
+    np.testing.assert_allclose(K2[:4, :4], K1)
+    assert not K2[4].any() and geo_both.node_volumes[4] == 0
