@@ -142,7 +142,7 @@ def test_box_keeps_its_edges_and_corners(extents):
 
 def test_zero_volume_tetrahedra_carry_nothing():
     """A flat tetrahedron (four coplanar corners) gets no stiffness or mass; the others are
-    assembled as before; a node that only a flat tetrahedron uses is refused by assemble_tet."""
+    assembled as before (node 4, used by the flat one only, has an empty row)."""
     X = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]], dtype=float)
     good = np.array([[0, 1, 2, 3]])
     geo_good = TetGeometry(X[:4], good, np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]))
