@@ -1,52 +1,80 @@
-"""Algebraic multigrid V-cycles in GLSL for a general sparse symmetric system with RGB channels
-(the systems of :class:`glsldiff.solve.gather.GlslSparse`, e.g. P1 finite elements on a
-tetrahedral grid), every pass a gather of :mod:`glsldiff.solve.gather`.
+"""Algebraic multigrid in GLSL for a general sparse symmetric system with RGB channels (the
+systems of :class:`glsldiff.solve.gather.GlslSparse`, e.g. the P1 finite elements of
+:func:`glsldiff.oracle.fem.assemble_tet`): V-cycles, by default as the preconditioner of
+conjugate gradients, every pass a gather fragment shader of :mod:`glsldiff.solve.gather`.
 
 Hierarchy (CPU, once per matrix)
     Smoothed aggregation (pyamg) on the channel-mean matrix ``(A_R + A_G + A_B) / 3`` gives the
     prolongations ``P_l`` (``n_l x n_{l+1}``), shared by the three channels (one pattern,
     similar values); the coarse operators are Galerkin per channel, ``A_{l+1} = P_l^T A_l P_l``.
-    Strength of connection: ``"evolution"`` by default. pyamg's default (``"symmetric"``,
-    theta 0) aggregates ~27 fine nodes of a P1 matrix (18 off-diagonals per row) per coarse
-    node, and its V-cycles need 2x as many cycles and grow with the grid (measured on the 10 mm
-    sphere, 4 Jacobi sweeps per cycle: 22 cycles to 1e-4 at n = 6 and 27 at n = 8, against 11
-    and 13 with "evolution"). The coarsening stops at ``max_coarse`` unknowns (default 300).
+    Options (:data:`AMG_DEFAULTS`): ``"evolution"`` strength of connection and energy-minimising
+    prolongation smoothing (degree 1). pyamg's default (``"symmetric"`` strength, theta 0,
+    Jacobi-smoothed P) aggregates ~27 fine nodes of a P1 matrix per coarse node, and its
+    iteration counts grow with the grid (10 mm sphere, 5 mm cubes, n = 3, 6, 8 nodes per cube
+    edge, iterations to 1e-4: plain V(2,2) 11, 22, 27 against 7, 10, 12; PCG 6, 9, 10 against
+    5, 6, 6). The symmetric strength with energy smoothing, ``amg={"strength": ("symmetric",
+    {"theta": 0.0})}``, sets up 4x faster (pyamg 0.55 s against 2.1 s on the 125k-node bunny
+    grid; operator complexity 1.1 against 1.5-1.6) for 6, 8, 10 PCG iterations on the spheres
+    and 24 against 17 on the bunny, at about the same solve time: the choice where the
+    hierarchy is rebuilt often.
+    The coarsening stops at ``max_coarse`` unknowns (default 300).
 Coarsest level
     Solved exactly, on the GPU, by one pass: ``x_c = A_c^-1 b_c`` with the dense inverse of
-    each channel's ``A_c`` stored as an ``n_c``-slot gather (``n_c^2`` multiply-adds, a few
-    hundred thousand for 300 unknowns: well under a fine sweep's cost). No read-back per cycle,
-    and no coarse-level iteration to tune: damped Jacobi on the coarsest operator (condition
-    number ~10^2 - 10^3) would need hundreds of sweeps per cycle, one draw each; a CPU solve a
-    read-back and an upload per cycle. ``max_coarse`` is capped by the texture-array layers
-    (``GL_MAX_ARRAY_TEXTURE_LAYERS``, 2048 on llvmpipe).
+    each channel's ``A_c`` (float64 LAPACK, stored in fp32) as an ``n_c``-slot gather (``n_c^2``
+    multiply-adds: under 0.1 M for 300 unknowns, well under a fine sweep's cost; 0.4 ms of a
+    ~100 ms cycle on 125k nodes). No read-back per cycle and no coarse iteration to tune:
+    damped Jacobi on the coarsest operator (condition number ~10^2 - 10^3) would need hundreds
+    of sweeps per cycle, one draw each; a CPU solve a read-back and an upload per cycle.
+    ``max_coarse`` is capped by the texture-array layers (``GL_MAX_ARRAY_TEXTURE_LAYERS``, 2048
+    on llvmpipe).
 GPU storage, per level ``l`` (node ``i`` at texel ``(i % W_l, i // W_l)``, ``W_l`` a power of two)
     ``x`` (ping-pong pair), ``b``, ``r`` and ``a_ii`` (RGBA32F textures; ``b``, ``r`` render
     targets), the off-diagonal slots of ``A_l`` (the three channels in rgb), and for
-    ``l < L-1`` the slots of ``P_l`` (rows: level ``l``'s nodes) and of ``R_l = P_l^T`` (rows:
-    level ``l+1``'s nodes) with the shared value in all three channels; on levels ``l >= 1``
-    also ``omega_l D_l^-1`` as a one-slot gather (the first pre-smoothing sweep from ``x = 0``);
-    at the coarsest the dense inverse. All are :class:`~glsldiff.solve.gather.EllPack` layers
-    packed by :func:`~glsldiff.solve.gather.pack_ell` and drawn by
-    :class:`~glsldiff.solve.gather.GatherProgram` (``shaders/gather.frag``).
+    ``l < L-1`` the slots of ``P_l`` (rows: level ``l``'s nodes), of ``R_l = P_l^T`` (rows:
+    level ``l+1``'s nodes), both with the shared value in all three channels, and of
+    ``omega_l D_l^-1`` (one slot: the first pre-smoothing sweep from ``x = 0``); at the
+    coarsest the dense inverse. All are :class:`~glsldiff.solve.gather.EllPack` layers packed
+    by :func:`~glsldiff.solve.gather.pack_ell` and drawn by
+    :class:`~glsldiff.solve.gather.GatherProgram` (``shaders/gather.frag``, the operation by
+    its ``u_mode``).
 V-cycle (``pre``/``post`` damped Jacobi sweeps, default 2/2), every step one full-screen pass
-    down, ``l = 0 .. L-2``: ``pre`` sweeps on ``A_l x_l = b_l`` (``l >= 1``: the first from
-    ``x_l = 0``, ``x_l = omega_l D_l^-1 b_l``, an ``APPLY``); ``r_l = b_l - A_l x_l``
-    (``RESIDUAL``); ``b_{l+1} = P_l^T r_l`` (``APPLY`` of ``R_l``); coarsest: ``x = A^-1 b``
-    (``APPLY``); up, ``l = L-2 .. 0``: ``x_l += P_l x_{l+1}`` (``ADD``), ``post`` sweeps.
-    With one level (``n <= max_coarse``) a cycle is the dense solve.
+    down, ``l = 0 .. L-2``: ``pre`` sweeps on ``A_l x_l = b_l`` (from ``x_l = 0`` on the coarse
+    levels, and on level 0 as a preconditioner: the first sweep is then ``x_l = omega_l D_l^-1
+    b_l``, an ``APPLY``); ``r_l = b_l - A_l x_l`` (``RESIDUAL``); ``b_{l+1} = P_l^T r_l``
+    (``APPLY`` of ``R_l``); coarsest: ``x = A^-1 b`` (``APPLY``); up, ``l = L-2 .. 0``:
+    ``x_l += P_l x_{l+1}`` (``ADD``), ``post`` sweeps. With one level (``n <= max_coarse``) a
+    cycle is the dense solve.
+Acceleration (``accel``)
+    ``"cg"`` (default): conjugate gradients per channel, preconditioned by one V-cycle from
+    zero (symmetric positive definite when ``pre == post``), entirely on the GPU: ``q = A p``
+    (``MATVEC``), the dot products ``r.z``, ``p.q`` reduced to one texel in two passes
+    (``shaders/gather_reduce.frag``) and read by the vector updates
+    (``shaders/gather_axpy.frag``): no read-back per iteration. An iteration costs a V-cycle
+    plus 4 fine passes of 2-3 fetches per node and 4 reduction passes (~10 % of a cycle).
+    ``None``: plain V-cycles ``x <- x + V(b - A x)``. CG matters on grids whose P1 matrix is far
+    from an M-matrix: on the 125k-node bunny grid (``lambda_max(D^-1 A)`` 3.7) plain V-cycles
+    contract by 0.93 per cycle (pyamg's own Gauss-Seidel V-cycles by 0.92) and need 42 cycles
+    to 1e-4, PCG 17; on the sphere 12 and 6.
 Smoothing damping
     ``omega="auto"`` takes, per level, ``omega_l = 1.6 / lambda_max(D_l^-1 A_l)`` (Lanczos,
     :func:`~glsldiff.solve.gather.jacobi_lambda_max`, the largest over the channels). A smoother
-    must damp the upper half of the spectrum (what the coarse grid cannot represent); the
+    must damp the upper part of the spectrum (what the coarse grid cannot represent); the
     classic ``4/3 / lambda_max`` balances ``|1 - omega lambda|`` over ``[lambda_max / 2,
-    lambda_max]``, and 1.6 trades a little of that for the middle of the spectrum, which on
-    these aggregation hierarchies the coarse correction represents poorly (measured, 10 mm
-    sphere n = 8, V(2,2): 15 cycles to 1e-4 with 4/3, 13 with 1.6, ... with 1.8).
+    lambda_max]``; 1.6 trades some of that for the middle of the spectrum, which these
+    aggregation hierarchies represent poorly (measured, sphere n = 8, plain V(2,2): 15, 13, 12
+    cycles to 1e-4 with 4/3, 1.6, 1.8; bunny PCG: 19, 17, 16). 1.6 keeps a 20 % margin to
+    the divergence of Jacobi (and so of the V-cycle's positive definiteness) at 2.
 
 Convergence is checked by :func:`glsldiff.oracle.solvers.relax` as for every relaxation: the
-fine iterate is read back every ``check_every`` cycles (default 1) and its Jacobi-scaled
-residual evaluated in float64 on the CPU system; ``maxiter`` and the report's ``sweeps`` count
-V-cycles.
+fine iterate is read back every ``check_every`` iterations (default 1: a check, a read-back
+and a float64 residual on the CPU, costs ~7 % of a cycle on llvmpipe, less than the half cycle
+that checking every second cycle overshoots on average) and its Jacobi-scaled residual
+evaluated; ``maxiter`` and the report's ``sweeps`` count iterations (V-cycles; CG
+iterations, one V-cycle each). The fp32 floor of that residual is ~1e-6 (the monitor reports
+``"stalled"`` there).
+
+Measured on llvmpipe (2 shared cores), time to a 1e-4 residual, three channels: see
+:class:`GlslSparseMultigrid`.
 """
 from __future__ import annotations
 
@@ -259,8 +287,10 @@ class _ConjugateGradients:
 
 # ---- the solver -----------------------------------------------------------------------------
 class GlslSparseMultigrid:
-    """Algebraic-multigrid V-cycles for ``A_c x_c = b_c`` (c = R, G, B), every pass a gather
-    fragment shader (module docstring: hierarchy, storage, cycle, coarsest solve, damping).
+    """Algebraic multigrid for ``A_c x_c = b_c`` (c = R, G, B): V-cycles, by default
+    preconditioning conjugate gradients, every pass a gather fragment shader (module
+    docstring: hierarchy, storage, cycle, coarsest solve, acceleration, damping). The interface
+    is :class:`~glsldiff.solve.gather.GlslSparse`'s (a drop-in replacement), counting V-cycles.
 
     GPU objects belong to this object; call :meth:`release` (or use it as a context manager).
 
@@ -288,13 +318,16 @@ class GlslSparseMultigrid:
         Further options of ``pyamg.smoothed_aggregation_solver`` (default :data:`AMG_DEFAULTS`).
     prolongations
         The ``P_l`` to use instead of pyamg's (``n_l x n_{l+1}`` each, finest first).
+    accel
+        ``"cg"`` (conjugate gradients preconditioned by one V-cycle per iteration; needs
+        ``pre == post``) or ``None`` (plain V-cycles).
 
     Attributes
     ----------
     n, levels
         Unknowns per channel; the :class:`MultigridLevel` list (finest first).
-    pre, post
-        The V-cycle's sweeps.
+    pre, post, accel
+        The V-cycle's sweeps; the acceleration.
     system
         The CPU :class:`LinearSystem` whose residual the solve checks.
     setup_seconds
@@ -419,8 +452,9 @@ class GlslSparseMultigrid:
             packs.append(pk)
         self.setup_seconds["pack"] = time.perf_counter() - t0
         for lv in self.levels:
-            if lv.slots > max_layers or lv.r_slots > max_layers:
-                raise InputError(f"a level of {lv.n} unknowns needs {max(lv.slots, lv.r_slots)} slots; this context's "
+            if max(lv.slots, lv.p_slots, lv.r_slots) > max_layers:
+                raise InputError(f"a level of {lv.n} unknowns needs {max(lv.slots, lv.p_slots, lv.r_slots)} slots; "
+                                 "this context's "
                                  f"texture arrays hold at most {max_layers} layers (lower max_coarse or change amg)")
         diag0 = packs[0]["diag"]
         self.system = LinearSystem(A=sp.block_diag(mats, format="csr"), b=bb.T.reshape(-1),
@@ -528,16 +562,6 @@ class GlslSparseMultigrid:
         """The current fine iterate, ``(n, 3)`` float64."""
         gl.make_current(self.ctx)
         return self.state.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
-
-    def level_unknown(self, level: int, what: str = "x") -> NDArray[np.float64]:
-        """``x``, ``b`` or ``r`` of a level as ``(n_l, 3)`` (diagnostics and tests)."""
-        gl.make_current(self.ctx)
-        g, n = self._levels[level], self.levels[level].n
-        tex = {"x": g.x.src, "b": g.b, "r": g.r}[what]
-        if tex is None:
-            raise InputError(f"level {level} has no {what!r} texture")
-        W, H = g.size
-        return np.frombuffer(tex.read(alignment=1), dtype="f4").reshape(-1, 4)[:n, :3].astype(np.float64)
 
     # ---- cycles -----------------------------------------------------------------------------
     def _smooth(self, g: _GpuLevel, b: moderngl.Texture, omega: float, sweeps: int) -> None:
