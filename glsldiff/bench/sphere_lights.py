@@ -2,9 +2,10 @@
 lights and a narrow spot, against the exact series (:mod:`glsldiff.oracle.sphere_series`).
 
 Sphere R = 10 mm (the sphere bench's material: kappa = 1/3.15 mm, mu = 0.05 mm^-1, eta = 1.3).
-Lights (irradiance or intensity 1, source by the renderer's ``p1`` convention): directional from
-+z (onto a polycube face), from +x+z (a polycube edge), from -x-y-z (a corner), and a spot at
-30 mm from the centre aimed at it (cone 10 deg, smooth falloff from 8 deg). Each discretisation
+Lights (irradiance 1, intensity 900 for the spot, source by the renderer's ``p1``
+convention): directional from -z (onto a polycube face), from -x-z (a polycube edge), from
++x+y+z (a corner), and a spot 30 mm above the centre on +z aimed at it (cone 10 deg, smooth
+falloff from 8 deg). Each discretisation
 is solved exactly (SuperLU / pyamg), so the table shows discretisation error only:
 
 * ``fem``: P1 finite elements on the pillowed polycube (:mod:`glsldiff.grids.fem_grid`);
@@ -15,7 +16,9 @@ Error of the exitant bracket ``B = a phi - b q`` (the view-independent factor of
 radiance, ``p1`` convention) at the surface / boundary nodes against the series at the same
 points (projected on the sphere): ``rel_rms = ||B - B_ref|| / ||B_ref||`` and
 ``rel_max = max |B - B_ref| / max |B_ref|``. Refinement: series ``n`` (fixed polycube of
-``cube_size``, more nodes per cube) and ``cubes`` (fixed ``n``, smaller cubes).
+``cube_size``, more nodes per cube) and ``cubes`` (fixed ``n``, smaller cubes). Per light,
+``sphere_error_<light>.png`` maps the error over the whole sphere for the finest grid of
+each discretisation, carried to every point by the renderer's interpolation.
 """
 from __future__ import annotations
 
@@ -39,6 +42,7 @@ from glsldiff.oracle.sphere_lights import light_source_function, sphere_from_lig
 from glsldiff.physics.exitance import exitant_bracket
 from glsldiff.physics.lights import DirectionalLight, SpotLight
 from glsldiff.physics.optics import boundary_constant
+from glsldiff.render.shading import surface_interpolation, vertex_interpolation
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
 
@@ -52,7 +56,8 @@ def _unit(v: Sequence[float]) -> tuple[float, float, float]:
 
 
 def bench_lights(radius: float) -> dict[str, Any]:
-    """The study's lights by name (directions are the way the light travels)."""
+    """The study's lights by name (directions point towards the light, as in scenes): onto a
+    polycube face (from -z), an edge, a corner, and a spot above +z aimed at the centre."""
     return {"face": DirectionalLight(direction=(0.0, 0.0, -1.0), irradiance=(1.0, 1.0, 1.0)),
             "edge": DirectionalLight(direction=_unit((-1, 0, -1)), irradiance=(1.0, 1.0, 1.0)),
             "corner": DirectionalLight(direction=_unit((1, 1, 1)), irradiance=(1.0, 1.0, 1.0)),
@@ -62,11 +67,13 @@ def bench_lights(radius: float) -> dict[str, Any]:
 
 @dataclass
 class Case:
-    """One discretisation of the sphere: surface points, a solve per source."""
+    """One discretisation of the sphere: surface points, a solve per source, and the
+    renderer's interpolation from those points to other surface points."""
 
     points: NDArray[np.float64]                       # (S, 3) mm, where B is compared
     solve: Callable[[NDArray[np.float64]], NDArray[np.float64]]   # q (S,) -> B (S,)
     info: dict[str, object]
+    interpolation: Callable[[NDArray[np.float64]], Any]          # points (P, 3) -> (P, S) matrix
 
 
 def fem_case(mesh: Any, n: int, polycube: Any) -> Case:
@@ -80,7 +87,8 @@ def fem_case(mesh: Any, n: int, polycube: Any) -> Case:
         phi, _ = solve_tet_direct(p)
         return p.exitant_bracket(phi)[:, 0]
     return Case(g.positions[S], solve, {"h_mm": g.h, "nodes": int(g.active.sum()), "surface_nodes": len(S),
-                                        "inverted": g.quality.inverted, "build_s": build})
+                                        "inverted": g.quality.inverted, "build_s": build},
+                lambda p: surface_interpolation(p, g.boundary_positions, g.surface_triangles))
 
 
 def polygrid_case(mesh: Any, n: int, polycube: Any, stencil: str) -> Case:
@@ -98,7 +106,8 @@ def polygrid_case(mesh: Any, n: int, polycube: Any, stencil: str) -> Case:
     return Case(pg.boundary_positions, solve, {"h_mm": pg.lattice.h, "nodes": int(pg.n_active),
                                                "surface_nodes": len(pg.boundary_positions),
                                                "inverted": pg.mapping.inverted if pg.mapping else -1,
-                                               "build_s": build})
+                                               "build_s": build},
+                lambda p: vertex_interpolation(p, pg.boundary_positions))
 
 
 def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int] = (4, 6, 8),
@@ -114,6 +123,7 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
     series = {k: sphere_from_light(all_lights[k], radius, KAPPA, MU, ETA) for k in names}
     sources = {k: light_source_function(all_lights[k], radius, ETA) for k in names}
     polycubes: dict[float, Any] = {}
+    finest: dict[str, Case] = {}
     rows: list[dict[str, object]] = []
     for disc in discretisations:
         runs = ([("n", n, cube_size) for n in (ns if disc == "fem" else polygrid_ns)]
@@ -124,6 +134,8 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
             if progress:
                 progress(f"sphere-lights: {disc}, n = {n}, cube {cs:g} mm")
             case = fem_case(mesh, n, polycubes[cs]) if disc == "fem" else polygrid_case(mesh, n, polycubes[cs], disc)
+            if ser == "n" and disc != "paper":      # the finest of series n goes into the error maps
+                finest[disc] = case
             dirs = case.points / np.linalg.norm(case.points, axis=1, keepdims=True)
             for k in names:
                 t0 = time.perf_counter()
@@ -138,7 +150,46 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
         out.mkdir(parents=True, exist_ok=True)
         io.write_csv(out / "sphere_lights.csv", rows)
         plot(rows, out / "sphere_lights.png")
+        for k in names:
+            error_maps({f"{d}, n = {r}": finest[d] for d, r in ((d, max(ns) if d == "fem" else max(polygrid_ns))
+                                                                for d in finest)},
+                       all_lights[k], series[k], radius, out / f"sphere_error_{k}.png")
     return rows
+
+
+def error_maps(cases: dict[str, Case], light: Any, series: Any, radius: float, path: Path,
+               height: int = 180) -> dict[str, float]:
+    """Lat-long maps (z up) of ``|B - B_series| / max B_series`` over the whole sphere for
+    each discretisation, the discrete ``B`` carried to each pixel's surface point by the
+    renderer's own interpolation (barycentric on the surface triangles for fem, nearest-node
+    weights for the lattice); one row per case in ``path`` (PNG, 0 .. 5 % colour scale).
+    Returns the RMS of each map."""
+    plt = pyplot()
+    theta = (np.arange(height) + 0.5) / height * np.pi
+    phi = (np.arange(2 * height) + 0.5) / (2 * height) * 2 * np.pi
+    T, P = np.meshgrid(theta, phi, indexing="ij")
+    dirs = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1).reshape(-1, 3)
+    q_fn = light_source_function(light, radius, ETA)
+    ref = series.exitant_bracket(radius * dirs)
+    scale = float(np.abs(ref).max())
+    fig, axes = plt.subplots(len(cases), 1, figsize=(7, 3.3 * len(cases)), squeeze=False)
+    rms = {}
+    for ax, (name, case) in zip(axes[:, 0], cases.items()):
+        nd = case.points / np.linalg.norm(case.points, axis=1, keepdims=True)
+        B = case.solve(np.asarray(q_fn(nd), dtype=np.float64))
+        W = case.interpolation(radius * dirs)
+        err = (np.abs(W @ B - ref) / scale).reshape(T.shape)
+        rms[name] = float(np.sqrt((err ** 2).mean()))
+        im = ax.imshow(err, extent=(0, 360, 180, 0), vmin=0.0, vmax=0.05, cmap="magma", aspect="auto")
+        ax.set_title(f"{name}: |B - B_series| / max B, RMS {rms[name]:.2%}", fontsize=9)
+        ax.set_xlabel("azimuth [deg]")
+        ax.set_ylabel("polar angle from +z [deg]")
+        fig.colorbar(im, ax=ax, fraction=0.03)
+    fig.tight_layout()
+    with io.atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100, format="png")
+    plt.close(fig)
+    return rms
 
 
 def plot(rows: list[dict[str, object]], path: Path) -> None:
