@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 from typing import Callable, Mapping
 
 import numpy as np
+import pyamg
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
@@ -102,10 +103,6 @@ def solve_amg(problem: DiffusionProblem, tol: float = REFERENCE_TOL, maxiter: in
     once, with the solution, and ``residuals`` gets per cycle the largest relative residual
     over the channels (a finished channel keeps its last one).
     """
-    try:
-        import pyamg  # heavy optional dependency (the validation extra)
-    except ImportError as exc:
-        raise SolverError("solve_amg needs pyamg: pip install 'glsldiff[validation]'") from exc
     t0 = time.perf_counter()
     s = assemble(problem)
     n = s.n

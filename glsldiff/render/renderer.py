@@ -10,7 +10,9 @@ Stages, in the one direction data flows (numpy arrays between them):
 * **pass 1** (t1, per light set): transmitted irradiance ``E_t`` at the boundary nodes
   (:func:`glsldiff.render.pass1.incident_light`: shadow maps, environment light with per-node
   visibility), and the solver's boundary source ``q``.
-* **pass 2** (t2): the polygrid diffusion solve (:class:`glsldiff.solve.multilevel.MultilevelDiffusion`),
+* **pass 2** (t2): the polygrid diffusion solve (:class:`glsldiff.solve.multilevel.MultilevelDiffusion`;
+  on tetrahedra, ``[polygrid] discretisation = "fem"``, GPU algebraic-multigrid-preconditioned
+  CG, :class:`glsldiff.solve.gather_multigrid.GlslSparseMultigrid`),
   warm-started from the previous frame's solution when only the light changed, and on a
   first frame from the converged solution of the same system cached on disk
   (:mod:`glsldiff.core.cache`) by an earlier run: the solver still checks the residual
@@ -61,8 +63,8 @@ from glsldiff.render.report import RenderReport
 from glsldiff.render.scene import Scene
 from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
 from glsldiff.solve.multilevel import MultilevelDiffusion
-from glsldiff.oracle.fem import assemble_tet
-from glsldiff.solve.gather import GlslSparse
+from glsldiff.oracle.fem import assemble_tet, tet_geometry, tet_rhs
+from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
 from glsldiff.system.report import CURRENT
@@ -137,7 +139,8 @@ class Renderer:
         interp = (surface_interpolation(v, pg.boundary_positions, pg.surface_triangles) if fem
                   else vertex_interpolation(v, pg.boundary_positions))
         self._geo = {"mesh": mesh, "render_mesh": render_mesh, "pg": pg, "hier": hier, "vertices": v, "faces": f,
-                     "normals": render_mesh.vertex_normals, "interp": interp, "fem": fem}
+                     "normals": render_mesh.vertex_normals, "interp": interp, "fem": fem,
+                     "tetgeo": tet_geometry(pg) if fem else None}
 
     def _material(self, scene: Scene) -> None:
         pg = self._geo["pg"]
@@ -172,7 +175,7 @@ class Renderer:
 
     def _pass2(self, scene: Scene, warm: bool) -> None:
         pg, opts, fem = self._geo["pg"], scene.options, self._geo["fem"]
-        scheme = "single-level damped Jacobi (tetrahedra)" if fem else opts.scheme
+        scheme = "multigrid-preconditioned CG (tetrahedra)" if fem else opts.scheme
         self._say(f"pass 2: {scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
         gl.make_current(self.ctx)
         x0: Any = CURRENT if warm and opts.scheme != "multigrid" else None
@@ -217,15 +220,15 @@ class Renderer:
 
     def _fem_rhs(self, scene: Scene) -> NDArray[np.float64]:
         """``(n_active, 3)`` right-hand side of the P1 system for the current source."""
-        return assemble_tet(self._fem_problem(scene)).b.reshape(3, -1).T
+        return tet_rhs(self._fem_problem(scene), self._geo["tetgeo"])
 
-    def _fem_solver(self, scene: Scene) -> GlslSparse:
+    def _fem_solver(self, scene: Scene) -> GlslSparseMultigrid:
         if scene.options.precision != "fp32":
             raise InputError(f"{scene.source}: [options].precision = {scene.options.precision!r}: the fem "
                              "discretisation solves in fp32 only; use precision = \"fp32\"")
-        system = assemble_tet(self._fem_problem(scene))
+        system = assemble_tet(self._fem_problem(scene), self._geo["tetgeo"])
         self._fem_active = system.active
-        return GlslSparse([system.block(c)[0] for c in range(3)], system.b.reshape(3, -1).T, ctx=self.ctx)
+        return GlslSparseMultigrid([system.block(c)[0] for c in range(3)], system.b.reshape(3, -1).T, ctx=self.ctx)
 
     @staticmethod
     def _shader_lights(scene: Scene) -> list[DirectLight]:

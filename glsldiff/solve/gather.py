@@ -87,9 +87,9 @@ from glsldiff.oracle.solvers import Callback, relax
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparse", "jacobi_lambda_max", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
-           "node_rhs", "check_symmetric", "distinct", "texture_width", "pack_nodes", "EllPack", "pack_ell",
-           "GatherMatrix", "upload_ell", "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY", "ADD",
-           "MATVEC"]
+           "node_rhs", "check_symmetric", "block_diagonal", "distinct", "texture_width", "pack_nodes", "EllPack",
+           "pack_ell", "GatherMatrix", "upload_ell", "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY",
+           "ADD", "MATVEC"]
 
 PRECISIONS = ("fp32",)
 MAX_NODES = 1 << 24       # neighbour indices are stored as floats (exact integers below 2^24)
@@ -210,6 +210,18 @@ def texture_width(n: int, max_size: int) -> tuple[int, int]:
     if w > max_size or h > max_size:
         raise InputError(f"n = {n} unknowns need a {w} x {h} texture; this context allows {max_size}")
     return w, h
+
+
+def block_diagonal(mats: Sequence[sp.csr_matrix]) -> sp.csr_matrix:
+    """The block-diagonal CSR matrix of the square CSR ``mats`` (channel-major, the
+    :class:`LinearSystem` layout), assembled from their arrays (``scipy.sparse.block_diag`` goes
+    through COO: 1.5 s for three 125k-row P1 matrices)."""
+    offs = np.cumsum([0] + [M.shape[0] for M in mats])
+    nnz = np.cumsum([0] + [M.nnz for M in mats])
+    indptr = np.concatenate([M.indptr[:-1] + nnz[c] for c, M in enumerate(mats)] + [[nnz[-1]]])
+    indices = np.concatenate([M.indices.astype(np.int64) + offs[c] for c, M in enumerate(mats)])
+    data = np.concatenate([M.data for M in mats])
+    return sp.csr_matrix((data, indices, indptr), shape=(offs[-1], offs[-1]))
 
 
 def check_symmetric(mats: list[sp.csr_matrix], need: str, hint: str) -> None:
@@ -451,7 +463,7 @@ class GlslSparse:
         self.slots, self._row_slots = pack.slots, pack.row_slots
         self.fetches = 3 + 2 * self._row_slots.astype(np.float64) + (self._row_slots < self.slots)
         diag = np.stack([M.diagonal() for M in mats], axis=1)
-        self.system = LinearSystem(A=sp.block_diag(mats, format="csr"), b=bb.T.reshape(-1),
+        self.system = LinearSystem(A=block_diagonal(mats), b=bb.T.reshape(-1),
                                    diag=diag.T.reshape(-1), active=np.arange(n))
         self._gpu = gl.Resources()
         try:

@@ -93,8 +93,9 @@ from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.solvers import Callback, relax
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
-                                   Matrices, Start, channel_matrices, check_symmetric, distinct, jacobi_lambda_max,
-                                   node_rhs, pack_ell, pack_nodes, parse_start, texture_width, upload_ell)
+                                   Matrices, Start, block_diagonal, channel_matrices, check_symmetric, distinct,
+                                   jacobi_lambda_max, node_rhs, pack_ell, pack_nodes, parse_start, texture_width,
+                                   upload_ell)
 from glsldiff.system.report import MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparseMultigrid", "MultigridLevel", "build_prolongations", "galerkin", "smoother_omega",
@@ -111,15 +112,21 @@ def build_prolongations(A: sp.spmatrix | sp.sparray, max_coarse: int = MAX_COARS
                         amg: dict[str, Any] | None = None) -> list[sp.csr_matrix]:
     """Smoothed-aggregation prolongations ``P_0, P_1, ...`` of the symmetric matrix ``A`` (pyamg;
     ``amg``: further options of ``pyamg.smoothed_aggregation_solver``, default
-    :data:`AMG_DEFAULTS`); empty when ``A`` has at most ``max_coarse`` unknowns."""
+    :data:`AMG_DEFAULTS`; reproducible: numpy's global random state is seeded for the call and
+    restored)."""
     try:
         import pyamg  # optional dependency (the validation extra)
     except ImportError as exc:
         raise SolverError("GlslSparseMultigrid builds its hierarchy with pyamg: pip install "
                           "'glsldiff[validation]' (or pass prolongations=...)") from exc
     opts = {**AMG_DEFAULTS, **(amg or {})}
-    ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric", max_coarse=max_coarse,
-                                           max_levels=max_levels, keep=False, **opts)
+    state = np.random.get_state()    # pyamg's spectral-radius estimates start from np.random vectors:
+    np.random.seed(0)                # seeded, the hierarchy is reproducible (the caller's state kept)
+    try:
+        ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric", max_coarse=max_coarse,
+                                               max_levels=max_levels, keep=False, **opts)
+    finally:
+        np.random.set_state(state)
     return [sp.csr_matrix(lv.P, dtype=np.float64) for lv in ml.levels[:-1]]
 
 
@@ -457,7 +464,7 @@ class GlslSparseMultigrid:
                                  "this context's "
                                  f"texture arrays hold at most {max_layers} layers (lower max_coarse or change amg)")
         diag0 = packs[0]["diag"]
-        self.system = LinearSystem(A=sp.block_diag(mats, format="csr"), b=bb.T.reshape(-1),
+        self.system = LinearSystem(A=block_diagonal(mats), b=bb.T.reshape(-1),
                                    diag=diag0.T.reshape(-1), active=np.arange(n))
         t0 = time.perf_counter()
         self._gpu = gl.Resources()
