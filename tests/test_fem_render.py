@@ -86,3 +86,27 @@ def test_fem_sphere_converges_under_a_directional_light():
     lattice = [r["rel_rms"] for r in rows if r["discretisation"] == "conservative"]
     assert fem[1] < 0.7 * fem[0] and fem[1] < 0.03, fem
     assert lattice[0] > 4 * fem[1], (lattice, fem)
+
+
+def test_fem_second_render_takes_the_checked_cached_solution(tmp_path, monkeypatch):
+    """With the cache on, a second render of a fem scene takes the cached pass-2 answer after a
+    CPU residual check (no GPU hierarchy), with the same image; a wrong cached answer fails the
+    check and is solved again."""
+    from glsldiff.core import cache
+
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
+    scene = parse_scene(_scene())
+    with Renderer() as r:
+        a, rep_a = r.render(scene)
+    with Renderer() as r:
+        b, rep_b = r.render(scene)
+    assert rep_a.solver.method.startswith("glsl-gather-multigrid")
+    assert rep_b.solver.method.startswith("cached") and rep_b.solver.residual <= scene.options.tol
+    np.testing.assert_array_equal(a, b)
+    (entry,) = (tmp_path / "cache").glob("pass2-*.pkl")
+    key = entry.stem.split("-", 1)[1]
+    cache.store("pass2", key, 2.0 * cache.load("pass2", key, np.ndarray))
+    with Renderer() as r:
+        c, rep_c = r.render(scene)
+    assert rep_c.solver.method.startswith("glsl-gather-multigrid") and rep_c.solver.converged
+    assert np.abs(c - a).max() < 1e-2 * a.max()
