@@ -21,7 +21,8 @@ from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import TetGeometry, assemble_p1
-from glsldiff.solve.gather import GlslSparse, jacobi_lambda_max, pack_ell, pack_nodes, sweep_rate
+from glsldiff.oracle.amg import jacobi_lambda_max
+from glsldiff.solve.gather import GlslSparse, pack_ell, pack_nodes, sweep_rate
 from glsldiff.system.report import CURRENT
 
 

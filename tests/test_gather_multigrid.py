@@ -21,7 +21,8 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import TetGeometry, assemble_p1
-from glsldiff.solve.gather import GlslSparse, auto_omega, jacobi_lambda_max
+from glsldiff.oracle.amg import jacobi_lambda_max
+from glsldiff.solve.gather import GlslSparse, auto_omega
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.report import CURRENT
 

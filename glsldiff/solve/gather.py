@@ -47,7 +47,7 @@ matrices of distorted tetrahedra have positive off-diagonal entries and reach
 
     omega = min(1, 1.9 / lambda_max)
 
-with ``lambda_max`` estimated on the CPU (Lanczos, :func:`jacobi_lambda_max`, the largest over
+with ``lambda_max`` estimated on the CPU (Lanczos, :func:`glsldiff.oracle.amg.jacobi_lambda_max`, the largest over
 the channels). Reasons: the slow (smooth) error modes contract by ``1 - omega lambda_min`` per
 sweep, so ``omega`` should be as large as the fast modes allow; ``1.9 / lambda_max`` keeps the
 fast modes' factor ``|1 - omega lambda|`` <= 0.9 (damped 200x per 50-sweep residual check, so
@@ -77,16 +77,16 @@ from typing import Callable, Sequence
 import moderngl
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
+from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.solvers import Callback, relax
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
-__all__ = ["GlslSparse", "jacobi_lambda_max", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
+__all__ = ["GlslSparse", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
            "node_rhs", "check_symmetric", "block_diagonal", "distinct", "texture_width", "pack_nodes", "EllPack",
            "pack_ell", "GatherMatrix", "upload_ell", "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY",
            "ADD", "MATVEC"]
@@ -94,35 +94,12 @@ __all__ = ["GlslSparse", "jacobi_lambda_max", "auto_omega", "sweep_rate", "MAX_N
 PRECISIONS = ("fp32",)
 MAX_NODES = 1 << 24       # neighbour indices are stored as floats (exact integers below 2^24)
 OMEGA_TARGET = 1.9        # omega = min(1, OMEGA_TARGET / lambda_max) for omega="auto"
-_DENSE_EIG = 400          # below this many unknowns the eigenvalue is computed densely
 Matrices = sp.spmatrix | sp.sparray | NDArray | Sequence[sp.spmatrix | sp.sparray | NDArray]
 Start = ArrayLike | str | None  # x0: (n, 3) array, CURRENT, or None (zero)
 JACOBI, RESIDUAL, APPLY, ADD, MATVEC = 0, 1, 2, 3, 4   # gather.frag u_mode
 
 
 # ---- the damping ----------------------------------------------------------------------------
-def jacobi_lambda_max(A: sp.spmatrix | sp.sparray, tol: float = 1e-3) -> float:
-    """Largest eigenvalue of ``D^-1 A`` (``D = diag(A)``) of a symmetric ``A`` with positive
-    diagonal: the largest eigenvalue of the similar ``D^-1/2 A D^-1/2``, by Lanczos (ARPACK,
-    ``tol`` relative; dense below 400 unknowns). If ARPACK does not converge, its best Ritz
-    value, or the Gershgorin bound ``max_i sum_j |a_ij| / a_ii`` if it has none."""
-    A = sp.csr_matrix(A, dtype=np.float64)
-    d = A.diagonal()
-    s = sp.diags(1.0 / np.sqrt(d))
-    S = (s @ A @ s).tocsr()
-    n = S.shape[0]
-    if n <= _DENSE_EIG:
-        return float(np.linalg.eigvalsh(S.toarray()).max())
-    v0 = np.random.default_rng(0).standard_normal(n)
-    try:
-        return float(spla.eigsh(S, k=1, which="LA", tol=tol, ncv=min(n - 1, 24), maxiter=50 * n,
-                                v0=v0, return_eigenvectors=False)[0])
-    except spla.ArpackNoConvergence as exc:
-        if len(exc.eigenvalues):
-            return float(np.max(exc.eigenvalues))
-        return float((abs(A).sum(axis=1).A1 / d).max())
-
-
 def auto_omega(lambda_max: float) -> float:
     """``min(1, 1.9 / lambda_max)``: the damping of ``omega="auto"`` (module docstring)."""
     return min(1.0, OMEGA_TARGET / lambda_max)

@@ -7,7 +7,7 @@ Hierarchy (CPU, once per matrix)
     Smoothed aggregation (pyamg) on the channel-mean matrix ``(A_R + A_G + A_B) / 3`` gives the
     prolongations ``P_l`` (``n_l x n_{l+1}``), shared by the three channels (one pattern,
     similar values); the coarse operators are Galerkin per channel, ``A_{l+1} = P_l^T A_l P_l``.
-    Options (:data:`AMG_DEFAULTS`): ``"evolution"`` strength of connection and energy-minimising
+    Options (:data:`glsldiff.oracle.amg.AMG_DEFAULTS`): ``"evolution"`` strength of connection and energy-minimising
     prolongation smoothing (degree 1). pyamg's default (``"symmetric"`` strength, theta 0,
     Jacobi-smoothed P) aggregates ~27 fine nodes of a P1 matrix per coarse node, and its
     iteration counts grow with the grid (10 mm sphere, 5 mm cubes, n = 3, 6, 8 nodes per cube
@@ -57,7 +57,7 @@ Acceleration (``accel``)
     to 1e-4, PCG 17; on the sphere 12 and 6.
 Smoothing damping
     ``omega="auto"`` takes, per level, ``omega_l = 1.6 / lambda_max(D_l^-1 A_l)`` (Lanczos,
-    :func:`~glsldiff.solve.gather.jacobi_lambda_max`, the largest over the channels). A smoother
+    :func:`~glsldiff.oracle.amg.jacobi_lambda_max`, the largest over the channels). A smoother
     must damp the upper part of the spectrum (what the coarse grid cannot represent); the
     classic ``4/3 / lambda_max`` balances ``|1 - omega lambda|`` over ``[lambda_max / 2,
     lambda_max]``; 1.6 trades some of that for the middle of the spectrum, which these
@@ -90,55 +90,23 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
+from glsldiff.oracle.amg import build_prolongations, galerkin, jacobi_lambda_max
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.solvers import Callback, relax
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
                                    Matrices, Start, block_diagonal, channel_matrices, check_symmetric, distinct,
-                                   jacobi_lambda_max, node_rhs, pack_ell, pack_nodes, parse_start, texture_width,
+                                   node_rhs, pack_ell, pack_nodes, parse_start, texture_width,
                                    upload_ell)
 from glsldiff.system.report import MAXITER, RELAX_TOL, SolveReport
 
-__all__ = ["GlslSparseMultigrid", "MultigridLevel", "build_prolongations", "galerkin", "smoother_omega",
-           "SMOOTH_TARGET", "MAX_COARSE", "AMG_DEFAULTS", "ACCELERATIONS"]
+__all__ = ["GlslSparseMultigrid", "MultigridLevel", "smoother_omega", "SMOOTH_TARGET", "MAX_COARSE", "ACCELERATIONS"]
 
 SMOOTH_TARGET = 1.6       # omega_l = SMOOTH_TARGET / lambda_max(D_l^-1 A_l) for omega="auto"
 MAX_COARSE = 300          # coarsest level: at most this many unknowns (a dense inverse on the GPU)
-AMG_DEFAULTS: dict[str, Any] = {"strength": "evolution", "smooth": ("energy", {"degree": 1})}
 ACCELERATIONS = ("cg", None)   # conjugate gradients preconditioned by one V-cycle, or plain V-cycles
 
 
 # ---- the hierarchy (CPU) --------------------------------------------------------------------
-def build_prolongations(A: sp.spmatrix | sp.sparray, max_coarse: int = MAX_COARSE, max_levels: int = 10,
-                        amg: dict[str, Any] | None = None) -> list[sp.csr_matrix]:
-    """Smoothed-aggregation prolongations ``P_0, P_1, ...`` of the symmetric matrix ``A`` (pyamg;
-    ``amg``: further options of ``pyamg.smoothed_aggregation_solver``, default
-    :data:`AMG_DEFAULTS`; reproducible: numpy's global random state is seeded for the call and
-    restored)."""
-    try:
-        import pyamg  # optional dependency (the validation extra)
-    except ImportError as exc:
-        raise SolverError("GlslSparseMultigrid builds its hierarchy with pyamg: pip install "
-                          "'glsldiff[validation]' (or pass prolongations=...)") from exc
-    opts = {**AMG_DEFAULTS, **(amg or {})}
-    state = np.random.get_state()    # pyamg's spectral-radius estimates start from np.random vectors:
-    np.random.seed(0)                # seeded, the hierarchy is reproducible (the caller's state kept)
-    try:
-        ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric", max_coarse=max_coarse,
-                                               max_levels=max_levels, keep=False, **opts)
-    finally:
-        np.random.set_state(state)
-    return [sp.csr_matrix(lv.P, dtype=np.float64) for lv in ml.levels[:-1]]
-
-
-def galerkin(A: sp.spmatrix | sp.sparray, P: sp.spmatrix | sp.sparray) -> sp.csr_matrix:
-    """``P^T A P`` (CSR, sorted, symmetrised against rounding)."""
-    Ac = sp.csr_matrix(P.T @ (A @ P))
-    Ac = sp.csr_matrix(0.5 * (Ac + Ac.T))
-    Ac.sum_duplicates()
-    Ac.sort_indices()
-    return Ac
-
-
 def smoother_omega(mats: Sequence[sp.csr_matrix], target: float = SMOOTH_TARGET) -> tuple[float, float]:
     """``(omega, lambda_max)``: ``target / lambda_max(D^-1 A)``, the largest over the distinct
     channel matrices (the ``omega="auto"`` smoothing damping, module docstring)."""
@@ -322,7 +290,7 @@ class GlslSparseMultigrid:
         Coarsening stops at ``max_coarse`` unknowns (the dense coarsest solve; at most the
         context's texture-array layers) or ``max_levels`` levels.
     amg
-        Further options of ``pyamg.smoothed_aggregation_solver`` (default :data:`AMG_DEFAULTS`).
+        Further options of ``pyamg.smoothed_aggregation_solver`` (default :data:`glsldiff.oracle.amg.AMG_DEFAULTS`).
     prolongations
         The ``P_l`` to use instead of pyamg's (``n_l x n_{l+1}`` each, finest first).
     accel
