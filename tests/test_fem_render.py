@@ -26,6 +26,8 @@ def _scene(**polygrid):
 def test_scene_options():
     s = parse_scene(_scene())
     assert s.polygrid.discretisation == "fem" and s.polygrid.n == 3 and s.polygrid.levels == 1
+    no_cubes = {**_scene(), "polygrid": {"n": 2, "discretisation": "fem"}}
+    assert parse_scene(no_cubes).polygrid.cubes == 15000        # 120k nodes in cubes of 2^3
     assert parse_scene({"mesh": {"source": "sphere"}, "lights": LIGHT}).polygrid.discretisation == "conservative"
     with pytest.raises(InputError, match=r"\[polygrid\]\.levels: the fem discretisation solves on one level"):
         parse_scene(_scene(levels=3))

@@ -376,6 +376,11 @@ class Renderer:
         rep.nodes, rep.boundary_nodes = int(pg.n_active), int(len(pg.boundary_positions))
         rep.solver = self._solve_report
         rep.clamped_vertices = self._clamped
+        if self._geo["fem"]:
+            q = pg.quality
+            rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, {q.inverted} "
+                             f"inverted, worst quality {q.worst_quality:.3g}; coverage: mesh vertices within "
+                             f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
                          f"single scattering: {'on' if scene.options.single_scattering else 'off'}; "
                          f"diffuse surface reflectance: "

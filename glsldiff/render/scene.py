@@ -16,7 +16,8 @@ silently ignored).
     n = 8                     # nodes per cube edge
     cubes = 253               # polycube target cube count
     levels = 3                # hierarchy levels (1 = single resolution)
-    discretisation = "conservative"   # conservative | paper (6-point lattice) | fem (tetrahedra)
+    discretisation = "conservative"   # conservative | paper (6-point lattice) | fem (tetrahedra;
+                                      # cubes then defaults to 120000 / n^3, e.g. 15000 for n = 2)
 
     [material]                # exactly one of: preset / sigma_a + sigma_s_prime / volume / procedural
     preset = "marble"
@@ -96,6 +97,9 @@ from glsldiff.grids.polygrid import node_budget_problem
 
 #: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem).
 DISCRETISATIONS = ("conservative", "paper", "fem")
+#: The fem discretisation's default node budget: [polygrid].cubes defaults to this / n^3 (many
+#: small cubes reach thin parts; the lattice's default, 253 cubes of n = 8, is about as many nodes).
+FEM_NODES = 120_000
 from glsldiff.mesh import SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.physics.exitance import EXITANT
@@ -427,7 +431,8 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
         g.fail("levels", "the fem discretisation solves on one level for now; use levels = 1")
     if n % 2 and disc != "fem":
         g.fail("n", f"must be even (the hierarchy halves it), got {n}")
-    poly = PolygridSpec(n, g.integer("cubes", 253, 1), levels, disc)
+    default_cubes = max(1, round(FEM_NODES / n ** 3)) if disc == "fem" else 253
+    poly = PolygridSpec(n, g.integer("cubes", default_cubes, 1), levels, disc)
     problem = node_budget_problem(poly.cubes, n)
     if problem:
         g.fail("n", problem)
