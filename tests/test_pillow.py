@@ -151,3 +151,15 @@ def test_zero_volume_tetrahedra_carry_nothing():
     K1, K2 = geo_good.stiffness(1.0).toarray(), geo_both.stiffness(1.0).toarray()
     np.testing.assert_allclose(K2[:4, :4], K1)
     assert not K2[4].any() and geo_both.node_volumes[4] == 0
+
+
+def test_bunny_grid_has_no_inverted_tetrahedra():
+    """The scanned bunny (1600 cubes of n = 2): the harmonic placement leaves ~130 inverted
+    tetrahedra at folds of the surface map; untangling, with the surface nodes sliding on the
+    mesh where needed, leaves none (measured: 129 -> 0)."""
+    from glsldiff.mesh import load_mesh
+
+    g = build_fem_grid(load_mesh("bunny", size_mm=100.0), n=2, n_cubes=1600)
+    assert g.quality.untangled > 50          # the case is a real one
+    assert g.quality.inverted == 0
+    assert np.abs(signed_volumes(g.positions, g.tets)).min() > 0

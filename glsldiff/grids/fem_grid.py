@@ -21,7 +21,10 @@ Mapping (:func:`map_pillow`):
    inward normals instead gave 2-4x flatter worst tetrahedra on the sphere.)
 3. **Untangling**: where tetrahedra are still inverted, the lattice nodes within two rings
    of them move to give every tetrahedron at least a tenth of its reference volume
-   (:func:`untangle`). Surface nodes stay: a fold of the surface map itself remains.
+   (:func:`untangle`). If some remain (a fold of the surface map itself), up to three rounds
+   let the surface nodes move as well, re-project them onto the mesh and untangle the lattice
+   again (crease and corner nodes stay). Measured: bunny (1600 cubes of n = 2) 17 inverted
+   tetrahedra -> 0, cow 33 -> 1.
 
 :class:`MappingQuality` reports inverted and the worst tetrahedra and the surface nodes'
 spacing.
@@ -274,8 +277,15 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     t2 = time.perf_counter()
     movable = np.zeros(len(X), dtype=bool)
     movable[cx.used] = True
-    q.untangled = untangle(X, cx.tets, movable, 6.0 * signed_volumes(cx.reference_positions(), cx.tets),
-                           fraction=untangle_fraction)
+    reference = 6.0 * signed_volumes(cx.reference_positions(), cx.tets)
+    q.untangled = untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
+    sliding = np.zeros(len(X), dtype=bool)
+    sliding[N:] = ~(on_crease | on_corner)
+    for _ in range(3 if q.untangled else 0):   # folds of the surface map: surface nodes slide too
+        if untangle(X, cx.tets, movable | sliding, reference, fraction=untangle_fraction) == 0:
+            break
+        X[N:][sliding[N:]], _, _, nrm[sliding[N:]] = closest_points(mesh, X[N:][sliding[N:]])
+        untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
     q.seconds["untangle"] = time.perf_counter() - t2
 
     qual = _quality(X, cx.tets)
