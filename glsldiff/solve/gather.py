@@ -72,7 +72,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable, Sequence
+from typing import Callable, Sequence, TypeVar
 
 import moderngl
 import numpy as np
@@ -83,10 +83,10 @@ from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.oracle.assembly import LinearSystem
-from glsldiff.oracle.solvers import Callback, relax
+from glsldiff.oracle.solvers import Callback, Relaxation, relax
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
-__all__ = ["GlslSparse", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
+__all__ = ["GlslSparse", "GatherSolver", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
            "node_rhs", "check_symmetric", "block_diagonal", "distinct", "texture_width", "pack_nodes", "EllPack",
            "pack_ell", "GatherMatrix", "upload_ell", "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY",
            "ADD", "MATVEC"]
@@ -94,6 +94,7 @@ __all__ = ["GlslSparse", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matri
 PRECISIONS = ("fp32",)
 MAX_NODES = 1 << 24       # neighbour indices are stored as floats (exact integers below 2^24)
 OMEGA_TARGET = 1.9        # omega = min(1, OMEGA_TARGET / lambda_max) for omega="auto"
+_S = TypeVar("_S", bound="GatherSolver")
 Matrices = sp.spmatrix | sp.sparray | NDArray | Sequence[sp.spmatrix | sp.sparray | NDArray]
 Start = ArrayLike | str | None  # x0: (n, 3) array, CURRENT, or None (zero)
 JACOBI, RESIDUAL, APPLY, ADD, MATVEC = 0, 1, 2, 3, 4   # gather.frag u_mode
@@ -369,8 +370,91 @@ def parse_start(x0: Start, set_initial: Callable[[ArrayLike | None], None]) -> N
         set_initial(x0)
 
 
+# ---- what both gather solvers share --------------------------------------------------------
+class GatherSolver:
+    """The common part of :class:`GlslSparse` and
+    :class:`glsldiff.solve.gather_multigrid.GlslSparseMultigrid`: the right-hand side and the
+    iterate on the GPU, the CPU system whose residual the solve checks, ``x0`` handling,
+    read-back and lifetime. A subclass sets ``n``, ``ctx``, ``system`` and ``_gpu`` (the
+    :class:`glsldiff.gl.Resources` it owns) and provides ``state`` (the iterate's ping-pong
+    pair), ``_rhs`` (the fine right-hand-side texture) and ``_fine_size``."""
+
+    n: int
+    ctx: moderngl.Context
+    system: LinearSystem
+    state: gl.PingPong
+    _gpu: gl.Resources
+
+    @property
+    def _rhs(self) -> moderngl.Texture:
+        raise NotImplementedError
+
+    @property
+    def _fine_size(self) -> tuple[int, int]:
+        raise NotImplementedError
+
+    def _restart(self) -> None:
+        """Hook: the right-hand side or the iterate was replaced (default: nothing to reset)."""
+
+    def set_b(self, b: ArrayLike) -> None:
+        """Replace the right-hand side (``(n, 3)``, or ``(n,)`` for all channels)."""
+        gl.make_current(self.ctx)
+        bb = node_rhs(b, self.n)
+        self._rhs.write(pack_nodes(bb, self._fine_size).tobytes(), alignment=1)
+        self.system.b = bb.T.reshape(-1)
+        self._restart()
+
+    def set_initial(self, x: ArrayLike | None) -> None:
+        """Start the next iterations from ``x`` (``(n, 3)``) or from zero."""
+        gl.make_current(self.ctx)
+        if x is None:
+            vals = np.zeros((self.n, 3))
+        else:
+            vals = np.asarray(x, dtype=np.float64)
+            if vals.shape != (self.n, 3):
+                raise InputError(f"x0 has shape {vals.shape}, expected ({self.n}, 3)")
+            if not np.isfinite(vals).all():
+                raise InputError("x0 has non-finite (NaN/inf) values")
+        self.state.write(pack_nodes(vals, self._fine_size))
+        self._restart()
+
+    def unknown(self) -> NDArray[np.float64]:
+        """The current (fine) iterate, ``(n, 3)`` float64."""
+        gl.make_current(self.ctx)
+        return self.state.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
+
+    def _relax(self, step: Callable[[int], None], x0: Start, *, tol: float, maxiter: int, check_every: int,
+               callback: Callback | None, residuals: list[float] | None, name: str,
+               hint: Callable[[], str]) -> Relaxation:
+        """Start from ``x0`` and drive ``step(k)`` (``k`` more iterations) through the shared
+        solve loop :func:`glsldiff.oracle.solvers.relax`; a divergence is re-raised with ``hint()``."""
+        parse_start(x0, self.set_initial)
+
+        def advance(k: int) -> NDArray[np.float64]:
+            step(k)
+            return self.unknown().T.reshape(-1)
+
+        try:
+            return relax(self.system, advance, self.unknown().T.reshape(-1), tol=tol, maxiter=maxiter,
+                         check_every=check_every, callback=callback, residuals=residuals, name=name)
+        except SolverError as exc:
+            raise SolverError(f"{exc}: {hint()}") from exc
+
+    # ---- lifetime ---------------------------------------------------------------------------
+    def release(self) -> None:
+        """Free every GPU object this solver created."""
+        gl.make_current(self.ctx)
+        self._gpu.release()
+
+    def __enter__(self: _S) -> _S:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
 # ---- the solver -----------------------------------------------------------------------------
-class GlslSparse:
+class GlslSparse(GatherSolver):
     """Damped Jacobi relaxation of ``A_c x_c = b_c`` (c = R, G, B) in one fragment shader
     (module docstring: packing, fetch count, the omega rule).
 
@@ -466,30 +550,13 @@ class GlslSparse:
         """Texel fetches per node and sweep, averaged over the nodes (module docstring)."""
         return float(self.fetches.mean())
 
-    def set_b(self, b: ArrayLike) -> None:
-        """Replace the right-hand side (``(n, 3)``, or ``(n,)`` for all channels)."""
-        gl.make_current(self.ctx)
-        bb = node_rhs(b, self.n)
-        self._b.write(pack_nodes(bb, self.size).tobytes(), alignment=1)
-        self.system.b = bb.T.reshape(-1)
+    @property
+    def _rhs(self) -> moderngl.Texture:
+        return self._b
 
-    def set_initial(self, x: ArrayLike | None) -> None:
-        """Start the next sweeps from ``x`` (``(n, 3)``) or from zero."""
-        gl.make_current(self.ctx)
-        if x is None:
-            vals = np.zeros((self.n, 3))
-        else:
-            vals = np.asarray(x, dtype=np.float64)
-            if vals.shape != (self.n, 3):
-                raise InputError(f"x0 has shape {vals.shape}, expected ({self.n}, 3)")
-            if not np.isfinite(vals).all():
-                raise InputError("x0 has non-finite (NaN/inf) values")
-        self.state.write(pack_nodes(vals, self.size))
-
-    def unknown(self) -> NDArray[np.float64]:
-        """The current iterate, ``(n, 3)`` float64."""
-        gl.make_current(self.ctx)
-        return self.state.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
+    @property
+    def _fine_size(self) -> tuple[int, int]:
+        return self.size
 
     # ---- sweeps -----------------------------------------------------------------------------
     def sweep(self, n: int = 1) -> None:
@@ -522,38 +589,17 @@ class GlslSparse:
             The iteration diverged (``omega lambda_max(D^-1 A) >= 2``, or not positive definite).
         """
         t0 = time.perf_counter()
-        parse_start(x0, self.set_initial)
-        system, name = self.system, f"GLSL gather Jacobi (omega={self.omega:.4g})"
-
-        def advance(k: int) -> NDArray[np.float64]:
-            self.sweep(k)
-            return self.unknown().T.reshape(-1)
-
-        try:
-            result = relax(system, advance, self.unknown().T.reshape(-1), tol=tol, maxiter=maxiter,
-                           check_every=check_every, callback=callback, residuals=residuals, name=name)
-        except SolverError as exc:
-            lam = "" if self.lambda_max is None else f" (estimate {self.lambda_max:.4g})"
-            raise SolverError(f"{exc}: damped Jacobi needs omega * lambda_max(D^-1 A) < 2 and A positive "
-                              f"definite; omega = {self.omega:.4g}{lam}; try omega='auto'") from exc
+        lam = "" if self.lambda_max is None else f" (estimate {self.lambda_max:.4g})"
+        result = self._relax(self.sweep, x0, tol=tol, maxiter=maxiter, check_every=check_every, callback=callback,
+                             residuals=residuals, name=f"GLSL gather Jacobi (omega={self.omega:.4g})",
+                             hint=lambda: ("damped Jacobi needs omega * lambda_max(D^-1 A) < 2 and A positive "
+                                           f"definite; omega = {self.omega:.4g}{lam}; try omega='auto'"))
         rep = SolveReport(f"{self.method}-{self.precision}(omega={self.omega:.4g})", nodes=self.n,
                           sweeps=result.iterations, residual=result.residual,
                           seconds=time.perf_counter() - t0, converged=result.converged,
                           history=result.history, status=result.status,
                           error_estimate=result.error_estimate, work=result.iterations * self.n)
         return result.x.reshape(3, self.n).T.copy(), rep
-
-    # ---- lifetime ---------------------------------------------------------------------------
-    def release(self) -> None:
-        """Free every GPU object this solver created."""
-        gl.make_current(self.ctx)
-        self._gpu.release()
-
-    def __enter__(self) -> "GlslSparse":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
 
 
 def distinct(mats: list[sp.csr_matrix]) -> list[sp.csr_matrix]:

@@ -92,11 +92,10 @@ from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.amg import build_prolongations, galerkin, jacobi_lambda_max
 from glsldiff.oracle.assembly import LinearSystem
-from glsldiff.oracle.solvers import Callback, relax
+from glsldiff.oracle.solvers import Callback
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
-                                   Matrices, Start, block_diagonal, channel_matrices, check_symmetric, distinct,
-                                   node_rhs, pack_ell, pack_nodes, parse_start, texture_width,
-                                   upload_ell)
+                                   GatherSolver, Matrices, Start, block_diagonal, channel_matrices, check_symmetric,
+                                   distinct, node_rhs, pack_ell, pack_nodes, texture_width, upload_ell)
 from glsldiff.system.report import MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparseMultigrid", "MultigridLevel", "smoother_omega", "SMOOTH_TARGET", "MAX_COARSE", "ACCELERATIONS"]
@@ -261,7 +260,7 @@ class _ConjugateGradients:
 
 
 # ---- the solver -----------------------------------------------------------------------------
-class GlslSparseMultigrid:
+class GlslSparseMultigrid(GatherSolver):
     """Algebraic multigrid for ``A_c x_c = b_c`` (c = R, G, B): V-cycles, by default
     preconditioning conjugate gradients, every pass a gather fragment shader (module
     docstring: hierarchy, storage, cycle, coarsest solve, acceleration, damping). The interface
@@ -508,35 +507,17 @@ class GlslSparseMultigrid:
                            f"P^T slots {lv.r_slots}")
         return "\n".join(out)
 
-    def set_b(self, b: ArrayLike) -> None:
-        """Replace the right-hand side (``(n, 3)``, or ``(n,)`` for all channels)."""
-        gl.make_current(self.ctx)
-        bb = node_rhs(b, self.n)
-        g = self._levels[0]
-        g.b.write(pack_nodes(bb, g.size).tobytes(), alignment=1)
-        self.system.b = bb.T.reshape(-1)
-        if self._cg is not None:
-            self._cg.started = False
+    @property
+    def _rhs(self) -> moderngl.Texture:
+        return self._levels[0].b
 
-    def set_initial(self, x: ArrayLike | None) -> None:
-        """Start the next cycles from ``x`` (``(n, 3)``) or from zero."""
-        gl.make_current(self.ctx)
-        if x is None:
-            vals = np.zeros((self.n, 3))
-        else:
-            vals = np.asarray(x, dtype=np.float64)
-            if vals.shape != (self.n, 3):
-                raise InputError(f"x0 has shape {vals.shape}, expected ({self.n}, 3)")
-            if not np.isfinite(vals).all():
-                raise InputError("x0 has non-finite (NaN/inf) values")
-        self.state.write(pack_nodes(vals, self._levels[0].size))
-        if self._cg is not None:
-            self._cg.started = False
+    @property
+    def _fine_size(self) -> tuple[int, int]:
+        return self.levels[0].size
 
-    def unknown(self) -> NDArray[np.float64]:
-        """The current fine iterate, ``(n, 3)`` float64."""
-        gl.make_current(self.ctx)
-        return self.state.read().reshape(-1, 4)[:self.n, :3].astype(np.float64)
+    def _restart(self) -> None:
+        if self._cg is not None:
+            self._cg.started = False     # conjugate gradients restart from the current x
 
     # ---- cycles -----------------------------------------------------------------------------
     def _smooth(self, g: _GpuLevel, b: moderngl.Texture, omega: float, sweeps: int) -> None:
@@ -643,23 +624,13 @@ class GlslSparseMultigrid:
             The iteration diverged (not positive definite, or omega too large).
         """
         t0 = time.perf_counter()
-        parse_start(x0, self.set_initial)
-        if self._cg is not None:
-            self._cg.started = False     # conjugate gradients restart from the current x
+        self._restart()
         kind = f"V({self.pre},{self.post})" if self._cg is None else f"PCG,V({self.pre},{self.post})"
-        name = f"GLSL gather multigrid {kind}"
         seconds0 = self.level_seconds.copy()
-
-        def advance(k: int) -> NDArray[np.float64]:
-            self.cycle(k)
-            return self.unknown().T.reshape(-1)
-
-        try:
-            result = relax(self.system, advance, self.unknown().T.reshape(-1), tol=tol, maxiter=maxiter,
-                           check_every=check_every, callback=callback, residuals=residuals, name=name)
-        except SolverError as exc:
-            raise SolverError(f"{exc}: the V-cycle needs symmetric positive definite matrices and a smoothing "
-                              f"omega below 2 / lambda_max(D^-1 A) (omegas {self.omegas})") from exc
+        result = self._relax(self.cycle, x0, tol=tol, maxiter=maxiter, check_every=check_every, callback=callback,
+                             residuals=residuals, name=f"GLSL gather multigrid {kind}",
+                             hint=lambda: ("the V-cycle needs symmetric positive definite matrices and a smoothing "
+                                           f"omega below 2 / lambda_max(D^-1 A) (omegas {self.omegas})"))
         cycles = result.iterations
         levels = []
         for l, lv in enumerate(self.levels):
@@ -674,15 +645,3 @@ class GlslSparseMultigrid:
                           history=result.history, status=result.status, error_estimate=result.error_estimate,
                           levels=levels, work=int(sum(int(d["sweeps"]) * int(d["n"]) for d in levels)))
         return result.x.reshape(3, self.n).T.copy(), rep
-
-    # ---- lifetime ---------------------------------------------------------------------------
-    def release(self) -> None:
-        """Free every GPU object this solver created."""
-        gl.make_current(self.ctx)
-        self._gpu.release()
-
-    def __enter__(self) -> "GlslSparseMultigrid":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.release()
