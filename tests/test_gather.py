@@ -18,12 +18,11 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from glsldiff.core.errors import InputError, SolverError
-from glsldiff.grids.fem_grid import build_fem_grid
-from glsldiff.mesh import sphere_mesh
-from glsldiff.oracle.fem import TetGeometry, assemble_p1
 from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.solve.gather import GlslSparse, pack_ell, pack_nodes, sweep_rate
 from glsldiff.system.report import CURRENT
+
+from gather_systems import laplacian7, p1_system   # tests/gather_systems.py
 
 
 # ---- systems --------------------------------------------------------------------------------
@@ -53,18 +52,6 @@ def random_spd(n: int, seed: int, density: float = 0.01) -> list[sp.csr_matrix]:
     for M in mats[1:]:      # same stored pattern (explicit zeros kept)
         assert np.array_equal(M.indptr, mats[0].indptr) and np.array_equal(M.indices, mats[0].indices)
     return mats
-
-
-def laplacian7(m: int, kappa: float, mu: float, robin: float, h: float = 0.5) -> sp.csr_matrix:
-    """``m^3`` 7-point ``-div(kappa grad)`` + ``mu`` (finite volumes, mm) with ``robin h^2`` added
-    on the diagonal per boundary face of a node."""
-    e = np.ones(m)
-    T = sp.diags([-e[:-1], 2 * e, -e[:-1]], [-1, 0, 1])
-    I = sp.identity(m)
-    L = (sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)) * kappa * h
-    idx = np.indices((m, m, m)).reshape(3, -1)
-    faces = ((idx == 0) | (idx == m - 1)).sum(axis=0)
-    return (L + sp.diags(mu * h**3 + robin * h**2 * faces)).tocsr()
 
 
 def clique_spd(blocks: int, seed: int) -> list[sp.csr_matrix]:
@@ -105,17 +92,7 @@ def rel(x: np.ndarray, ref: np.ndarray) -> float:
 def fem_system():
     """The P1 system of a 10 mm sphere (subdivisions 3; n = 3 nodes per 5 mm cube edge) on the
     active nodes, kappa and mu different per channel."""
-    g = build_fem_grid(sphere_mesh(10.0, subdivisions=3), n=3, cube_size=5.0)
-    act = np.flatnonzero(g.active)
-    geo = TetGeometry(g.positions, g.tets, g.surface)
-    rng = np.random.default_rng(5)
-    q = rng.uniform(0.5, 1.5, len(g.positions))
-    mats, bs = [], []
-    for kappa, mu in ((0.3, 0.05), (0.2, 0.1), (0.45, 0.02)):
-        A, b = assemble_p1(geo, kappa, mu, q, 2.0)
-        mats.append(A[act][:, act].tocsr())
-        bs.append(b[act])
-    return mats, np.stack(bs, axis=1)
+    return p1_system(3, 3)
 
 
 # ---- 1. the operator ------------------------------------------------------------------------

@@ -18,51 +18,20 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.fem_grid import build_fem_grid
-from glsldiff.mesh import sphere_mesh
-from glsldiff.oracle.fem import TetGeometry, assemble_p1
 from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.solve.gather import GlslSparse, auto_omega
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.report import CURRENT
 
-KAPPA_MU = ((0.3, 0.05), (0.2, 0.1), (0.45, 0.02))
-
+from gather_systems import laplacian7, p1_system   # tests/gather_systems.py
 
 # ---- systems --------------------------------------------------------------------------------
-def laplacian7(m: int, kappa: float, mu: float, robin: float, h: float = 0.5) -> sp.csr_matrix:
-    """``m^3`` 7-point ``-div(kappa grad)`` + ``mu`` (finite volumes, mm) with ``robin h^2`` added
-    on the diagonal per boundary face of a node."""
-    e = np.ones(m)
-    T = sp.diags([-e[:-1], 2 * e, -e[:-1]], [-1, 0, 1])
-    I = sp.identity(m)
-    L = (sp.kron(sp.kron(T, I), I) + sp.kron(sp.kron(I, T), I) + sp.kron(sp.kron(I, I), T)) * kappa * h
-    idx = np.indices((m, m, m)).reshape(3, -1)
-    faces = ((idx == 0) | (idx == m - 1)).sum(axis=0)
-    return (L + sp.diags(mu * h**3 + robin * h**2 * faces)).tocsr()
-
-
 def aggregation(m: int) -> sp.csr_matrix:
     """Piecewise-constant prolongation of an ``m^3`` grid from its ``(m/2)^3`` 2x2x2 blocks."""
     idx = np.indices((m, m, m)).reshape(3, -1) // 2
     c = m // 2
     agg = (idx[0] * c + idx[1]) * c + idx[2]
     return sp.csr_matrix((np.ones(m**3), (np.arange(m**3), agg)), shape=(m**3, c**3))
-
-
-def p1_system(subdivisions: int, n: int) -> tuple[list[sp.csr_matrix], np.ndarray]:
-    """The P1 system of a 10 mm sphere (5 mm cubes, ``n`` nodes per cube edge) on the active
-    nodes, kappa and mu per channel, a random boundary source."""
-    g = build_fem_grid(sphere_mesh(10.0, subdivisions=subdivisions), n=n, cube_size=5.0)
-    act = np.flatnonzero(g.active)
-    geo = TetGeometry(g.positions, g.tets, g.surface)
-    q = np.random.default_rng(5).uniform(0.5, 1.5, len(g.positions))
-    mats, bs = [], []
-    for kappa, mu in KAPPA_MU:
-        A, b = assemble_p1(geo, kappa, mu, q, 2.0)
-        mats.append(A[act][:, act].tocsr())
-        bs.append(b[act])
-    return mats, np.stack(bs, axis=1)
 
 
 def lit_laplacians(m: int, kappas=((0.3, 0.3), (0.2, 0.5), (0.5, 0.2))) -> tuple[list[sp.csr_matrix], np.ndarray]:
