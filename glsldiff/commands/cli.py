@@ -139,7 +139,7 @@ def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
     rows = sphere_light_study(ns=args.n, polygrid_ns=args.polygrid_n, cube_size=args.cube_size,
                               cube_sizes=args.cube_sizes, n_fixed=args.n_fixed, polygrid_n_fixed=args.polygrid_n_fixed,
                               radius=args.radius, discretisations=args.discretisations, out=out,
-                              progress=lambda line: print(line, file=sys.stderr, flush=True))
+                              progress=_status)
     cols = ("discretisation", "series", "n", "cube_mm", "h_mm", "nodes", "inverted", "light", "rel_rms", "rel_max",
             "solve_s")
     print_table(f"sphere R = {args.radius} mm under lights: exitant bracket B vs the exact series",
@@ -154,7 +154,7 @@ def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
 def cmd_bench_meshes(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
     rows = mesh_bench(args.meshes, args.cubes, args.n, out, args.size,
-                      progress=lambda line: print(line, file=sys.stderr, flush=True))
+                      progress=_status)
     print_table("tetrahedral polygrid on meshes (fem discretisation; coverage in lattice spacings h)", rows)
     print(f"wrote meshes.csv, meshes.png and the renders to {out}/")
     return 0
