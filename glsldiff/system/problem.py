@@ -101,12 +101,7 @@ class DiffusionProblem:
             kappa[dead], mu[dead] = 1.0, 0.0
         self.kappa, self.mu = validate_coefficients(kappa, mu)
         self.q = self.grid.source_volume(self.q)
-        if not np.isfinite(self.eta) or self.eta <= 0:
-            raise InputError(f"eta={self.eta!r} must be a finite relative index > 0")
-        if self.C is None:
-            self.C = float(boundary_constant(self.eta))
-        if not np.isfinite(self.C) or self.C <= 0:
-            raise InputError(f"C={self.C!r} must be finite and > 0")
+        self.C = boundary_C(self.eta, self.C)
         if self.stencil not in STENCILS:
             raise InputError(f"stencil={self.stencil!r}; choose one of {STENCILS}")
         if self.face_mean not in FACE_MEANS:
@@ -152,6 +147,17 @@ class DiffusionProblem:
         ft = float(fresnel_transmittance(self.eta, cos_o))
         L = ft * exitant_bracket(phi, self.q, self.eta, "paper")
         return self.grid.boundary_values(L)
+
+
+def boundary_C(eta: float, C: float | None) -> float:
+    """The boundary constant of a problem: ``C``, or ``boundary_constant(eta)`` when ``None``;
+    InputError unless ``eta`` and the result are finite and > 0."""
+    if not np.isfinite(eta) or eta <= 0:
+        raise InputError(f"eta={eta!r} must be a finite relative index > 0")
+    C = float(boundary_constant(eta)) if C is None else C
+    if not np.isfinite(C) or C <= 0:
+        raise InputError(f"C={C!r} must be finite and > 0")
+    return float(C)
 
 
 def relative_l2(x: ArrayLike, ref: ArrayLike, mask: NDArray[np.bool_] | None = None) -> float:

@@ -17,7 +17,8 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.core.errors import InputError
 from glsldiff.physics.exitance import exitant_bracket
 from glsldiff.physics.material import validate_coefficients
-from glsldiff.physics.optics import boundary_constant, fresnel_transmittance
+from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.system.problem import boundary_C
 
 __all__ = ["TetProblem"]
 
@@ -68,12 +69,7 @@ class TetProblem:
         if not np.isfinite(q).all():
             raise InputError(f"q has {int((~np.isfinite(q)).sum())} non-finite values")
         self.q = q
-        if not np.isfinite(self.eta) or self.eta <= 0:
-            raise InputError(f"eta={self.eta!r} must be a finite relative index > 0")
-        if self.C is None:
-            self.C = float(boundary_constant(self.eta))
-        if not np.isfinite(self.C) or self.C <= 0:
-            raise InputError(f"C={self.C!r} must be finite and > 0")
+        self.C = boundary_C(self.eta, self.C)
 
     @property
     def n_nodes(self) -> int:
