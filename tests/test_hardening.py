@@ -242,29 +242,20 @@ def test_polygrid_cache(tmp_path, monkeypatch):
     assert cached_polygrid(mesh, n=4, n_cubes=20)[1] is False
 
 
-def test_render_reports_progress_and_reuses_the_polygrid(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
-    scene = _scene(tmp_path)
-    assert main(["render", str(scene), "-o", str(tmp_path / "a.exr")]) == 0
-    first = capsys.readouterr().err
-    assert main(["render", str(scene), "-o", str(tmp_path / "b.exr")]) == 0
-    second = capsys.readouterr().err
-    assert "polygrid built" in first and "polygrid read from the cache" in second and "pass 2:" in second
-    np.testing.assert_array_equal(io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "b.exr"))
-
-
 def test_render_warm_starts_from_the_cached_solution(tmp_path, capsys, monkeypatch):
-    """The second render of a scene starts pass 2 from the converged solution an earlier run
-    cached (0 sweeps, same image); a damaged or wrong cached solution is still solved to tol;
-    another light is another system and solves from scratch."""
+    """The second render of a scene reports progress, reads the polygrid from the cache and
+    starts pass 2 from the converged solution an earlier run cached (0 sweeps, same image); a
+    damaged or wrong cached solution is still solved to tol; another light is another system
+    and solves from scratch."""
     from glsldiff.core import cache
 
     monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
     scene = _scene(tmp_path)
     assert main(["render", str(scene), "-o", str(tmp_path / "a.exr")]) == 0
-    first = capsys.readouterr().out
+    first, first_err = capsys.readouterr()
     assert main(["render", str(scene), "-o", str(tmp_path / "b.exr")]) == 0
-    second = capsys.readouterr().out
+    second, second_err = capsys.readouterr()
+    assert "polygrid built" in first_err and "polygrid read from the cache" in second_err and "pass 2:" in second_err
     assert "cached solution" not in first and "cached solution of this system" in second
     assert " 0 sweeps" in second and " 0 sweeps" not in first
     np.testing.assert_array_equal(io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "b.exr"))
