@@ -74,13 +74,13 @@ def mesh_features(mesh: Mesh, angle_deg: float = 45.0) -> Features:
         ends = crease.ravel()
         count = np.bincount(ends, minlength=len(v))
         many = np.flatnonzero(count >= 3)
-        two = np.flatnonzero(count == 2)
-        bent = []
-        for vi in two:                            # two creases meeting at an angle
-            segs = crease[(crease == vi).any(axis=1)]
-            d = [v[s[1] if s[0] == vi else s[0]] - v[vi] for s in segs]
-            c = np.dot(d[0], d[1]) / max(np.linalg.norm(d[0]) * np.linalg.norm(d[1]), 1e-300)
-            if c > -np.cos(np.radians(angle_deg)):
-                bent.append(vi)
-        corners = np.concatenate([many, np.asarray(bent, dtype=np.int64)])
+        # two creases meeting at an angle: pair each count-2 vertex's two segment ends
+        order = np.argsort(ends, kind="stable")
+        at = order[count[ends[order]] == 2].reshape(-1, 2)           # (K, 2) positions in ends
+        vi = ends[at[:, 0]]
+        other = crease.ravel()[at ^ 1]                                # the far end of each segment
+        d0, d1 = v[other[:, 0]] - v[vi], v[other[:, 1]] - v[vi]
+        c = np.einsum("ij,ij->i", d0, d1) / np.maximum(np.linalg.norm(d0, axis=1) * np.linalg.norm(d1, axis=1),
+                                                       1e-300)
+        corners = np.concatenate([many, vi[c > -np.cos(np.radians(angle_deg))]])
     return Features(segments, v[corners])
