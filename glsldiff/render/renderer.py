@@ -63,6 +63,7 @@ from glsldiff.render.report import RenderReport
 from glsldiff.render.scene import Scene
 from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
 from glsldiff.solve.multilevel import MultilevelDiffusion
+from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.fem import assemble_tet, tet_geometry, tet_rhs
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.problem import DiffusionProblem
@@ -106,6 +107,7 @@ class Renderer:
         self._phi_b: NDArray | None = None
         self._solve_report: Any = None
         self._from_cache = False
+        self._fem_system: LinearSystem | None = None
 
     @property
     def mesh(self) -> Any:
@@ -147,6 +149,7 @@ class Renderer:
         kappa, mu, info = node_material(scene, pg.positions, pg)
         shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
+        self._fem_system = None
         if self._solver is not None:
             self._solver.release()
             self._solver = None
@@ -224,13 +227,12 @@ class Renderer:
         if x is None:
             return None
         t0 = time.perf_counter()
-        system = assemble_tet(self._fem_problem(scene), self._geo["tetgeo"])
+        system = self._fem_linear_system(scene)
         if x.shape != (system.n, 3):
             return None
         res = system.residual(x.T.reshape(-1))
         if not res <= scene.options.tol:
             return None
-        self._fem_active = system.active
         return x, SolveReport("cached (residual checked on the CPU)", nodes=system.n, sweeps=0, residual=res,
                               seconds=time.perf_counter() - t0, converged=True, history=[(0, res)])
 
@@ -251,9 +253,18 @@ class Renderer:
         if scene.options.precision != "fp32":
             raise InputError(f"{scene.source}: [options].precision = {scene.options.precision!r}: the fem "
                              "discretisation solves in fp32 only; use precision = \"fp32\"")
-        system = assemble_tet(self._fem_problem(scene), self._geo["tetgeo"])
-        self._fem_active = system.active
+        system = self._fem_linear_system(scene)
         return GlslSparseMultigrid([system.block(c)[0] for c in range(3)], system.b.reshape(3, -1).T, ctx=self.ctx)
+
+    def _fem_linear_system(self, scene: Scene) -> LinearSystem:
+        """The P1 system of the current material, assembled once per material (a cached answer's
+        residual check and the GPU solver of a later frame share it); its ``b`` is replaced by
+        the current source's right-hand side."""
+        if self._fem_system is None:
+            self._fem_system = assemble_tet(self._fem_problem(scene), self._geo["tetgeo"])
+            self._fem_active = self._fem_system.active
+        self._fem_system.b = self._fem_rhs(scene).T.reshape(-1)
+        return self._fem_system
 
     @staticmethod
     def _shader_lights(scene: Scene) -> list[DirectLight]:
