@@ -250,7 +250,8 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     q = MappingQuality()
     t0 = time.perf_counter()
     N = cx.n_lattice
-    X = cx.reference_positions()
+    ref = cx.reference_positions()
+    X = ref.copy()
     features = mesh_features(mesh, crease_deg)
     S = len(cx.outer)
     xs, _, _, nrm = closest_points(mesh, X[N:])
@@ -277,7 +278,7 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     t2 = time.perf_counter()
     movable = np.zeros(len(X), dtype=bool)
     movable[cx.used] = True
-    reference = 6.0 * signed_volumes(cx.reference_positions(), cx.tets)
+    reference = 6.0 * signed_volumes(ref, cx.tets)
     q.untangled = untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
     sliding = np.zeros(len(X), dtype=bool)
     sliding[N:] = ~(on_crease | on_corner)
