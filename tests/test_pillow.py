@@ -163,3 +163,34 @@ def test_bunny_grid_has_no_inverted_tetrahedra():
     assert g.quality.untangled > 50          # the case is a real one
     assert g.quality.inverted == 0
     assert np.abs(signed_volumes(g.positions, g.tets)).min() > 0
+
+
+def test_surface_mass_rows_sum_to_the_lumped_areas_and_lower_the_sphere_error():
+    """The consistent surface mass is symmetric, inside the stiffness pattern, its rows sum to
+    the lumped areas; on the sphere bench's sphere at h = 0.625 mm (n = 2, 1.25 mm cubes) it
+    lowers the error of B against the series for a face light and the 10 deg spot. Measured:
+    face 0.61 -> 0.59 %, spot 5.39 -> 4.89 % (relative RMS)."""
+    from glsldiff.bench.sphere_lights import ETA, KAPPA, MU, bench_lights
+    from glsldiff.oracle.fem import solve_tet_direct
+    from glsldiff.oracle.sphere_lights import light_source_function, sphere_from_light
+    from glsldiff.system.tet_problem import TetProblem
+    g = build_fem_grid(sphere_mesh(10.0, subdivisions=5), n=2, cube_size=1.25)
+    geo = TetGeometry(g.positions, g.tets, g.surface)
+    M = geo.surface_mass
+    np.testing.assert_allclose(np.asarray(M.sum(axis=1)).ravel(), geo.node_areas, rtol=1e-12, atol=1e-15)
+    assert abs(M - M.T).max() == 0.0
+    K = geo.stiffness(1.0)
+    assert (abs(K) + abs(M)).nnz == K.nnz                      # no entry outside the stiffness pattern
+    S = g.surface_nodes
+    pts = g.positions[S]
+    dirs = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    for name in ("face", "spot"):
+        light = bench_lights(10.0)[name]
+        ref = sphere_from_light(light, 10.0, KAPPA, MU, ETA).exitant_bracket(pts)
+        q = np.repeat(light_source_function(light, 10.0, ETA)(dirs)[:, None], 3, axis=1)
+        err = {}
+        for mass in ("lumped", "consistent"):
+            p = TetProblem(g, KAPPA, MU, q, eta=ETA, boundary_mass=mass)
+            B = p.exitant_bracket(solve_tet_direct(p)[0])[:, 0]
+            err[mass] = np.linalg.norm(B - ref) / np.linalg.norm(ref)
+        assert err["consistent"] < 0.99 * err["lumped"], (name, err)

@@ -5,10 +5,12 @@ Weak form of ``div(kappa grad phi) - mu phi = 0`` with the boundary condition
 
     int kappa grad(phi).grad(v) + int mu phi v + int_surface phi v / (2C) = int_surface q v / (2C).
 
-With P1 elements on tetrahedra this is ``A phi = b``, ``A = K + diag(mu m + a / (2C))``,
+With P1 elements on tetrahedra this is ``A phi = b``, ``A = K + diag(mu m) + M_s / (2C)``,
 ``b = a q / (2C)``: ``K`` the stiffness matrix (per tetrahedron ``kappa_t V_t grad(l_i).grad(l_j)``:
 the cotangent weights of TransCut eqs. 10-14), ``m`` the lumped node volumes (``V_t / 4`` per
-corner), ``a`` the lumped surface areas (``A_f / 3`` per corner of each surface triangle). Per
+corner), ``a`` the lumped surface areas (``A_f / 3`` per corner of each surface triangle) and
+``M_s`` the surface mass matrix: consistent (``A_f (1 + delta_ij) / 12`` per surface triangle,
+the default) or lumped (``diag(a)``, ``TetProblem.boundary_mass``). Per
 tetrahedron ``kappa_t`` is the mean of its corners' ``kappa`` (mm), ``mu`` (mm^-1) is per node.
 Units: lengths mm, ``K`` and ``A`` in mm, ``b`` in mm^2 times the source's units.
 """
@@ -92,37 +94,64 @@ class TetGeometry:
         return np.bincount(f.ravel(), np.repeat(A / 3.0, 3), minlength=len(X))
 
     @cached_property
-    def _pattern(self) -> tuple[NDArray[np.int32], NDArray[np.int32], NDArray[np.int64]]:
-        """CSR ``indptr``, ``indices`` of the stiffness pattern and, for each of the ``16 T``
-        local entries, its position in the CSR data (summing duplicates once, here)."""
+    def surface_mass(self) -> sp.csr_matrix:
+        """``(n, n)`` consistent surface mass ``int l_i l_j dA``, mm^2 (``A_f (1 + delta_ij) / 12``
+        per surface triangle; its row sums are :attr:`node_areas`, its pattern lies inside the
+        stiffness pattern since surface triangles are tetrahedron faces)."""
+        X, f = self.positions, self.surface
+        A = 0.5 * np.linalg.norm(np.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]]), axis=1)
+        local = (np.ones((3, 3)) + np.eye(3)) / 12.0
+        n = len(X)
+        return sp.csr_matrix(((A[:, None, None] * local).ravel(), (np.repeat(f, 3, axis=1).ravel(),
+                                                                   np.tile(f, (1, 3)).ravel())), shape=(n, n))
+
+    @cached_property
+    def _edges(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The mesh's unique edges ``(E, 2)`` (``i < j``) and each tetrahedron's six edges
+        ``(T, 6)`` as indices into them, in the order of :data:`_PAIRS`. (Sorting the ``6 T``
+        edge keys once is 2-3x cheaper than summing the ``16 T`` local entries into a CSR
+        pattern: 1.2 s against 5 s at 790k tetrahedra, measured.)"""
         n = len(self.positions)
-        r = np.repeat(self.tets, 4, axis=1).ravel()
-        c = np.tile(self.tets, (1, 4)).ravel()
-        K = sp.csr_matrix((np.ones(len(r)), (r, c)), shape=(n, n))    # the pattern (duplicates summed)
-        K.sort_indices()
-        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(K.indptr))
-        where = np.searchsorted(rows * n + K.indices, r.astype(np.int64) * n + c)
-        return K.indptr, K.indices, where
+        a = self.tets[:, _PAIRS[:, 0]].astype(np.int64)
+        b = self.tets[:, _PAIRS[:, 1]].astype(np.int64)
+        keys, tet_edges = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
+        return np.stack([keys // n, keys % n], axis=1), tet_edges.reshape(len(self.tets), 6)
 
     def stiffness(self, kappa: ArrayLike) -> sp.csr_matrix:
-        """``K`` for node ``kappa`` (n,) mm (a scalar: homogeneous)."""
+        """``K`` for node ``kappa`` (n,) mm (a scalar: homogeneous): the local entries summed
+        per edge and per node, then one linear-time COO-to-CSR conversion."""
         n = len(self.positions)
         k = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (n,))
         kt = k[self.tets].mean(axis=1)
-        indptr, indices, where = self._pattern
-        data = np.bincount(where, (kt[:, None, None] * self.local_stiffness).ravel(), minlength=len(indices))
-        return sp.csr_matrix((data, indices, indptr), shape=(n, n))
+        Kl = self.local_stiffness
+        edges, tet_edges = self._edges
+        off = np.bincount(tet_edges.ravel(), (kt[:, None] * Kl[:, _PAIRS[:, 0], _PAIRS[:, 1]]).ravel(),
+                          minlength=len(edges))
+        diag = np.bincount(self.tets.ravel(), (kt[:, None] * np.diagonal(Kl, axis1=1, axis2=2)).ravel(), minlength=n)
+        i, j, d = edges[:, 0], edges[:, 1], np.arange(n)
+        K = sp.coo_matrix((np.concatenate([off, off, diag]), (np.concatenate([i, j, d]), np.concatenate([j, i, d]))),
+                          shape=(n, n)).tocsr()
+        K.sort_indices()
+        return K
 
 
-def assemble_p1(geo: TetGeometry, kappa: ArrayLike, mu: ArrayLike, q: ArrayLike, C: float
-                ) -> tuple[sp.csr_matrix, NDArray[np.float64]]:
+#: The six edges of a tetrahedron (local corner pairs).
+_PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
+
+
+def assemble_p1(geo: TetGeometry, kappa: ArrayLike, mu: ArrayLike, q: ArrayLike, C: float,
+                boundary_mass: str = "consistent") -> tuple[sp.csr_matrix, NDArray[np.float64]]:
     """``(A, b)`` of one channel (module docstring): ``kappa``, ``mu`` per node (or scalars),
-    ``q`` per node (only surface nodes' values matter)."""
+    ``q`` per node (only surface nodes' values matter); ``boundary_mass`` ``"consistent"`` or
+    ``"lumped"``."""
     n = len(geo.positions)
     mu_n = np.broadcast_to(np.asarray(mu, dtype=np.float64), (n,))
     q_n = np.broadcast_to(np.asarray(q, dtype=np.float64), (n,))
-    A = (geo.stiffness(kappa) + sp.diags(mu_n * geo.node_volumes + geo.node_areas / (2.0 * C))).tocsr()
-    return A, geo.node_areas * q_n / (2.0 * C)
+    if boundary_mass == "lumped":
+        A = geo.stiffness(kappa) + sp.diags(mu_n * geo.node_volumes + geo.node_areas / (2.0 * C))
+    else:
+        A = geo.stiffness(kappa) + sp.diags(mu_n * geo.node_volumes) + geo.surface_mass / (2.0 * C)
+    return A.tocsr(), geo.node_areas * q_n / (2.0 * C)
 
 
 def _block_diagonal(blocks: list[sp.csr_matrix]) -> sp.csr_matrix:
@@ -164,7 +193,7 @@ def assemble_tet(problem: TetProblem, geo: TetGeometry | None = None) -> LinearS
     q = problem.node_source()
     blocks, rhs = [], []
     for c in range(3):
-        A, b = assemble_p1(geo, problem.kappa[:, c], problem.mu[:, c], q[:, c], problem.C)
+        A, b = assemble_p1(geo, problem.kappa[:, c], problem.mu[:, c], q[:, c], problem.C, problem.boundary_mass)
         blocks.append(A[active][:, active])
         rhs.append(b[active])
     A = _block_diagonal(blocks)

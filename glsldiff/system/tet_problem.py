@@ -20,7 +20,10 @@ from glsldiff.physics.material import validate_coefficients
 from glsldiff.physics.optics import fresnel_transmittance
 from glsldiff.system.problem import boundary_C
 
-__all__ = ["TetProblem"]
+__all__ = ["BOUNDARY_MASS", "TetProblem"]
+
+#: How the Robin boundary term is integrated (:class:`TetProblem`).
+BOUNDARY_MASS = ("consistent", "lumped")
 
 
 @dataclass
@@ -38,6 +41,13 @@ class TetProblem:
         Boundary source per surface node, ``(S, 3)`` (or broadcastable); default zero.
     eta, C
         Relative refractive index and boundary constant (default ``boundary_constant(eta)``).
+    boundary_mass
+        The Robin term ``int_surface phi v / (2C)``: ``"consistent"`` (default; the P1 surface
+        mass matrix) or ``"lumped"`` (its row sums on the diagonal, an M-matrix like TransCut's).
+        The source ``int q v / (2C)`` is lumped either way. Measured on the sphere bench
+        (R 10 mm, 141k nodes): 10 deg spot 1.42 -> 1.05 % RMS of B, max 2.94 -> 2.25 %;
+        directional lights 5-25 % lower. Integrating q exactly instead made the spot 2x worse
+        (it widens the spot's rim by an element).
     """
 
     grid: Any
@@ -46,8 +56,11 @@ class TetProblem:
     q: ArrayLike | None = None
     eta: float = 1.3
     C: float | None = None
+    boundary_mass: str = "consistent"
 
     def __post_init__(self) -> None:
+        if self.boundary_mass not in BOUNDARY_MASS:
+            raise InputError(f"boundary_mass={self.boundary_mass!r}: give one of {', '.join(BOUNDARY_MASS)}")
         for attr in ("positions", "tets", "surface", "surface_nodes", "active"):
             if not hasattr(self.grid, attr):
                 raise InputError(f"grid must be a tetrahedral grid (positions, tets, surface, surface_nodes, "
