@@ -253,14 +253,16 @@ def box_polygrid(cubes: tuple[int, int, int], n: int, size: float = 1.0, **kwarg
 MAX_NODES = 30_000_000
 
 
-def node_budget_problem(cubes: int, n: int) -> str | None:
-    """Why ``cubes`` cubes of ``n^3`` nodes exceed :data:`MAX_NODES` (and what fits), or None."""
+def node_budget_problem(cubes: int, n: int, limit: int = MAX_NODES, bytes_per_node: int = 150) -> str | None:
+    """Why ``cubes`` cubes of ``n^3`` nodes exceed ``limit`` (default :data:`MAX_NODES`; the
+    tetrahedral grid's is :data:`glsldiff.grids.fem_grid.FEM_MAX_NODES`) and what fits, or None."""
     nodes = int(cubes) * int(n) ** 3
-    if nodes <= MAX_NODES:
+    if nodes <= limit:
         return None
-    n_max = int((MAX_NODES / max(int(cubes), 1)) ** (1.0 / 3.0))
+    n_max = int((limit / max(int(cubes), 1)) ** (1.0 / 3.0) + 1e-9)
+    fix = f"use n <= {n_max} or fewer cubes" if n_max >= 2 else f"use fewer cubes (at most {limit // n ** 3} of n = {n})"
     return (f"{cubes} cubes of n = {n} nodes per edge make {nodes:.3g} lattice nodes (about "
-            f"{nodes * 150 / 2**30:.0f} GiB); the limit is {MAX_NODES:.0e}: use n <= {n_max} or fewer cubes")
+            f"{max(nodes * bytes_per_node / 2**30, 1):.0f} GiB); the limit is {limit:.0e}: {fix}")
 
 
 def _check_node_budget(cubes: int, n: int) -> None:

@@ -19,13 +19,13 @@ surface. Modules:
 ``closest``
     :func:`closest_points`, exact closest surface points.
 ``ops``
-    :func:`subdivide` and other operations returning a new mesh.
+    :func:`subdivide` and other operations returning a new mesh; :func:`surface_samples`.
 """
 from glsldiff.mesh.closest import closest_points
 from glsldiff.mesh.inside import axis_hits, contains, contains_grid
 from glsldiff.mesh.load import (COMPONENT_MODES, MAX_HOLE_EDGES, SAMPLE_MESHES, load_mesh,
                                 mesh_from_arrays, sample_mesh_path)
-from glsldiff.mesh.ops import subdivide
+from glsldiff.mesh.ops import subdivide, surface_samples
 from glsldiff.mesh.primitives import box_mesh, sphere_mesh, torus_mesh
 from glsldiff.mesh.types import Mesh
 
@@ -45,4 +45,5 @@ __all__ = [
     "axis_hits",
     "closest_points",
     "subdivide",
+    "surface_samples",
 ]
