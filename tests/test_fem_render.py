@@ -28,9 +28,14 @@ def test_scene_options():
     assert s.polygrid.discretisation == "fem" and s.polygrid.n == 3 and s.polygrid.levels == 1
     no_cubes = {**_scene(), "polygrid": {"n": 2, "discretisation": "fem"}}
     assert parse_scene(no_cubes).polygrid.cubes == 15000        # 120k nodes in cubes of 2^3
-    assert parse_scene({"mesh": {"source": "sphere"}, "lights": LIGHT}).polygrid.discretisation == "conservative"
-    with pytest.raises(InputError, match=r"\[polygrid\]\.levels: the fem discretisation solves on one level"):
-        parse_scene(_scene(levels=3))
+    default = parse_scene({"mesh": {"source": "sphere"}, "lights": LIGHT}).polygrid
+    assert (default.discretisation, default.n, default.cubes, default.levels) == ("fem", 2, 15000, 1)
+    lattice = parse_scene({"mesh": {"source": "sphere"}, "lights": LIGHT,
+                           "polygrid": {"discretisation": "conservative"}}).polygrid
+    assert (lattice.n, lattice.cubes, lattice.levels) == (8, 253, 3)
+    with pytest.raises(InputError, match=r"\[polygrid\]\.levels: the fem discretisation \(the default\) solves on "
+                                         r"one level .* discretisation = \"conservative\""):
+        parse_scene({"mesh": {"source": "sphere"}, "lights": LIGHT, "polygrid": {"levels": 3}})
     with pytest.raises(InputError, match=r"\[polygrid\]\.discretisation: 'fvm' is not one of conservative, paper, fem"):
         parse_scene(_scene(discretisation="fvm"))
     with pytest.raises(InputError, match=r"n: must be even"):
@@ -112,3 +117,32 @@ def test_fem_second_render_takes_the_checked_cached_solution(tmp_path, monkeypat
         c, rep_c = r.render(scene)
     assert rep_c.solver.method.startswith("glsl-gather-multigrid") and rep_c.solver.converged
     assert np.abs(c - a).max() < 1e-2 * a.max()
+
+
+def test_shell_mapped_volume_on_tetrahedra(tmp_path, monkeypatch):
+    """A [material].volume block and a reflectance map are wrapped around a fem grid through
+    the shell: surface nodes take the block's top layer, nodes deeper than the shell the core,
+    and (u, v) follow the polycube face of the nearest surface node (one frame per face)."""
+    from glsldiff.render.shellmap import map_shell, map_surface, shell_coordinates
+    g = build_fem_grid(sphere_mesh(10.0, subdivisions=3), n=2, cube_size=2.5)
+    top, bottom = (0.2, 0.3, 0.4), (0.5, 0.5, 0.5)
+    kb = np.empty((4, 6, 6, 3))
+    kb[0], kb[1:] = top, bottom
+    mb = np.full((4, 6, 6, 3), 0.01)
+    kappa, mu, info = map_shell(g, kb, mb, h_mm=0.5, core=((1.0, 1.0, 1.0), (0.02, 0.02, 0.02)))
+    assert kappa.shape == (len(g.positions), 3) and info["seam_links"] == -1
+    np.testing.assert_allclose(kappa[g.surface_nodes], np.broadcast_to(top, (len(g.surface_nodes), 3)), rtol=1e-12)
+    geo = shell_coordinates(g, depth_from="mesh")
+    deep = g.active & (geo["depth"] > 2.0 + 1e-9)
+    assert deep.any()
+    np.testing.assert_allclose(kappa[deep], 1.0) and np.testing.assert_allclose(mu[deep], 0.02)
+    # the face a surface node reads is one of its own outer faces (at edges and corners the one
+    # nearest its normal; staircase faces of a sphere may lie 78 deg off it)
+    from glsldiff.grids.lattice import STEPS
+    face = geo["face"][g.surface_nodes]
+    assert np.all((STEPS[face] * g.complex.outward_axes).sum(axis=1) == 1)
+    assert np.all(np.einsum("ij,ij->i", STEPS[face], g.normals) > 0.0)   # never an inward face
+    img = np.zeros((6, 6, 3))
+    img[:, :3] = 1.0                                  # half the face white: both halves appear
+    rho = map_surface(g, img, (3.0, 3.0))
+    assert rho.shape == (len(g.surface_nodes), 3) and rho.min() < 0.05 and rho.max() > 0.95

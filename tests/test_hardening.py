@@ -211,11 +211,18 @@ def test_render_refuses_silent_wrong_images(tmp_path, capsys, extra, expect):
 
 
 def test_polygrid_node_budget(tmp_path, capsys):
-    """A lattice too large for memory is refused before it is allocated (n = 512: 753 GiB)."""
+    """A grid too large for memory is refused before it is allocated: the lattice (253 cubes of
+    n = 256: 4.2e9 nodes) and the tetrahedral default (one cube of n = 256: 1.7e7 nodes, beyond
+    its 1e6), and through the library's build_fem_grid."""
     scene = tmp_path / "big.toml"
-    scene.write_text('[mesh]\nsource = "sphere"\n[polygrid]\nn = 256\n[[lights]]\ntype = "directional"\n'
-                     'direction = [0, 0, 1]\n')
-    _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "r.exr")]), "use n <= 49")
+    for disc, expect in (("conservative", "use n <= 49"), ("fem", "limit is 1e+06: use n <= 100")):
+        scene.write_text(f'[mesh]\nsource = "sphere"\n[polygrid]\nn = 256\ndiscretisation = "{disc}"\n'
+                         '[[lights]]\ntype = "directional"\ndirection = [0, 0, 1]\n')
+        _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "r.exr")]), expect)
+    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.mesh import sphere_mesh
+    with pytest.raises(InputError, match="tetrahedral grid: 20000 cubes of n = 4 .* limit is 1e\\+06: use n <= 3 or fewer cubes"):
+        build_fem_grid(sphere_mesh(10.0, subdivisions=2), n=4, n_cubes=20000)
     _one_error_line(capsys, main(["polygrid", "cow", "--n", "200", "--out", str(tmp_path / "pg")]), "lattice nodes")
 
 

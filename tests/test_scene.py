@@ -17,6 +17,7 @@ source = "sphere"
 size_mm = 20.0
 
 [polygrid]
+discretisation = "conservative"
 n = 4
 cubes = 8
 levels = 2
@@ -54,6 +55,7 @@ def test_good_scene_and_defaults(tmp_path):
     assert s.options.scheme == "hierarchical" and s.options.exitant == "p1"
     d = default_scene()
     assert d.mesh.source == "bunny" and d.material.procedural == "veins" and d.lights
+    assert (d.polygrid.discretisation, d.polygrid.n, d.polygrid.cubes, d.polygrid.levels) == ("fem", 2, 15000, 1)
 
 
 @pytest.mark.parametrize("edit, field", [

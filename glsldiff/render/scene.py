@@ -13,11 +13,13 @@ silently ignored).
     size_mm = 100.0           # longest bounding-box extent after scaling
 
     [polygrid]
-    n = 8                     # nodes per cube edge
-    cubes = 253               # polycube target cube count
-    levels = 3                # hierarchy levels (1 = single resolution)
-    discretisation = "conservative"   # conservative | paper (6-point lattice) | fem (tetrahedra;
-                                      # cubes then defaults to 120000 / n^3, e.g. 15000 for n = 2)
+    discretisation = "fem"    # fem (P1 tetrahedra on the pillowed polycube; the default) |
+                              # conservative | paper (the 6-point lattice stencils, hierarchical)
+    n = 2                     # nodes per cube edge (default 2 for fem, 8 for the lattice)
+    cubes = 15000             # polycube target cube count (default 120000 / n^3 for fem, 253 for
+                              # the lattice)
+    levels = 1                # hierarchy levels (lattice only, default 3; fem solves on one
+                              # level with its own algebraic multigrid)
 
     [material]                # exactly one of: preset / sigma_a + sigma_s_prime / volume / procedural
     preset = "marble"
@@ -93,6 +95,7 @@ from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_image, read_npz
+from glsldiff.grids.fem_grid import FEM_BYTES_PER_NODE, FEM_MAX_NODES
 from glsldiff.grids.polygrid import node_budget_problem
 
 #: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem).
@@ -124,10 +127,10 @@ class MeshSpec:
 
 @dataclass(frozen=True)
 class PolygridSpec:
-    n: int = 8
-    cubes: int = 253
-    levels: int = 3
-    discretisation: str = "conservative"
+    n: int = 2
+    cubes: int = 15_000          # FEM_NODES / n^3
+    levels: int = 1
+    discretisation: str = "fem"
 
 
 @dataclass(frozen=True)
@@ -424,25 +427,25 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     mesh = MeshSpec(source, m.number("size_mm", 100.0, MIN_SIZE_MM, hi=MAX_SIZE_MM))
 
     g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
-    disc = g.string("discretisation", "conservative", DISCRETISATIONS)
-    n = g.integer("n", 8, 2)
+    disc = g.string("discretisation", "fem", DISCRETISATIONS)
+    n = g.integer("n", 8 if disc != "fem" else 2, 2)
     levels = g.integer("levels", 3 if disc != "fem" else 1, 1)
     if disc == "fem" and levels != 1:
-        g.fail("levels", "the fem discretisation solves on one level for now; use levels = 1")
+        g.fail("levels", "the fem discretisation (the default) solves on one level with its own algebraic "
+                         "multigrid; leave levels out, or set discretisation = \"conservative\" for the "
+                         "lattice hierarchy")
     if n % 2 and disc != "fem":
         g.fail("n", f"must be even (the hierarchy halves it), got {n}")
     default_cubes = max(1, round(FEM_NODES / n ** 3)) if disc == "fem" else 253
     poly = PolygridSpec(n, g.integer("cubes", default_cubes, 1), levels, disc)
-    problem = node_budget_problem(poly.cubes, n)
+    problem = (node_budget_problem(poly.cubes, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE) if disc == "fem"
+               else node_budget_problem(poly.cubes, n))
     if problem:
         g.fail("n", problem)
     if poly.levels > 1 and n >> (poly.levels - 1) < 2:
         g.fail("levels", f"{poly.levels} levels need n >= {2 ** poly.levels}, got n = {n}")
 
     material = _material(_Table(src, "material", data.get("material", {}), _keys(MaterialSpec)), base_dir)
-    if disc == "fem" and (material.volume is not None or isinstance(material.reflectance, str)):
-        g.fail("discretisation", "a [material].volume or reflectance map is mapped through the lattice's "
-                                 "shell (shell texture functions); use discretisation = \"conservative\" with it")
     raw = data.get("lights", [])
     if not isinstance(raw, list):
         raise InputError(f"{src}: [[lights]]: must be an array of tables ([[lights]]), got {type(raw).__name__}")

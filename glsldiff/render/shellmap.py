@@ -84,6 +84,7 @@ Units: mm, mm^-1. Inactive (removed) nodes take the core material.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -92,7 +93,9 @@ from scipy.spatial import cKDTree
 
 from glsldiff.core.checks import choice, real, rgb
 from glsldiff.core.errors import InputError
+from glsldiff.grids.fem_grid import FemGrid
 from glsldiff.grids.graph import INACTIVE, NEIGHBOURS
+from glsldiff.grids.lattice import STEPS
 from glsldiff.grids.polygrid import Polygrid
 from glsldiff.mesh import closest_points
 from glsldiff.physics.material import Preset, preset
@@ -151,21 +154,61 @@ def _core(core: Any, sigma_t: Array, mu: Array) -> tuple[Array, Array]:
                      "or Preset, or a (kappa [mm], mu [mm^-1]) pair of scalars or RGB triples")
 
 
-# ---- geometry --------------------------------------------------------------------------
-def _cover_radius(pg: Polygrid, tree: cKDTree) -> float:
+# ---- geometry ----------------------------------------------------------------------------
+@dataclass(frozen=True, eq=False)
+class _Shell:
+    """What the shell mapping needs of a grid, for the lattice polygrid and the tetrahedral
+    (fem) grid alike: node positions (mm), which nodes are the surface samples and which are
+    unknowns, each surface node's outward polycube face (slot of ``x-, x+, ... z+``) and every
+    node's polycube (reference) coordinates, mm."""
+
+    positions: Array          # (P, 3)
+    boundary: NDArray[np.int64]
+    active: NDArray[np.bool_]
+    slot: NDArray[np.int64]   # (B,)
+    reference: Array          # (P, 3)
+    mesh: Any
+    shape: tuple[int, ...]    # node-array shape of the grid's material arrays
+    lattice: Any = None       # the lattice (seam links are counted on its links), or None
+
+    @property
+    def boundary_positions(self) -> Array:
+        return self.positions[self.boundary]
+
+
+def _shell(pg: Any) -> _Shell:
+    """The :class:`_Shell` of a :class:`Polygrid` or a :class:`FemGrid`. A fem surface node at a
+    polycube edge or corner takes the one of its outer faces closest to its mesh normal."""
+    if isinstance(pg, Polygrid):
+        lat = pg.lattice
+        return _Shell(pg.positions, lat.boundary, lat.kind != INACTIVE, lat.outward_slot[lat.boundary],
+                      lat.lattice_positions, pg.mesh, pg.shape, lat)
+    if isinstance(pg, FemGrid):
+        axes = pg.complex.outward_axes                                   # (S, 3) of +-1 / 0
+        fits = np.where((STEPS[None] * axes[:, None]).sum(axis=2) > 0,   # the node's own faces
+                        pg.normals @ STEPS.T.astype(np.float64), -np.inf)
+        return _Shell(pg.positions, pg.surface_nodes, pg.active, np.argmax(fits, axis=1),
+                      pg.complex.reference_positions(), pg.mesh, (len(pg.positions),))
+    raise InputError(f"the shell mapping needs a Polygrid or a FemGrid, got {type(pg).__name__}")
+
+
+def _cover_radius(sh: _Shell, tree: cKDTree) -> float:
     """Largest distance from a mesh vertex or face centroid to its nearest boundary node, mm."""
-    mesh = pg.mesh
+    mesh = sh.mesh
     pts = np.concatenate([mesh.vertices, mesh.triangles.mean(axis=1)])
     d, _ = tree.query(pts)
     return float(d.max())
 
 
-def shell_coordinates(pg: Polygrid, *, depth_from: DepthFrom = "auto",
+def shell_coordinates(pg: Polygrid | FemGrid, *, depth_from: DepthFrom = "auto",
                       max_depth_mm: float = np.inf) -> dict[str, Any]:
     """Depth below the surface and polycube surface coordinates of every node (flat order).
 
     Parameters
     ----------
+    pg
+        A lattice :class:`Polygrid` or a tetrahedral :class:`FemGrid` (whose surface nodes
+        and polycube reference positions play the boundary nodes' and lattice positions' part).
     depth_from
         ``"nodes"``, ``"mesh"`` or ``"auto"`` (module docstring, "Depth").
     max_depth_mm
@@ -177,31 +220,29 @@ def shell_coordinates(pg: Polygrid, *, depth_from: DepthFrom = "auto",
     ``face`` ``(N,)`` outward slot (index into :data:`FACE_FRAMES`) of the nearest
     boundary node, ``depth_from`` (the mode used) and ``mesh_queries`` (nodes asked).
     """
-    if not isinstance(pg, Polygrid):
-        raise InputError(f"pg must be a Polygrid, got {type(pg).__name__}")
+    sh = _shell(pg)
     choice(depth_from, "depth_from", ("auto", "mesh", "nodes"))
-    if depth_from == "mesh" and pg.mesh is None:
+    if depth_from == "mesh" and sh.mesh is None:
         raise InputError("depth_from='mesh' needs a polygrid built from a mesh (pg.mesh is None)")
-    lat = pg.lattice
-    b = lat.boundary
-    tree = cKDTree(pg.boundary_positions)
-    depth, nearest = tree.query(pg.positions)
+    b = sh.boundary
+    tree = cKDTree(sh.boundary_positions)
+    depth, nearest = tree.query(sh.positions)
     depth[b], nearest[b] = 0.0, np.arange(b.size)
     queries, mode = 0, "nodes"
-    if depth_from != "nodes" and pg.mesh is not None:
-        alive = lat.kind != INACTIVE
+    if depth_from != "nodes" and sh.mesh is not None:
+        alive = sh.active.copy()
         alive[b] = False
-        need = np.flatnonzero(alive & (depth - _cover_radius(pg, tree) < max_depth_mm))
+        need = np.flatnonzero(alive & (depth - _cover_radius(sh, tree) < max_depth_mm))
         if depth_from == "mesh" or need.size <= AUTO_MESH_QUERIES:
             mode = "mesh"
     if mode == "mesh":
         if need.size:
-            _, d, _, _ = closest_points(pg.mesh, pg.positions[need])
+            _, d, _, _ = closest_points(sh.mesh, sh.positions[need])
             depth[need] = np.minimum(d, depth[need])
         queries = int(need.size)
-    face = lat.outward_slot[b[nearest]]
+    face = sh.slot[nearest]
     ua, us, va = FACE_FRAMES[face].T
-    lp = lat.lattice_positions
+    lp = sh.reference
     rows = np.arange(lp.shape[0])
     return {"depth": depth, "u": us * lp[rows, ua], "v": lp[rows, va], "face": face,
             "depth_from": mode, "mesh_queries": queries}
@@ -248,7 +289,7 @@ def _seam_links(lat: Any, face: NDArray[np.int64]) -> int:
     return total
 
 
-def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: float,
+def map_shell(pg: Polygrid | FemGrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: float,
               core: str | Preset | tuple[ArrayLike, ArrayLike] = "mean",
               thickness_mm: float | None = None, scale: float = 1.0, *,
               depth_from: DepthFrom = "auto", tiling: Tiling = "wrap") -> tuple[Array, Array, dict[str, Any]]:
@@ -258,7 +299,8 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
     ----------
     pg
         The polygrid (finest level; coarser levels get the material by averaging,
-        :meth:`glsldiff.grids.hierarchy.Hierarchy.problems`).
+        :meth:`glsldiff.grids.hierarchy.Hierarchy.problems`), or a tetrahedral
+        :class:`FemGrid` (its node order; ``seam_links`` is then -1).
     kappa_block, mu_block
         ``(nz, ny, nx, 3)`` (or grey ``(nz, ny, nx)``) kappa [mm] > 0 and mu [mm^-1] >= 0
         of the block; index ``[z, y, x]``, ``z = 0`` at the captured surface.
@@ -283,7 +325,7 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
     -------
     kappa, mu
         Node arrays ``pg.shape + (3,)`` for :class:`glsldiff.system.problem.DiffusionProblem`
-        (removed nodes hold the core).
+        (removed nodes hold the core); ``(P, 3)`` for a :class:`FemGrid`.
     info
         ``depth`` (node array, mm), ``face`` (node array of outward slots, -1 at removed
         nodes), ``depth_min_mm`` / ``depth_mean_mm`` / ``depth_max_mm`` (active nodes),
@@ -293,8 +335,7 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
         ``mesh_queries``, ``tiling``, ``seconds``.
     """
     t0 = time.perf_counter()
-    if not isinstance(pg, Polygrid):
-        raise InputError(f"pg must be a Polygrid, got {type(pg).__name__}")
+    sh = _shell(pg)
     kb, mb = _block("kappa_block", kappa_block), _block("mu_block", mu_block)
     if kb.shape != mb.shape:
         raise InputError(f"kappa_block {np.shape(kappa_block)} and mu_block {np.shape(mu_block)} "
@@ -315,32 +356,31 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
 
     geo = shell_coordinates(pg, depth_from=depth_from, max_depth_mm=thickness)
     depth, face = geo["depth"], geo["face"]
-    lat = pg.lattice
-    act = np.flatnonzero(lat.kind != INACTIVE)
+    act = np.flatnonzero(sh.active)
     width = min(voxel, thickness)
     t = np.clip((depth[act] - (thickness - width)) / width, 0.0, 1.0)[:, None]
 
-    vals = np.full((pg.size, 6), np.concatenate([core_st, core_mu]))
+    vals = np.full((len(sh.positions), 6), np.concatenate([core_st, core_mu]))
     shell = np.flatnonzero(t[:, 0] < 1.0)
     inner = act[shell]
     vals[inner] = _trilinear(np.concatenate([sigma_t, mb], axis=3), geo["u"][inner] / voxel,
                              geo["v"][inner] / voxel, depth[inner] / voxel, tiling)
     ts = t[shell]
     vals[inner] = (1.0 - ts) * vals[inner] + ts * np.concatenate([core_st, core_mu])
-    kappa = (1.0 / (3.0 * vals[:, :3])).reshape(pg.shape + (3,))
-    mu = vals[:, 3:].reshape(pg.shape + (3,))
+    kappa = (1.0 / (3.0 * vals[:, :3])).reshape(sh.shape + (3,))
+    mu = vals[:, 3:].reshape(sh.shape + (3,))
 
     d_act = depth[act]
-    face_out = np.where(lat.kind != INACTIVE, face, -1)
+    face_out = np.where(sh.active, face, -1)
     n_core = int(np.count_nonzero(t >= 1.0))
     info: dict[str, Any] = {
-        "depth": depth.reshape(pg.shape), "face": face_out.reshape(pg.shape),
+        "depth": depth.reshape(sh.shape), "face": face_out.reshape(sh.shape),
         "depth_min_mm": float(d_act.min()), "depth_mean_mm": float(d_act.mean()),
         "depth_max_mm": float(d_act.max()),
         "n_active": int(act.size), "n_shell": int(act.size - n_core),
         "n_blend": int(np.count_nonzero((t > 0.0) & (t < 1.0))), "n_core": n_core,
         "faces": {NEIGHBOURS[s]: int(np.count_nonzero(face[act] == s)) for s in range(6)},
-        "seam_links": _seam_links(lat, face),
+        "seam_links": _seam_links(sh.lattice, face) if sh.lattice is not None else -1,
         "thickness_mm": thickness, "voxel_mm": voxel, "period_mm": (nx * voxel, ny * voxel),
         "core_kappa": (1.0 / (3.0 * core_st)).tolist(), "core_mu": core_mu.tolist(),
         "depth_from": geo["depth_from"], "mesh_queries": geo["mesh_queries"], "tiling": tiling,
@@ -349,7 +389,7 @@ def map_shell(pg: Polygrid, kappa_block: ArrayLike, mu_block: ArrayLike, h_mm: f
     return kappa, mu, info
 
 
-def map_surface(pg: Polygrid, image: ArrayLike, period_mm: tuple[float, float],
+def map_surface(pg: Polygrid | FemGrid, image: ArrayLike, period_mm: tuple[float, float],
                 tiling: Tiling = "wrap") -> Array:
     """A map over the block's captured face (e.g. the measured diffuse reflectance,
     :mod:`glsldiff.inverse.reflectance`), ``(H, W, C)`` covering ``period_mm`` = (x, y)
@@ -362,6 +402,6 @@ def map_surface(pg: Polygrid, image: ArrayLike, period_mm: tuple[float, float],
     px, py = (real(p, "period_mm (map extent, mm)", 0.0, lo_open=True) for p in period_mm)
     choice(tiling, "tiling", TILINGS)
     geo = shell_coordinates(pg, depth_from="nodes")
-    b = pg.lattice.boundary
+    b = _shell(pg).boundary
     h, w = img.shape[:2]
     return _trilinear(img[None], geo["u"][b] / (px / w), geo["v"][b] / (py / h), np.zeros(b.size), tiling)
