@@ -45,8 +45,9 @@ class TetProblem:
         The Robin term ``int_surface phi v / (2C)``: ``"consistent"`` (default; the P1 surface
         mass matrix) or ``"lumped"`` (its row sums on the diagonal, an M-matrix like TransCut's).
         The source ``int q v / (2C)`` is lumped either way. Measured on the sphere bench
-        (R 10 mm, 141k nodes): 10 deg spot 1.42 -> 1.05 % RMS of B, max 2.94 -> 2.25 %;
-        directional lights 5-25 % lower. Integrating q exactly instead made the spot 2x worse
+        (R 10 mm, n = 2, 15,000 cubes, 141k nodes): 10 deg spot 1.55 -> 1.27 % RMS of B, max
+        4.0 -> 3.5 %; directional lights 4-11 % lower (worse on under-resolved grids: spot
+        9.9 -> 13.2 % at h = 1.25 mm). Integrating q exactly instead made the spot 2x worse
         (it widens the spot's rim by an element).
     """
 
