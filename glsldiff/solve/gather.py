@@ -106,6 +106,21 @@ def auto_omega(lambda_max: float) -> float:
     return min(1.0, OMEGA_TARGET / lambda_max)
 
 
+def parse_omega(omega: float | str) -> float | None:
+    """A Jacobi damping argument checked: ``None`` for ``"auto"``, else the float in (0, 2)."""
+    if isinstance(omega, str):
+        if omega != "auto":
+            raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'")
+        return None
+    try:
+        w = float(omega)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'") from exc
+    if not 0.0 < w < 2.0:
+        raise InputError(f"omega={omega!r} must be in (0, 2) (damped Jacobi diverges outside)")
+    return w
+
+
 # ---- input checks ---------------------------------------------------------------------------
 def channel_matrices(matrices: Matrices, who: str = "GlslSparse") -> list[sp.csr_matrix]:
     """The three channel matrices of ``matrices`` (one for all channels, or three), checked
@@ -441,6 +456,15 @@ class GatherSolver:
             raise SolverError(f"{exc}: {hint()}") from exc
 
     # ---- lifetime ---------------------------------------------------------------------------
+    def _finish(self, method: str, result: Relaxation, t0: float, **extra: object
+                ) -> tuple[NDArray[np.float64], SolveReport]:
+        """The solution ``(n, 3)`` and report of a :meth:`_relax` ``result`` begun at ``t0``
+        (``extra``: further :class:`SolveReport` fields, e.g. ``work``, ``levels``)."""
+        rep = SolveReport(method, nodes=self.n, sweeps=result.iterations, residual=result.residual,
+                          seconds=time.perf_counter() - t0, converged=result.converged, history=result.history,
+                          status=result.status, error_estimate=result.error_estimate, **extra)
+        return result.x.reshape(3, self.n).T.copy(), rep
+
     def release(self) -> None:
         """Free every GPU object this solver created."""
         gl.make_current(self.ctx)
@@ -501,20 +525,13 @@ class GlslSparse(GatherSolver):
         mats = channel_matrices(matrices)
         n = mats[0].shape[0]
         bb = node_rhs(b, n)
-        if isinstance(omega, str):
-            if omega != "auto":
-                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'")
+        w = parse_omega(omega)
+        if w is None:
             check_symmetric(mats, "omega='auto' needs symmetric matrices (real eigenvalues of D^-1 A)",
                             "give omega as a number")
             self.lambda_max: float | None = max(jacobi_lambda_max(M) for M in distinct(mats))
             self.omega = auto_omega(self.lambda_max)
         else:
-            try:
-                w = float(omega)
-            except (TypeError, ValueError) as exc:
-                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'") from exc
-            if not 0.0 < w < 2.0:
-                raise InputError(f"omega={omega!r} must be in (0, 2) (damped Jacobi diverges outside)")
             self.lambda_max, self.omega = None, w
         self.precision, self.n = precision, n
         self.ctx = ctx if ctx is not None else gl.get_context()
@@ -594,12 +611,8 @@ class GlslSparse(GatherSolver):
                              residuals=residuals, name=f"GLSL gather Jacobi (omega={self.omega:.4g})",
                              hint=lambda: ("damped Jacobi needs omega * lambda_max(D^-1 A) < 2 and A positive "
                                            f"definite; omega = {self.omega:.4g}{lam}; try omega='auto'"))
-        rep = SolveReport(f"{self.method}-{self.precision}(omega={self.omega:.4g})", nodes=self.n,
-                          sweeps=result.iterations, residual=result.residual,
-                          seconds=time.perf_counter() - t0, converged=result.converged,
-                          history=result.history, status=result.status,
-                          error_estimate=result.error_estimate, work=result.iterations * self.n)
-        return result.x.reshape(3, self.n).T.copy(), rep
+        return self._finish(f"{self.method}-{self.precision}(omega={self.omega:.4g})", result, t0,
+                            work=result.iterations * self.n)
 
 
 def distinct(mats: list[sp.csr_matrix]) -> list[sp.csr_matrix]:

@@ -95,7 +95,7 @@ from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.solvers import Callback
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
                                    GatherSolver, Matrices, Start, block_diagonal, channel_matrices, check_symmetric,
-                                   distinct, node_rhs, pack_ell, pack_nodes, texture_width, upload_ell)
+                                   distinct, node_rhs, pack_ell, pack_nodes, parse_omega, texture_width, upload_ell)
 from glsldiff.system.report import MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparseMultigrid", "MultigridLevel", "smoother_omega", "SMOOTH_TARGET", "MAX_COARSE", "ACCELERATIONS"]
@@ -339,17 +339,7 @@ class GlslSparseMultigrid(GatherSolver):
                         "and a symmetric smoother)", "symmetrise the system")
         n = mats[0].shape[0]
         bb = node_rhs(b, n)
-        fixed: float | None = None
-        if isinstance(omega, str):
-            if omega != "auto":
-                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'")
-        else:
-            try:
-                fixed = float(omega)
-            except (TypeError, ValueError) as exc:
-                raise InputError(f"omega={omega!r}: give a float in (0, 2) or 'auto'") from exc
-            if not 0.0 < fixed < 2.0:
-                raise InputError(f"omega={omega!r} must be in (0, 2) (damped Jacobi diverges outside)")
+        fixed = parse_omega(omega)
         self.precision, self.n, self.pre, self.post, self.accel = precision, n, int(pre), int(post), accel
         self.ctx = ctx if ctx is not None else gl.get_context()
         gl.make_current(self.ctx)
@@ -639,9 +629,5 @@ class GlslSparseMultigrid(GatherSolver):
             d.update(updated=lv.n, sweeps=sweeps, residual=math.nan,
                      seconds=float(self.level_seconds[l] - seconds0[l]) if self.profile else math.nan)
             levels.append(d)
-        rep = SolveReport(f"{self.method}-{self.precision}({kind},levels={len(self.levels)})",
-                          nodes=self.n, sweeps=cycles, residual=result.residual,
-                          seconds=time.perf_counter() - t0, converged=result.converged,
-                          history=result.history, status=result.status, error_estimate=result.error_estimate,
-                          levels=levels, work=int(sum(int(d["sweeps"]) * int(d["n"]) for d in levels)))
-        return result.x.reshape(3, self.n).T.copy(), rep
+        return self._finish(f"{self.method}-{self.precision}({kind},levels={len(self.levels)})", result, t0,
+                            levels=levels, work=int(sum(int(d["sweeps"]) * int(d["n"]) for d in levels)))
