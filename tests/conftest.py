@@ -165,3 +165,11 @@ def smooth_kappa():
 def sphere_polygrid():
     """The polygrid of a 10 mm icosphere (subdivisions 4): n = 6 nodes per cube edge, 5 mm cubes."""
     return build_polygrid(sphere_mesh(10.0, subdivisions=4), n=6, cube_size=5.0)
+
+
+@pytest.fixture(scope="module")
+def fem_system():
+    """The gather-solver tests' P1 system (tests/gather_systems.py): a 10 mm sphere, subdivisions
+    3, n = 3 nodes per 5 mm cube edge (1376 unknowns), kappa and mu different per channel."""
+    from gather_systems import p1_system
+    return p1_system(3, 3)

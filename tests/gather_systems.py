@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from glsldiff.grids.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
@@ -33,3 +34,12 @@ def p1_system(subdivisions: int, n: int) -> tuple[list[sp.csr_matrix], np.ndarra
     kappa, mu = (np.array([km[i] for km in KAPPA_MU]) for i in (0, 1))
     s = assemble_tet(TetProblem(g, kappa, mu, np.repeat(q[:, None], 3, axis=1), C=2.0))
     return [s.block(c)[0].tocsr() for c in range(3)], s.b.reshape(3, -1).T.copy()
+
+
+def spsolve3(mats: list[sp.csr_matrix], b: np.ndarray) -> np.ndarray:
+    """Direct solve of each channel: ``(n, 3)``."""
+    return np.stack([spla.spsolve(M.tocsc(), b[:, c]) for c, M in enumerate(mats)], axis=1)
+
+
+def rel(x: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.linalg.norm(x - ref) / np.linalg.norm(ref))

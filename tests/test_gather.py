@@ -22,7 +22,7 @@ from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.solve.gather import GlslSparse, pack_ell, pack_nodes, sweep_rate
 from glsldiff.system.report import CURRENT
 
-from gather_systems import laplacian7, p1_system   # tests/gather_systems.py
+from gather_systems import laplacian7, rel, spsolve3   # tests/gather_systems.py
 
 
 # ---- systems --------------------------------------------------------------------------------
@@ -78,21 +78,6 @@ def reference_lambda_max(M: sp.csr_matrix) -> float:
     if S.shape[0] <= 600:
         return float(np.linalg.eigvalsh(S.toarray()).max())
     return float(spla.eigsh(S, k=1, which="LA", tol=1e-10, ncv=60, return_eigenvectors=False)[0])
-
-
-def spsolve3(mats: list[sp.csr_matrix], b: np.ndarray) -> np.ndarray:
-    return np.stack([spla.spsolve(M.tocsc(), b[:, c]) for c, M in enumerate(mats)], axis=1)
-
-
-def rel(x: np.ndarray, ref: np.ndarray) -> float:
-    return float(np.linalg.norm(x - ref) / np.linalg.norm(ref))
-
-
-@pytest.fixture(scope="module")
-def fem_system():
-    """The P1 system of a 10 mm sphere (subdivisions 3; n = 3 nodes per 5 mm cube edge) on the
-    active nodes, kappa and mu different per channel."""
-    return p1_system(3, 3)
 
 
 # ---- 1. the operator ------------------------------------------------------------------------

@@ -15,7 +15,6 @@ import moderngl
 import numpy as np
 import pytest
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from glsldiff.core.errors import InputError
 from glsldiff.oracle.amg import jacobi_lambda_max
@@ -23,7 +22,7 @@ from glsldiff.solve.gather import GlslSparse, auto_omega
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.report import CURRENT
 
-from gather_systems import laplacian7, p1_system   # tests/gather_systems.py
+from gather_systems import laplacian7, p1_system, rel, spsolve3   # tests/gather_systems.py
 
 # ---- systems --------------------------------------------------------------------------------
 def aggregation(m: int) -> sp.csr_matrix:
@@ -39,20 +38,6 @@ def lit_laplacians(m: int, kappas=((0.3, 0.3), (0.2, 0.5), (0.5, 0.2))) -> tuple
     b = np.zeros((m**3, 3))
     b[: m * m] = np.random.default_rng(3).uniform(0.5, 1.0, (m * m, 3))   # the z = 0 face lit
     return mats, b
-
-
-def spsolve3(mats: list[sp.csr_matrix], b: np.ndarray) -> np.ndarray:
-    return np.stack([spla.spsolve(M.tocsc(), b[:, c]) for c, M in enumerate(mats)], axis=1)
-
-
-def rel(x: np.ndarray, ref: np.ndarray) -> float:
-    return float(np.linalg.norm(x - ref) / np.linalg.norm(ref))
-
-
-@pytest.fixture(scope="module")
-def fem_system():
-    """Sphere grid subdivisions 3, n = 3 (1376 unknowns)."""
-    return p1_system(3, 3)
 
 
 # ---- the numpy reference --------------------------------------------------------------------
