@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from glsldiff import gl
 from glsldiff.mesh import Mesh, closest_points
+from glsldiff.mesh.closest import closest_on_triangles
 from glsldiff.physics.lights import DirectionalLight, DirectLight, SpotLight
 
 MAX_SHADER_LIGHTS = 4  # lights with specular highlights in pass 3 (environment light: diffuse only)
@@ -49,16 +50,10 @@ def surface_interpolation(vertices: NDArray, nodes: NDArray, triangles: NDArray)
     Unlike nearest-node weights this follows the surface: a vertex takes its colour from the
     three nodes of the surface triangle under it, never from nodes across a thin gap."""
     surf = Mesh(np.asarray(nodes, dtype=np.float64), np.asarray(triangles, dtype=np.int64), name="surface nodes")
-    cp, _, tri, _ = closest_points(surf, vertices)
+    p = np.asarray(vertices, dtype=np.float64)
+    _, _, tri, _ = closest_points(surf, p)
     t = surf.faces[tri]
-    a, b, c = (surf.vertices[t[:, k]] for k in range(3))
-    v0, v1, v2 = b - a, c - a, cp - a
-    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
-    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
-    den = np.maximum(d00 * d11 - d01 * d01, 1e-300)
-    wb, wc = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
-    w = np.clip(np.stack([1.0 - wb - wc, wb, wc], 1), 0.0, None)
-    w /= w.sum(axis=1, keepdims=True)
+    w = closest_on_triangles(p, *(surf.vertices[t[:, k]] for k in range(3)))   # barycentrics, >= 0, sum 1
     rows = np.repeat(np.arange(len(vertices)), 3)
     return sp.csr_matrix((w.ravel(), (rows, t.ravel())), shape=(len(vertices), len(nodes)))
 
