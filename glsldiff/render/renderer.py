@@ -191,7 +191,9 @@ class Renderer:
         key = cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", scene.polygrid.discretisation, pg.positions,
                            pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q,
                            scene.material.eta, opts.scheme, opts.precision, opts.tol)
-        if fem and self._solver is None and (verified := self._cached_fem_solution(scene, key)) is not None:
+        warm_from_disk = opts.scheme != "adaptive" and (x0 is None or self._solver is None)   # (adaptive: below)
+        stored = cache.load("pass2", key, np.ndarray) if warm_from_disk or (fem and self._solver is None) else None
+        if fem and self._solver is None and (verified := self._cached_fem_solution(scene, stored)) is not None:
             phi, rep = verified    # the cached answer meets tol: no GPU hierarchy needed for this frame
             self._from_cache = True
             self._finish_pass2(pg, phi, rep, fem)
@@ -205,7 +207,7 @@ class Renderer:
             self._solver.set_q(self._q)
         self._from_cache = False
         if x0 is None and opts.scheme != "adaptive":   # adaptive needs its coarse-to-fine start
-            x0 = cache.load("pass2", key, np.ndarray)
+            x0 = stored
             self._from_cache = x0 is not None
         budget = {"maxiter": FEM_MAXITER} if fem else {}
         phi, rep = self._solver.solve(tol=opts.tol, x0=x0, **budget)
@@ -227,10 +229,9 @@ class Renderer:
             self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
         self._solve_report = rep
 
-    def _cached_fem_solution(self, scene: Scene, key: str) -> tuple[NDArray, SolveReport] | None:
-        """The cached pass-2 answer of this tetrahedral system with its report, if there is one
-        and its residual (checked here on the CPU) meets ``tol``; else None."""
-        x = cache.load("pass2", key, np.ndarray)
+    def _cached_fem_solution(self, scene: Scene, x: NDArray | None) -> tuple[NDArray, SolveReport] | None:
+        """The cached pass-2 answer ``x`` of this tetrahedral system with its report, if there is
+        one and its residual (checked here on the CPU) meets ``tol``; else None."""
         if x is None:
             return None
         t0 = time.perf_counter()
@@ -252,9 +253,9 @@ class Renderer:
     def _fem_problem(self, scene: Scene) -> TetProblem:
         return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta)
 
-    def _fem_rhs(self, scene: Scene) -> NDArray[np.float64]:
+    def _fem_rhs(self, scene: Scene, problem: TetProblem | None = None) -> NDArray[np.float64]:
         """``(n_active, 3)`` right-hand side of the P1 system for the current source."""
-        return tet_rhs(self._fem_problem(scene), self._geo["tetgeo"])
+        return tet_rhs(self._fem_problem(scene) if problem is None else problem, self._geo["tetgeo"])
 
     def _fem_solver(self, scene: Scene) -> GlslSparseMultigrid:
         if scene.options.precision != "fp32":
@@ -267,10 +268,12 @@ class Renderer:
         """The P1 system of the current material, assembled once per material (a cached answer's
         residual check and the GPU solver of a later frame share it); its ``b`` is replaced by
         the current source's right-hand side."""
-        if self._fem_system is None:
-            self._fem_system = assemble_tet(self._fem_problem(scene), self._geo["tetgeo"])
+        problem = self._fem_problem(scene)
+        if self._fem_system is None:     # assembled with the current source's right-hand side
+            self._fem_system = assemble_tet(problem, self._geo["tetgeo"])
             self._fem_active = self._fem_system.active
-        self._fem_system.b = self._fem_rhs(scene).T.reshape(-1)
+        else:
+            self._fem_system.b = self._fem_rhs(scene, problem).T.reshape(-1)
         return self._fem_system
 
     @staticmethod
