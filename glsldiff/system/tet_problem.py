@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.checks import choice
 from glsldiff.core.errors import InputError
 from glsldiff.physics.exitance import exitant_bracket
 from glsldiff.physics.material import validate_coefficients
@@ -60,8 +61,7 @@ class TetProblem:
     boundary_mass: str = "consistent"
 
     def __post_init__(self) -> None:
-        if self.boundary_mass not in BOUNDARY_MASS:
-            raise InputError(f"boundary_mass={self.boundary_mass!r}: give one of {', '.join(BOUNDARY_MASS)}")
+        choice(self.boundary_mass, "boundary_mass", BOUNDARY_MASS)
         for attr in ("positions", "tets", "surface", "surface_nodes", "active"):
             if not hasattr(self.grid, attr):
                 raise InputError(f"grid must be a tetrahedral grid (positions, tets, surface, surface_nodes, "
