@@ -53,7 +53,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
 from glsldiff.grids.pillow import PillowComplex, signed_volumes
 from glsldiff.grids.polycube import Polycube, polycube_from_mesh
-from glsldiff.grids.polygrid import node_budget_problem
+from glsldiff.grids.polygrid import check_node_budget
 from glsldiff.mesh import Mesh, closest_points, surface_samples
 from glsldiff.mesh.features import Features, mesh_features
 
@@ -224,8 +224,7 @@ def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[n
     ``sum_t max(0, target_t - 6 V_t)^2`` (Knupp's untangling objective, squared), over the
     movable nodes within ``rings`` tetrahedron rings of an inverted one. Returns how many
     tetrahedra were inverted before."""
-    det, _ = _det_gradients(X, tets)
-    bad = det <= 0
+    bad = signed_volumes(X, tets) <= 0
     if not bad.any():
         return 0
     target = fraction * np.maximum(reference_det, np.median(np.abs(reference_det)) * 0.25)
@@ -251,6 +250,16 @@ def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[n
     return int(bad.sum())
 
 
+def _project(mesh: Mesh, moved: NDArray[np.float64], features: Features, on_crease: NDArray[np.bool_]
+             ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Surface nodes moved off the mesh, projected back: the closest mesh points (and their
+    normals), crease nodes onto the closest crease."""
+    xs, _, _, nrm = closest_points(mesh, moved)
+    if on_crease.any():
+        xs[on_crease] = features.closest_on_creases(moved[on_crease])[0]
+    return xs, nrm
+
+
 def _spread(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], smoother: sp.csr_matrix,
             features: Features, on_crease: NDArray[np.bool_], h: float, rounds: int, step: float = 0.7,
             smooth: float = 0.3) -> NDArray[np.float64]:
@@ -268,10 +277,8 @@ def _spread(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], smoot
         moved = xs + step * (target - xs)
         moved += smooth * (smoother @ moved - moved)
         moved[fixed] = xs[fixed]
-        xs = closest_points(mesh, moved)[0]
+        xs = _project(mesh, moved, features, on_crease)[0]
         xs[fixed] = moved[fixed]
-        if on_crease.any():
-            xs[on_crease] = features.closest_on_creases(moved[on_crease])[0]
     return xs
 
 
@@ -297,9 +304,7 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     for _ in range(relax_iterations):
         moved = xs + relax_step * (M @ xs - xs)
         moved[on_corner] = xs[on_corner]
-        xs, _, _, nrm = closest_points(mesh, moved)
-        if on_crease.any():
-            xs[on_crease] = features.closest_on_creases(moved[on_crease])[0]
+        xs, nrm = _project(mesh, moved, features, on_crease)
     xs = _spread(mesh, xs, on_corner, M, features, on_crease, cx.lattice.h, cover_rounds)
     nrm = closest_points(mesh, xs)[3]
     X[N:] = xs
@@ -342,12 +347,12 @@ def build_fem_grid(mesh: Mesh, n: int = 4, cube_size: float | None = None, n_cub
     """Polycube, pillowed lattice and mapping for a closed mesh (mm)."""
     if not isinstance(n, (int, np.integer)) or n < 2:
         raise InputError(f"n={n!r} nodes per cube edge must be an integer >= 2")
-    if n_cubes is not None and (problem := node_budget_problem(n_cubes, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE)):
-        raise InputError(f"tetrahedral grid: {problem}")
+    budget = {"what": "tetrahedral grid", "limit": FEM_MAX_NODES, "bytes_per_node": FEM_BYTES_PER_NODE}
+    if n_cubes is not None:
+        check_node_budget(n_cubes, n, **budget)   # the target count: before the polycube search
     if polycube is None:
         polycube = polycube_from_mesh(mesh, cube_size=cube_size, n_cubes=n_cubes, threshold=threshold)
-    if problem := node_budget_problem(polycube.count, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE):
-        raise InputError(f"tetrahedral grid: {problem}")
+    check_node_budget(polycube.count, n, **budget)
     lattice = Lattice(polycube.cubes, int(n), polycube.size, np.asarray(polycube.origin, dtype=np.float64))
     cx = PillowComplex.build(lattice)
     X, nrm, q = map_pillow(cx, mesh, **(mapping or {}))

@@ -265,10 +265,12 @@ def node_budget_problem(cubes: int, n: int, limit: int = MAX_NODES, bytes_per_no
             f"{max(nodes * bytes_per_node / 2**30, 1):.0f} GiB); the limit is {limit:.0e}: {fix}")
 
 
-def _check_node_budget(cubes: int, n: int) -> None:
-    problem = node_budget_problem(cubes, n)
+def check_node_budget(cubes: int, n: int, what: str = "polygrid", limit: int = MAX_NODES,
+                      bytes_per_node: int = 150) -> None:
+    """Raise :class:`InputError` (``"<what>: ..."``) if :func:`node_budget_problem` finds one."""
+    problem = node_budget_problem(cubes, n, limit, bytes_per_node)
     if problem:
-        raise InputError(f"polygrid: {problem}")
+        raise InputError(f"{what}: {problem}")
 
 
 def build_polygrid(mesh: Mesh, n: int = 16, cube_size: float | None = None, n_cubes: int | None = None,
@@ -295,10 +297,10 @@ def build_polygrid(mesh: Mesh, n: int = 16, cube_size: float | None = None, n_cu
     seconds: dict[str, float] = {}
     t0 = time.perf_counter()
     if n_cubes is not None and polycube is None and cube_size is None:
-        _check_node_budget(n_cubes, n)  # the target count: before the polycube search
+        check_node_budget(n_cubes, n)  # the target count: before the polycube search
     if polycube is None:
         polycube = polycube_from_mesh(mesh, cube_size=cube_size, n_cubes=n_cubes, threshold=threshold)
-    _check_node_budget(len(polycube.cubes), n)
+    check_node_budget(len(polycube.cubes), n)
     seconds["polycube"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     lattice = Lattice.build(polycube.cubes, n, polycube.size, polycube.origin)
