@@ -161,6 +161,16 @@ class PillowComplex:
                                np.stack([c00, c11, c01, k[c00], k[c11], k[c01]], 1)])
 
     @cached_property
+    def _prism_up(self) -> NDArray[np.float64]:
+        """``(M, 3)`` each pillow prism's extrusion in the reference geometry: one step ``h``
+        along its outer face's outward normal (the two prisms of a face share it)."""
+        axis = np.concatenate([self.outer_axes, self.outer_axes])
+        sign = np.concatenate([self.outer_signs, self.outer_signs])
+        up = np.zeros((len(axis), 3))
+        up[np.arange(len(axis)), axis] = sign * self.lattice.h
+        return up
+
+    @cached_property
     def tets(self) -> NDArray[np.int64]:
         """``(T, 4)`` tetrahedra, right-handed: the cells' in the lattice geometry, each
         pillow's in its own right prism (the outer face extruded one step along its normal),
@@ -170,11 +180,7 @@ class PillowComplex:
         P = self._pillow_prisms
         local = prism_tets(P)                                        # (M, 3, 4) columns
         ref = lat.lattice_positions
-        axis = np.concatenate([self.outer_axes, self.outer_axes])
-        sign = np.concatenate([self.outer_signs, self.outer_signs])
-        up = np.zeros((len(P), 3))
-        up[np.arange(len(P)), axis] = sign * lat.h
-        geo = np.concatenate([ref[P[:, :3]], ref[P[:, :3]] + up[:, None]], axis=1)   # (M, 6, 3)
+        geo = np.concatenate([ref[P[:, :3]], ref[P[:, :3]] + self._prism_up[:, None]], axis=1)   # (M, 6, 3)
         m = np.repeat(np.arange(len(P)), 3)
         pillows = np.take_along_axis(P, local.reshape(len(P), -1), axis=1).reshape(-1, 4)
         pv = _signed_volumes_of(geo[m[:, None], local.reshape(-1, 4)])
@@ -196,14 +202,11 @@ class PillowComplex:
         k = self.copy_of
         tri = np.concatenate([np.stack([k[c00], k[c10], k[c11]], 1), np.stack([k[c00], k[c11], k[c01]], 1)])
         # the same extruded-prism geometry as tets: q_i = p_i + h * outward normal
-        lat = self.lattice
-        ref = lat.lattice_positions
-        axis = np.concatenate([self.outer_axes, self.outer_axes])
-        sign = np.concatenate([self.outer_signs, self.outer_signs])
+        ref = self.lattice.lattice_positions
         base = np.concatenate([np.stack([c00, c10, c11], 1), np.stack([c00, c11, c01], 1)])
         P = ref[base]
         n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
-        flip = n[np.arange(len(tri)), axis] * sign < 0
+        flip = np.einsum("ij,ij->i", n, self._prism_up) < 0
         tri[flip] = tri[flip][:, [0, 2, 1]]
         return tri
 
