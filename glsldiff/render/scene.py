@@ -97,12 +97,6 @@ from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_image, read_npz
 from glsldiff.grids.fem_grid import FEM_BYTES_PER_NODE, FEM_MAX_NODES
 from glsldiff.grids.polygrid import node_budget_problem
-
-#: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem).
-DISCRETISATIONS = ("conservative", "paper", "fem")
-#: The fem discretisation's default node budget: [polygrid].cubes defaults to this / n^3 (many
-#: small cubes reach thin parts; the lattice's default, 253 cubes of n = 8, is about as many nodes).
-FEM_NODES = 120_000
 from glsldiff.mesh import SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.physics.exitance import EXITANT
@@ -110,6 +104,20 @@ from glsldiff.physics.lights import (KINDS, DirectionalLight, EnvironmentLight, 
                                      SpotLight)
 from glsldiff.physics.material import preset as lookup_preset
 from glsldiff.physics.procedural import POINT_KINDS
+
+#: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem).
+DISCRETISATIONS = ("conservative", "paper", "fem")
+#: The fem discretisation's default node budget: [polygrid].cubes defaults to this / n^3 (many
+#: small cubes reach thin parts; the lattice's default, 253 cubes of n = 8, is about as many nodes).
+FEM_NODES = 120_000
+#: The fem discretisation's default nodes per cube edge (the lattice's: 8, with 253 cubes).
+FEM_N = 2
+
+
+def default_cubes(discretisation: str, n: int) -> int:
+    """[polygrid].cubes when the scene gives none: :data:`FEM_NODES` / n^3 for fem, 253 for the lattice."""
+    return max(1, round(FEM_NODES / n ** 3)) if discretisation == "fem" else 253
+
 
 PROCEDURAL = ("veins",) + POINT_KINDS  # veins: a marble lattice; the others: weights at the nodes
 LIGHT_TYPES = tuple(KINDS)
@@ -127,8 +135,8 @@ class MeshSpec:
 
 @dataclass(frozen=True)
 class PolygridSpec:
-    n: int = 2
-    cubes: int = 15_000          # FEM_NODES / n^3
+    n: int = FEM_N
+    cubes: int = default_cubes("fem", FEM_N)
     levels: int = 1
     discretisation: str = "fem"
 
@@ -428,7 +436,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
 
     g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
     disc = g.string("discretisation", "fem", DISCRETISATIONS)
-    n = g.integer("n", 8 if disc != "fem" else 2, 2)
+    n = g.integer("n", 8 if disc != "fem" else FEM_N, 2)
     levels = g.integer("levels", 3 if disc != "fem" else 1, 1)
     if disc == "fem" and levels != 1:
         g.fail("levels", "the fem discretisation (the default) solves on one level with its own algebraic "
@@ -436,8 +444,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                          "lattice hierarchy")
     if n % 2 and disc != "fem":
         g.fail("n", f"must be even (the hierarchy halves it), got {n}")
-    default_cubes = max(1, round(FEM_NODES / n ** 3)) if disc == "fem" else 253
-    poly = PolygridSpec(n, g.integer("cubes", default_cubes, 1), levels, disc)
+    poly = PolygridSpec(n, g.integer("cubes", default_cubes(disc, n), 1), levels, disc)
     problem = (node_budget_problem(poly.cubes, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE) if disc == "fem"
                else node_budget_problem(poly.cubes, n))
     if problem:
