@@ -28,6 +28,7 @@ from glsldiff.core.io import check_output_folder, keep_created_folders, remove_c
 from glsldiff.figures import polygrid_figure
 from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import load_mesh
+from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
 from glsldiff.render.scene import default_scene, example_names, example_scene, load_scene
@@ -61,8 +62,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.scene and args.example:
         raise InputError("give a scene file or --example NAME, not both")
     scene = load_scene(args.scene) if args.scene else example_scene(args.example) if args.example else default_scene()
-    if args.frames < 1:
-        raise InputError(f"--frames={args.frames} must be >= 1")
     with Renderer(allow_unconverged=args.allow_unconverged, status=_status) as r:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}")
@@ -245,7 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--n", type=A.integer(2, 256), default=16, help="nodes per cube edge (paper: 16 for the bunny)")
     p.add_argument("--cubes", type=A.integer(1), default=253, help="target number of cubes (paper's bunny: 253)")
     p.add_argument("--cube-size", type=A.positive, default=None, help="cube edge in mm (overrides --cubes)")
-    p.add_argument("--size-mm", type=A.number(0.1, 1e5), default=100.0, help="scale the mesh to this longest extent, mm (default %(default)s)")
+    p.add_argument("--size-mm", type=A.number(MIN_SIZE_MM, MAX_SIZE_MM), default=100.0, help="scale the mesh to this longest extent, mm (default %(default)s)")
     p.add_argument("--threshold", type=A.number(0.0, 1.0, lo_open=True), default=0.5, help="inside-volume fraction a cube needs")
     p.add_argument("--component", choices=("error", "largest"), default="error",
                    help="meshes with several components: refuse, or keep the largest")

@@ -211,6 +211,9 @@ def _check_file_numbers(path: Path) -> None:
     head = data[:4096]
     if (head[:3] == b"ply" and b"format ascii" not in head) or (head[:3] != b"ply" and b"\0" in head):
         return                                   # binary: nothing to scan as text
+    lower = data.lower()
+    if b"nan" not in lower and b"inf" not in lower:
+        return                                   # the usual case: no line can match (7 ms, not 89 ms)
     for number, line in enumerate(data.splitlines(), 1):
         if _NON_FINITE.search(line) and not _COMMENT.match(line):
             raise InputError(f"mesh file {str(path)!r} line {number}: a NaN or infinite number "
