@@ -24,7 +24,7 @@ from glsldiff.bench.sphere import sphere_study
 from glsldiff.bench.sphere_lights import DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study
 from glsldiff.commands.inverse import add_parsers
 from glsldiff.core import io
-from glsldiff.core.io import check_output_folder, keep_created_folders, remove_created_folders
+from glsldiff.core.io import check_output_folder, created_folders_removed_on_failure
 from glsldiff.figures import polygrid_figure
 from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import load_mesh
@@ -326,15 +326,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         if getattr(args, "gl", None):
             os.environ["GLSLDIFF_GL"] = args.gl
-        code = args.func(args)
-        keep_created_folders()
-        return code
+        with created_folders_removed_on_failure():
+            return args.func(args)
     except GlsldiffError as exc:
-        remove_created_folders()
         print(f"glsldiff: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        remove_created_folders()
         print("glsldiff: interrupted; finished output files are kept, none is half-written", file=sys.stderr)
         return 130
 

@@ -241,14 +241,14 @@ def check_output(path: str | os.PathLike, suffixes: Sequence[str] = (), note: st
     return p
 
 
-#: Folders :func:`check_output_folder` created, deepest last (see :func:`remove_created_folders`).
+#: Folders :func:`check_output_folder` created, deepest last (see :func:`created_folders_removed_on_failure`).
 _CREATED: list[Path] = []
 
 
 def check_output_folder(folder: str | os.PathLike) -> Path:
     """Create ``folder`` if needed and check that files can be created in it, before any work.
-    A command that then fails calls :func:`remove_created_folders`, so that no empty folder
-    is left behind."""
+    A command run inside :func:`created_folders_removed_on_failure` that then fails leaves no
+    empty folder behind."""
     f = Path(folder)
     if f.exists() and not f.is_dir():
         raise InputError(f"output folder {str(f)!r} is a file; give a folder name")
@@ -262,19 +262,23 @@ def check_output_folder(folder: str | os.PathLike) -> Path:
     return f
 
 
-def keep_created_folders() -> None:
-    """Forget the folders created so far (the command succeeded: they are its output)."""
+@contextmanager
+def created_folders_removed_on_failure() -> Iterator[None]:
+    """Around one command: the folders :func:`check_output_folder` creates inside it are removed
+    again, if still empty, when the command raises (failed or interrupted: a folder holding
+    any file is kept); they are forgotten when it ends either way."""
     _CREATED.clear()
-
-
-def remove_created_folders() -> None:
-    """Remove the folders :func:`check_output_folder` created that are still empty (after a
-    failed or interrupted command; a folder holding any file is kept)."""
-    while _CREATED:
-        try:
-            _CREATED.pop().rmdir()
-        except OSError:   # not empty (finished outputs are kept) or already gone
-            pass
+    try:
+        yield
+    except BaseException:
+        while _CREATED:
+            try:
+                _CREATED.pop().rmdir()
+            except OSError:   # not empty (finished outputs are kept) or already gone
+                pass
+        raise
+    finally:
+        _CREATED.clear()
 
 
 def read_npz(path: str | os.PathLike, what: str, required: Sequence[str] = ()) -> dict[str, NDArray]:
