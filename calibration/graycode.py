@@ -83,10 +83,11 @@ def write_patterns(folder: str | os.PathLike, size: tuple[int, int], step: int =
     """Write the sequence as ``folder/pattern_00.png`` ... (created if needed); returns the paths.
     Each file is written atomically."""
 
+    seq = patterns(size, step)   # a bad size or step is refused before the folder is created
     out = Path(folder)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for i, img in enumerate(patterns(size, step)):
+    for i, img in enumerate(seq):
         path = out / f"pattern_{i:02d}.png"
         with atomic_path(path) as tmp:
             if not cv2.imwrite(str(tmp), img):

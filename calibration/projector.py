@@ -274,6 +274,7 @@ def calibrate_folder(folder: str | Path, board: BoardSpec, projector_size: tuple
     """Calibrate from ``folder/capture_*``; a pose that fails raises unless ``skip_bad``
     (then it is listed in ``rejected``). Writes ``output`` JSON only after success."""
     settings = settings or DecodeSettings()
+    code_size(projector_size, settings.step)   # a bad step would otherwise fail (or, skip_bad, reject) every pose
     poses, rejected = [], []
     for sub in capture_folders(folder):
         try:
@@ -325,7 +326,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _patterns(args: argparse.Namespace) -> int:
-    code_size(args.projector, args.step)  # refuse a bad step before writing anything
     paths = write_patterns(args.output, args.projector, args.step)
     print(f"wrote {len(paths)} patterns ({paths[0].name} .. {paths[-1].name}) to {args.output}")
     return 0
@@ -334,7 +334,6 @@ def _patterns(args: argparse.Namespace) -> int:
 def _calibrate(args: argparse.Namespace) -> int:
     if args.window < 5:
         raise InputError(f"--window {args.window}: must be >= 5 px")
-    code_size(args.projector, args.step)
     settings = DecodeSettings(args.window, args.shadow_threshold, args.bit_threshold, step=args.step)
     camera = load_intrinsics(args.camera) if args.camera else None
     rig = calibrate_folder(args.folder, board_from_args(args), args.projector, settings, flags_from_args(args),
