@@ -404,17 +404,17 @@ def low_cutoff(bracket: Bracket, lo: int | Sequence[int] | None = None,
             low = np.broadcast_to(np.asarray(lo, dtype=np.int64), (3,)).copy()
         except (ValueError, TypeError):
             raise InputError(f"lo={lo!r}: give one pixel value or three (R, G, B)") from None
-        if not (np.all(low > 0) and np.all(low < hi) and 0 < hi < 255):
-            raise InputError(f"lo={lo}, hi={hi}: need 0 < lo < hi < 255")
-        return low
-    if bracket.black is None:
-        return np.full(3, LO, dtype=np.int64)
-    low = noise_floor(bracket.black)
-    if not 0 < hi < 255:
-        raise InputError(f"lo={low.tolist()}, hi={hi}: need 0 < lo < hi < 255")
+    else:
+        low = noise_floor(bracket.black) if bracket.black is not None else np.full(3, LO, dtype=np.int64)
+    given = lo if lo is not None else low.tolist()
+    if not (0 < hi < 255 and np.all(low > 0)):
+        raise InputError(f"lo={given}, hi={hi}: need 0 < lo < hi < 255")
     if np.any(low >= hi):
-        raise InputError(f"{bracket.black_file}: noise floor R G B = {' '.join(map(str, low))} reaches --high {hi}: "
-                         f"not a black frame (cap the lens, same settings as the longest exposure) or pass --low N")
+        if lo is None and bracket.black is not None:
+            raise InputError(f"{bracket.black_file}: noise floor R G B = {' '.join(map(str, low))} reaches --high "
+                             f"{hi}: not a black frame (cap the lens, same settings as the longest exposure) or "
+                             "pass --low N")
+        raise InputError(f"lo={given}, hi={hi}: need 0 < lo < hi < 255")
     return low
 
 
