@@ -18,7 +18,7 @@ import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence, cast
 
 import cv2
 import numpy as np
@@ -35,11 +35,13 @@ CAST = (1.0, 0.9, 0.7)  # projector white x camera channel sensitivity, R G B
 CHART_CORNERS = ((150.0, 128.0), (500.0, 113.0), (508.0, 356.0), (139.0, 341.0))  # patch area, px
 
 
-def camera(size: tuple[int, int], gain: float, vignetting: float = 0.1, gamma: float = 2.2) -> SimCamera:
-    """A simulated 8-bit camera of ``size = (cols, rows)`` (intrinsics irrelevant here)."""
+def camera(size: tuple[int, int], gain: float, vignetting: float = 0.1, gamma: float = 2.2,
+           cls: type[SimCamera] = SimCamera, **extra: Any) -> SimCamera:
+    """A simulated 8-bit camera of ``size = (cols, rows)`` (intrinsics irrelevant here), of
+    class ``cls`` with its further fields ``extra``."""
     w, h = size
     K = np.array([[w, 0.0, (w - 1) / 2], [0.0, w, (h - 1) / 2], [0.0, 0.0, 1.0]])
-    return SimCamera(K, (w, h), gain=gain, gamma=gamma, vignetting=vignetting)
+    return cls(K, (w, h), gain=gain, gamma=gamma, vignetting=vignetting, **extra)
 
 
 @dataclass
@@ -67,10 +69,8 @@ def noisy_camera(size: tuple[int, int], gain: float, dark: Sequence[float] = NOI
                  read_noise: float = NOISY_READ_NOISE, vignetting: float = 0.1) -> DarkOffsetCamera:
     """A simulated 8-bit gamma-2.2 camera like :func:`camera` with a dark offset ``dark``
     (electrons, R G B) and ``read_noise`` electrons."""
-    w, h = size
-    K = np.array([[w, 0.0, (w - 1) / 2], [0.0, w, (h - 1) / 2], [0.0, 0.0, 1.0]])
-    return DarkOffsetCamera(K, (w, h), gain=gain, vignetting=vignetting, read_noise=read_noise,
-                            dark=tuple(float(d) for d in dark))
+    return cast(DarkOffsetCamera, camera(size, gain, vignetting, cls=DarkOffsetCamera, read_noise=read_noise,
+                                         dark=tuple(float(d) for d in dark)))
 
 
 def black_frame(cam: SimCamera, seconds: float = EXPOSURES[-1], seed: int = 0) -> NDArray[np.uint8]:
