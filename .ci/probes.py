@@ -89,17 +89,21 @@ def npz_bad(d: Path, kind: str) -> str:
     return str(p)
 
 
+def synth(d: Path, nx: str, ny: str, nz: str, n: str, *extra: str) -> str:
+    """Synthetic measurements ``d/m.npz`` (``glsldiff synth``) for a probe that needs good ones."""
+    subprocess.run([GL, "synth", str(d / "m.npz"), "--size", nx, ny, nz, "--n", n, *extra], env=ENV, capture_output=True)
+    return str(d / "m.npz")
+
+
 PROBES = [
     # bad npz of each kind, each reader
     *[(f"scene volume npz: {k}", (lambda k: lambda d: ["render", scene(d, extra=f'volume = "{npz_bad(d, k)}"'), "-o", "r.exr"])(k))
       for k in ("empty", "truncated", "text", "pickle", "missing-array")],
     *[(f"fit measurements npz: {k}", (lambda k: lambda d: ["fit", npz_bad(d, k), "-o", "m.npz"])(k)) for k in ("empty", "text")],
-    ("fit --truth npz: truncated", lambda d: ["synth", "m.npz", "--size", "8", "8", "4", "--n", "2"] and
-     (subprocess.run([GL, "synth", str(d / "m.npz"), "--size", "8", "8", "4", "--n", "2"], env=ENV, capture_output=True),
-      ["fit", str(d / "m.npz"), "--truth", npz_bad(d, "truncated"), "-o", str(d / "f.npz")])[1]),
-    ("reflectance material npz: text", lambda d: (subprocess.run(
-        [GL, "synth", str(d / "m.npz"), "--size", "8", "8", "4", "--n", "2", "--setup", "front"], env=ENV, capture_output=True),
-        ["reflectance", str(d / "m.npz"), npz_bad(d, "text")])[1]),
+    ("fit --truth npz: truncated", lambda d: ["fit", synth(d, "8", "8", "4", "2"), "--truth", npz_bad(d, "truncated"),
+                                              "-o", str(d / "f.npz")]),
+    ("reflectance material npz: text", lambda d: ["reflectance", synth(d, "8", "8", "4", "2", "--setup", "front"),
+                                                  npz_bad(d, "text")]),
     # unwritable outputs
     ("polygrid --out names a file", lambda d: (d.joinpath("f").write_text("x"), ["polygrid", "cow", "--n", "4", "--out", "f"])[1]),
     ("polygrid --out unwritable", lambda d: ["polygrid", "cow", "--n", "4", "--out", "/proc/pg"]),
@@ -128,9 +132,7 @@ PROBES = [
 
 INTERRUPTS = [
     ("Ctrl-C during render", lambda d: ["render", "-o", "r.exr"], 8.0),
-    ("Ctrl-C during fit", lambda d: (subprocess.run([GL, "synth", str(d / "m.npz"), "--size", "12", "12", "6", "--n", "3"],
-                                                    env=ENV, capture_output=True),
-                                     ["fit", str(d / "m.npz"), "-o", "f.npz", "--no-png"])[1], 20.0),
+    ("Ctrl-C during fit", lambda d: ["fit", synth(d, "12", "12", "6", "3"), "-o", "f.npz", "--no-png"], 20.0),
 ]
 
 
