@@ -82,6 +82,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.oracle.special import bessel_ratio_t, gauss_legendre, log_bessel_g, log_sinhc
 from glsldiff.physics.exitance import EXITANT, exitant_bracket as _exitant_bracket
 from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.sh import fibonacci_directions
 
 __all__ = ["SphereSeries", "from_axisymmetric_source", "from_source_function", "sphere_uniform"]
 
@@ -303,7 +304,7 @@ class SphereSeries:
         out = self._copy()
         out.kind, out.l_max, out.sh = "general", L, sh
         out._source = lambda n: np.asarray(q_of_dirs(n), dtype=np.float64)
-        test = _fibonacci(2000)
+        test = fibonacci_directions(2000)
         full = out._general_boundary(test, L)
         half = out._general_boundary(test, L // 2)
         out.truncation_error = float(np.abs(full - half).max() / max(np.abs(full).max(), 1e-300))
@@ -353,23 +354,15 @@ class SphereSeries:
                 Le = int(need[idx].max())
                 out[idx] = self._legendre_interior(x[idx], r[idx], coef[: Le + 1])
             return out
-        width = (L + 1) * (2 * L + 1) if self.kind == "general" else (L + 1)
-        step = max(1, _CHUNK_FLOATS // max(width, 1))
+        if boundary:                                     # "general" from here on
+            return self._general_boundary(n, L)
+        step = max(1, _CHUNK_FLOATS // ((L + 1) * (2 * L + 1)))
         order = np.argsort(r)                            # chunks of similar radius: fewer terms inside
         for a in range(0, N, step):
             idx = order[a:a + step]
             rr = r[idx]
-            Le = L if boundary else self._terms_needed(float(rr.max()), L)
-            if boundary:
-                F = np.broadcast_to(1.0 / self.denominators(Le), (len(idx), Le + 1))
-            else:
-                F = self.radial_factors(rr, Le)
-            if self.kind == "general":
-                out[idx] = self._general_chunk(n[idx], Le, F)
-            else:
-                x = np.clip(n[idx] @ self.axis, -1.0, 1.0)
-                P = npleg.legvander(x, Le)
-                out[idx] = (P * F) @ self.legendre[: Le + 1]
+            Le = self._terms_needed(float(rr.max()), L)
+            out[idx] = self._general_chunk(n[idx], Le, self.radial_factors(rr, Le))
         return out
 
     def _legendre_interior(self, x: NDArray[np.float64], r: NDArray[np.float64],
@@ -522,14 +515,6 @@ def _legendre_coefficients(q_of_cos: QOfCos, L: int, pieces: Sequence[tuple[floa
             p0, p1 = p1, p0
             c[l + 1] += fb @ p1
     return c * (np.arange(L + 1) + 0.5)
-
-
-def _fibonacci(n: int) -> NDArray[np.float64]:
-    i = np.arange(n) + 0.5
-    z = 1.0 - 2.0 * i / n
-    a = math.pi * (3.0 - math.sqrt(5.0)) * i
-    s = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
-    return np.stack([s * np.cos(a), s * np.sin(a), z], axis=1)
 
 
 # ----------------------------------------------------------------------------------------------
