@@ -38,10 +38,9 @@ from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import solve_tet_direct
 from glsldiff.oracle.solvers import solve_reference
-from glsldiff.oracle.sphere_lights import light_source_function, sphere_from_light
+from glsldiff.oracle.sphere_lights import sphere_from_light
 from glsldiff.physics.exitance import exitant_bracket
 from glsldiff.physics.lights import DirectionalLight, SpotLight
-from glsldiff.physics.optics import boundary_constant
 from glsldiff.render.shading import surface_interpolation, vertex_interpolation
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
@@ -50,17 +49,13 @@ KAPPA, MU, ETA = 1.0 / 3.15, 0.05, 1.3
 DISCRETISATIONS = ("fem", "paper", "conservative")
 
 
-def _unit(v: Sequence[float]) -> tuple[float, float, float]:
-    a = np.asarray(v, dtype=np.float64)
-    return tuple(float(x) for x in a / np.linalg.norm(a))  # type: ignore[return-value]
-
-
 def bench_lights(radius: float) -> dict[str, Any]:
     """The study's lights by name (directions point towards the light, as in scenes): onto a
-    polycube face (from -z), an edge, a corner, and a spot above +z aimed at the centre."""
+    polycube face (from -z), an edge, a corner, and a spot above +z aimed at the centre
+    (DirectionalLight normalises the directions)."""
     return {"face": DirectionalLight(direction=(0.0, 0.0, -1.0), irradiance=(1.0, 1.0, 1.0)),
-            "edge": DirectionalLight(direction=_unit((-1, 0, -1)), irradiance=(1.0, 1.0, 1.0)),
-            "corner": DirectionalLight(direction=_unit((1, 1, 1)), irradiance=(1.0, 1.0, 1.0)),
+            "edge": DirectionalLight(direction=(-1.0, 0.0, -1.0), irradiance=(1.0, 1.0, 1.0)),
+            "corner": DirectionalLight(direction=(1.0, 1.0, 1.0), irradiance=(1.0, 1.0, 1.0)),
             "spot": SpotLight(position=(0.0, 0.0, 3.0 * radius), direction=(0.0, 0.0, -1.0),
                               intensity=(900.0, 900.0, 900.0), cone_deg=10.0, falloff_deg=8.0)}
 
@@ -76,33 +71,27 @@ class Case:
     interpolation: Callable[[NDArray[np.float64]], Any]          # points (P, 3) -> (P, S) matrix
 
 
-def fem_case(mesh: Any, n: int, polycube: Any) -> Case:
-    t0 = time.perf_counter()
-    g = build_fem_grid(mesh, n=n, polycube=polycube)
-    build = time.perf_counter() - t0
-    S = g.surface_nodes
+def fem_case(g: Any, build: float) -> Case:
+    """The case of a tetrahedral grid (built in ``build`` seconds)."""
 
     def solve(q: NDArray[np.float64]) -> NDArray[np.float64]:
         p = TetProblem(g, KAPPA, MU, np.repeat(q[:, None], 3, axis=1), eta=ETA)
         phi, _ = solve_tet_direct(p)
         return p.exitant_bracket(phi)[:, 0]
-    return Case(g.positions[S], solve, {"h_mm": g.h, "nodes": int(g.active.sum()), "surface_nodes": len(S),
-                                        "inverted": g.quality.inverted, "build_s": build},
+    return Case(g.boundary_positions, solve, {"h_mm": g.h, "nodes": g.n_active, "surface_nodes": len(g.surface_nodes),
+                                              "inverted": g.quality.inverted, "build_s": build},
                 lambda p: surface_interpolation(p, g.boundary_positions, g.surface_triangles))
 
 
-def polygrid_case(mesh: Any, n: int, polycube: Any, stencil: str) -> Case:
-    t0 = time.perf_counter()
-    pg = build_polygrid(mesh, n=n, polycube=polycube)
-    build = time.perf_counter() - t0
-    C = float(boundary_constant(ETA))
+def polygrid_case(pg: Any, build: float, stencil: str) -> Case:
+    """The case of a polygrid (built in ``build`` seconds) with the ``paper`` or
+    ``conservative`` stencil (both stencils share one polygrid)."""
 
     def solve(q: NDArray[np.float64]) -> NDArray[np.float64]:
         qs = np.repeat(q[:, None], 3, axis=1)
         p = DiffusionProblem(pg, KAPPA, MU, qs, eta=ETA, stencil=stencil)
         phi, _ = solve_reference(p)                      # fluence (already converted from kappa phi)
-        phi_b = np.asarray(phi).reshape(-1, 3)[pg.lattice.boundary]
-        return exitant_bracket(phi_b, qs, ETA, "p1", C)[:, 0]
+        return exitant_bracket(pg.boundary_values(phi), qs, ETA, "p1", p.C)[:, 0]
     return Case(pg.boundary_positions, solve, {"h_mm": pg.lattice.h, "nodes": int(pg.n_active),
                                                "surface_nodes": len(pg.boundary_positions),
                                                "inverted": pg.mapping.inverted if pg.mapping else -1,
@@ -121,28 +110,37 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
     all_lights = bench_lights(radius)
     names = list(lights) if lights else list(all_lights)
     series = {k: sphere_from_light(all_lights[k], radius, KAPPA, MU, ETA) for k in names}
-    sources = {k: light_source_function(all_lights[k], radius, ETA) for k in names}
     polycubes: dict[float, Any] = {}
+    grids: dict[tuple[str, int, float], tuple[Any, float]] = {}   # (fem | lattice, n, cube): grid, build s
+    solved: dict[tuple[str, int, float], tuple[Case, dict[str, tuple[NDArray[np.float64], float]]]] = {}
     finest: dict[str, tuple[int, Case, dict[str, NDArray[np.float64]]]] = {}   # disc -> n, case, B per light
     rows: list[dict[str, object]] = []
     for disc in discretisations:
         runs = ([("n", n, cube_size) for n in (ns if disc == "fem" else polygrid_ns)]
                 + [("cubes", n_fixed if disc == "fem" else polygrid_n_fixed, c) for c in cube_sizes])
         for ser, n, cs in runs:
-            if cs not in polycubes:
-                polycubes[cs] = polycube_from_mesh(mesh, cube_size=cs)
-            if progress:
-                progress(f"sphere-lights: {disc}, n = {n}, cube {cs:g} mm")
-            case = fem_case(mesh, n, polycubes[cs]) if disc == "fem" else polygrid_case(mesh, n, polycubes[cs], disc)
+            if (disc, n, cs) not in solved:   # the grid both series share is built and solved once
+                if cs not in polycubes:
+                    polycubes[cs] = polycube_from_mesh(mesh, cube_size=cs)
+                if progress:
+                    progress(f"sphere-lights: {disc}, n = {n}, cube {cs:g} mm")
+                kind = "fem" if disc == "fem" else "lattice"   # paper and conservative: one polygrid
+                if (kind, n, cs) not in grids:
+                    t0 = time.perf_counter()
+                    grid = (build_fem_grid if kind == "fem" else build_polygrid)(mesh, n=n, polycube=polycubes[cs])
+                    grids[kind, n, cs] = (grid, time.perf_counter() - t0)
+                case = fem_case(*grids[kind, n, cs]) if disc == "fem" else polygrid_case(*grids[kind, n, cs], disc)
+                results = {}
+                for k in names:
+                    t0 = time.perf_counter()
+                    B = case.solve(np.asarray(series[k].source(case.points), dtype=np.float64))
+                    results[k] = (B, time.perf_counter() - t0)
+                solved[disc, n, cs] = (case, results)
+            case, results = solved[disc, n, cs]
             if ser == "n" and disc != "paper":      # the last of series n goes into the error maps
-                finest[disc] = (n, case, {})
-            dirs = case.points / np.linalg.norm(case.points, axis=1, keepdims=True)
+                finest[disc] = (n, case, {k: B for k, (B, _) in results.items()})
             for k in names:
-                t0 = time.perf_counter()
-                B = case.solve(np.asarray(sources[k](dirs), dtype=np.float64))
-                secs = time.perf_counter() - t0
-                if ser == "n" and finest.get(disc, (0, None))[1] is case:
-                    finest[disc][2][k] = B
+                B, secs = results[k]
                 ref = series[k].exitant_bracket(case.points)
                 rows.append({"discretisation": disc, "series": ser, "n": n, "cube_mm": cs, **case.info, "light": k,
                              "rel_rms": float(np.linalg.norm(B - ref) / np.linalg.norm(ref)),
@@ -152,20 +150,23 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
         out.mkdir(parents=True, exist_ok=True)
         io.write_csv(out / "sphere_lights.csv", rows)
         plot(rows, out / "sphere_lights.png")
+        weights: dict[str, Any] = {}
         for k in names:
             error_maps({f"{d}, n = {n}": (case, Bs[k]) for d, (n, case, Bs) in finest.items()},
-                       series[k], radius, out / f"sphere_error_{k}.png")
+                       series[k], radius, out / f"sphere_error_{k}.png", weights=weights)
     return rows
 
 
 def error_maps(cases: dict[str, tuple[Case, NDArray[np.float64]]], series: Any, radius: float, path: Path,
-               height: int = 180) -> dict[str, float]:
+               height: int = 180, weights: dict[str, Any] | None = None) -> dict[str, float]:
     """Lat-long maps (z up) of ``|B - B_series| / max B_series`` over the whole sphere for
     each discretisation (its case and its solved ``B`` at the case's points), the discrete
     ``B`` carried to each pixel's surface point by the
     renderer's own interpolation (barycentric on the surface triangles for fem, nearest-node
     weights for the lattice); one row per case in ``path`` (PNG, 0 .. 5 % colour scale).
-    Returns the RMS of each map."""
+    ``weights``: a dict that keeps each case's interpolation matrix, by name, between calls
+    (the maps of several lights share it). Returns the RMS of each map."""
+    weights = {} if weights is None else weights
     plt = pyplot()
     theta = (np.arange(height) + 0.5) / height * np.pi
     phi = (np.arange(2 * height) + 0.5) / (2 * height) * 2 * np.pi
@@ -176,7 +177,9 @@ def error_maps(cases: dict[str, tuple[Case, NDArray[np.float64]]], series: Any, 
     fig, axes = plt.subplots(len(cases), 1, figsize=(7, 3.3 * len(cases)), squeeze=False)
     rms = {}
     for ax, (name, (case, B)) in zip(axes[:, 0], cases.items()):
-        W = case.interpolation(radius * dirs)
+        if name not in weights:                        # the same for every light's map
+            weights[name] = case.interpolation(radius * dirs)
+        W = weights[name]
         err = (np.abs(W @ B - ref) / scale).reshape(T.shape)
         rms[name] = float(np.sqrt((err ** 2).mean()))
         im = ax.imshow(err, extent=(0, 360, 180, 0), vmin=0.0, vmax=0.05, cmap="magma", aspect="auto")
