@@ -17,7 +17,7 @@ from glsldiff.oracle.sphere_series import QOfCos, QOfDirs, SphereSeries, _frame
 from glsldiff.physics.exitance import EXITANT, source_from_irradiance
 from glsldiff.physics.lights import (DirectionalLight, PointLight, ProjectorLight, SpotLight, check_light,
                                      incidence, to_light)
-from glsldiff.physics.optics import boundary_constant, fresnel_transmittance
+from glsldiff.physics.optics import boundary_constant, transmitted_cosine
 
 __all__ = ["sphere_directional", "sphere_point_light", "sphere_spot", "sphere_from_light", "light_source_function"]
 
@@ -48,9 +48,7 @@ def light_source_function(light: Any, radius: float, eta: float, centre: ArrayLi
         n = np.asarray(n, dtype=np.float64).reshape(-1, 3)
         p = c + R * n
         w = to_light(light, p)
-        cos_i = np.clip((n * w).sum(axis=1), 0.0, 1.0)
-        weight = np.where(cos_i > 0.0, np.asarray(fresnel_transmittance(eta, cos_i)) * cos_i, 0.0)
-        scale, colour = incidence(light, p, weight)
+        scale, colour = incidence(light, p, transmitted_cosine(eta, (n * w).sum(axis=1)))   # as pass 1
         col = colour[..., ch]
         return source_from_irradiance(scale * col, eta, convention)
     return q

@@ -18,7 +18,7 @@ from glsldiff.core.checks import finite_values, require
 from glsldiff.core.errors import InputError
 
 __all__ = [
-    "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "fdr", "fdr_integral",
+    "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "transmitted_cosine", "fdr", "fdr_integral",
     "boundary_constant", "eta_for_boundary_constant", "DipoleConstants",
     "dipole_constants", "dipole_rd", "dipole_total_reflectance",
 ]
@@ -87,6 +87,17 @@ def _fresnel_r(eta: NDArray[np.float64], c: NDArray[np.float64]) -> NDArray[np.f
 def fresnel_transmittance(eta: ArrayLike, cos_i: ArrayLike) -> NDArray[np.float64] | np.float64:
     """Fresnel transmittance F_t = 1 - F_r (dimensionless); arguments as `fresnel_reflectance`."""
     return _out(1.0 - np.asarray(fresnel_reflectance(eta, cos_i)))
+
+
+def transmitted_cosine(eta: float | None, cos: ArrayLike) -> NDArray[np.float64]:
+    """``max(cos, 0) F_t(eta, cos)``: the share of a light's irradiance that crosses the
+    boundary at incidence cosine ``cos`` (0 where ``cos <= 0``); ``max(cos, 0)`` for
+    ``eta=None`` (the incident irradiance, no interface)."""
+    cos = np.asarray(cos, dtype=np.float64)
+    if eta is None:
+        return np.where(cos > 0.0, 1.0, 0.0) * cos.clip(0.0)
+    c = np.clip(cos, 0.0, 1.0)
+    return cos.clip(0.0) * np.where(cos > 0.0, np.asarray(fresnel_transmittance(eta, c)), 0.0)
 
 
 def fdr(eta: ArrayLike) -> NDArray[np.float64] | np.float64:

@@ -51,7 +51,7 @@ from glsldiff.core import checks
 from glsldiff.core.errors import InputError
 from glsldiff.physics.lights import (EnvironmentLight, KINDS, Light, casts_shadows, check_light, incidence,
                                      light_kind, to_light)
-from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.optics import transmitted_cosine
 from glsldiff.physics.sh import fibonacci_directions, sh_evaluate, sh_irradiance
 from glsldiff.render.shadows import DepthRenderer
 
@@ -84,15 +84,6 @@ def _light_list(lights: Any) -> list[Light]:
     except TypeError:
         raise InputError(f"lights must be a sequence of lights, got {type(lights).__name__}") from None
     return [check_light(light, f"lights[{i}]") for i, light in enumerate(out)]
-
-
-def _ft(eta: float | None, cos: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Fresnel transmittance for cosines clipped to [0, 1] (0 where cos <= 0); 1 for
-    ``eta=None`` (the incident irradiance, no interface)."""
-    if eta is None:
-        return np.where(cos > 0.0, 1.0, 0.0)
-    c = np.clip(cos, 0.0, 1.0)
-    return np.where(cos > 0.0, np.asarray(fresnel_transmittance(eta, c)), 0.0)
 
 
 def _context(ctx: moderngl.Context | None) -> moderngl.Context:
@@ -197,7 +188,7 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
             else:
                 w = to_light(light, p)
                 cos = np.einsum("ij,ij->i", n, w)
-                scale, colour = incidence(light, p, cos.clip(0.0) * _ft(eta_v, cos))
+                scale, colour = incidence(light, p, transmitted_cosine(eta_v, cos))
                 facing = scale > 0
                 if needs_map:
                     assert renderer is not None
@@ -244,7 +235,7 @@ def _environment(light: EnvironmentLight, p: NDArray[np.float64], n: NDArray[np.
     q = p - renderer.centre
     for k, w in enumerate(dirs):
         cos = n @ w
-        g = cos.clip(0.0) * _ft(eta, cos)
+        g = transmitted_cosine(eta, cos)
         idx = np.flatnonzero(g > 0)
         if idx.size == 0:
             continue
