@@ -36,8 +36,9 @@ from glsldiff.mesh import sphere_mesh
 
 BACKENDS = ("egl", "osmesa")
 
-# Tests never write into the user's polygrid cache (test_hardening.py tests the cache in a tmp folder).
-os.environ.setdefault("GLSLDIFF_CACHE", "off")
+# Tests never read or write the user's cache, even with $GLSLDIFF_CACHE set (test_hardening.py
+# and test_fem_render.py test the cache in a tmp folder).
+os.environ["GLSLDIFF_CACHE"] = "off"
 
 
 class GLStateError(Exception):

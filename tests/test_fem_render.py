@@ -58,10 +58,9 @@ def test_surface_interpolation_follows_the_surface():
     assert np.diff(W.indptr).max() <= 3
 
 
-def test_render_pass2_equals_the_direct_solve(tmp_path, monkeypatch):
+def test_render_pass2_equals_the_direct_solve(tmp_path):
     """The GLSL pass 2 of a fem scene equals the direct P1 solve at the surface nodes (<= 1e-3
-    relative at tol 1e-5); the image is finite and lit."""
-    monkeypatch.setenv("GLSLDIFF_CACHE", "off")
+    relative at tol 1e-5); the image is finite and lit (the cache is off: conftest.py)."""
     scene = parse_scene({**_scene(), "options": {"tol": 1e-5}})
     with Renderer() as r:
         img, rep = r.render(scene)
@@ -72,8 +71,7 @@ def test_render_pass2_equals_the_direct_solve(tmp_path, monkeypatch):
     assert np.isfinite(img).all() and img.max() > 0
 
 
-def test_fem_command_line(tmp_path, capsys, monkeypatch):
-    monkeypatch.setenv("GLSLDIFF_CACHE", "off")
+def test_fem_command_line(tmp_path, capsys):
     path = tmp_path / "s.toml"
     path.write_text('[mesh]\nsource = "sphere"\nsize_mm = 20\n[polygrid]\nn = 2\ncubes = 64\n'
                     'discretisation = "fem"\n[[lights]]\ntype = "directional"\ndirection = [0, 0, 1]\n'

@@ -172,7 +172,7 @@ def test_surface_mass_rows_sum_to_the_lumped_areas_and_lower_the_sphere_error():
     face 0.61 -> 0.59 %, spot 5.39 -> 4.89 % (relative RMS)."""
     from glsldiff.bench.sphere_lights import ETA, KAPPA, MU, bench_lights
     from glsldiff.oracle.fem import solve_tet_direct
-    from glsldiff.oracle.sphere_lights import light_source_function, sphere_from_light
+    from glsldiff.oracle.sphere_lights import sphere_from_light
     from glsldiff.system.tet_problem import TetProblem
     g = build_fem_grid(sphere_mesh(10.0, subdivisions=5), n=2, cube_size=1.25)
     geo = TetGeometry(g.positions, g.tets, g.surface)
@@ -181,13 +181,11 @@ def test_surface_mass_rows_sum_to_the_lumped_areas_and_lower_the_sphere_error():
     assert abs(M - M.T).max() == 0.0
     K = geo.stiffness(1.0)
     assert (abs(K) + abs(M)).nnz == K.nnz                      # no entry outside the stiffness pattern
-    S = g.surface_nodes
-    pts = g.positions[S]
-    dirs = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    pts = g.boundary_positions
     for name in ("face", "spot"):
-        light = bench_lights(10.0)[name]
-        ref = sphere_from_light(light, 10.0, KAPPA, MU, ETA).exitant_bracket(pts)
-        q = np.repeat(light_source_function(light, 10.0, ETA)(dirs)[:, None], 3, axis=1)
+        series = sphere_from_light(bench_lights(10.0)[name], 10.0, KAPPA, MU, ETA)
+        ref = series.exitant_bracket(pts)
+        q = np.repeat(series.source(pts)[:, None], 3, axis=1)
         err = {}
         for mass in ("lumped", "consistent"):
             p = TetProblem(g, KAPPA, MU, q, eta=ETA, boundary_mass=mass)
