@@ -168,7 +168,7 @@ def sphere_polygrid():
     return build_polygrid(sphere_mesh(10.0, subdivisions=4), n=6, cube_size=5.0)
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def fem_system():
     """The gather-solver tests' P1 system (tests/gather_systems.py): a 10 mm sphere, subdivisions
     3, n = 3 nodes per 5 mm cube edge (1376 unknowns), kappa and mu different per channel."""

@@ -25,6 +25,15 @@ def laplacian7(m: int, kappa: float, mu: float, robin: float, h: float = 0.5) ->
     return (L + sp.diags(mu * h**3 + robin * h**2 * faces)).tocsr()
 
 
+def lit_laplacians(m: int, kappas=((0.3, 0.3), (0.2, 0.5), (0.5, 0.2))) -> tuple[list[sp.csr_matrix], np.ndarray]:
+    """:func:`laplacian7` of ``m^3`` nodes per channel (kappa, mu pairs), Robin 0.25, the
+    z = 0 face lit by a random source: the three matrices and ``b`` ``(m^3, 3)``."""
+    mats = [laplacian7(m, kappa, mu, 0.25) for kappa, mu in kappas]
+    b = np.zeros((m**3, 3))
+    b[: m * m] = np.random.default_rng(3).uniform(0.5, 1.0, (m * m, 3))   # the z = 0 face lit
+    return mats, b
+
+
 def p1_system(subdivisions: int, n: int) -> tuple[list[sp.csr_matrix], np.ndarray]:
     """The P1 system (oracle.fem.assemble_tet) of a 10 mm sphere (5 mm cubes, ``n`` nodes per
     cube edge) on the active nodes, kappa and mu per channel (:data:`KAPPA_MU`), C = 2, a random

@@ -22,7 +22,7 @@ from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.solve.gather import GlslSparse, pack_ell, pack_nodes, sweep_rate
 from glsldiff.system.report import CURRENT
 
-from gather_systems import laplacian7, rel, spsolve3   # tests/gather_systems.py
+from gather_systems import lit_laplacians, rel, spsolve3   # tests/gather_systems.py
 
 
 # ---- systems --------------------------------------------------------------------------------
@@ -136,9 +136,7 @@ def test_converged_laplacian_equals_spsolve(ctx):
     """7-point Laplacian + mass + Robin diagonal (12^3 nodes, K = 6), kappa per channel:
     converged GLSL = sparse LU to 1e-4. lambda_max(D^-1 A) = 1.95 < 2 (plain Jacobi would
     converge; auto damps it to 1.9 / 1.95)."""
-    mats = [laplacian7(12, kappa, mu, 0.25) for kappa, mu in ((0.3, 0.3), (0.2, 0.5), (0.5, 0.2))]
-    b = np.zeros((12**3, 3))
-    b[: 12 * 12] = np.random.default_rng(3).uniform(0.5, 1.0, (144, 3))   # the z = 0 face lit
+    mats, b = lit_laplacians(12)
     with GlslSparse(mats, b, ctx=ctx) as s:
         lam = max(reference_lambda_max(M) for M in mats)
         assert s.slots == 6 and 1.9 < lam < 2.0 and s.lambda_max == pytest.approx(lam, rel=1e-3)

@@ -22,7 +22,7 @@ from glsldiff.solve.gather import GlslSparse, auto_omega
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.report import CURRENT
 
-from gather_systems import laplacian7, p1_system, rel, spsolve3   # tests/gather_systems.py
+from gather_systems import lit_laplacians, p1_system, rel, spsolve3   # tests/gather_systems.py
 
 # ---- systems --------------------------------------------------------------------------------
 def aggregation(m: int) -> sp.csr_matrix:
@@ -31,13 +31,6 @@ def aggregation(m: int) -> sp.csr_matrix:
     c = m // 2
     agg = (idx[0] * c + idx[1]) * c + idx[2]
     return sp.csr_matrix((np.ones(m**3), (np.arange(m**3), agg)), shape=(m**3, c**3))
-
-
-def lit_laplacians(m: int, kappas=((0.3, 0.3), (0.2, 0.5), (0.5, 0.2))) -> tuple[list[sp.csr_matrix], np.ndarray]:
-    mats = [laplacian7(m, kappa, mu, 0.25) for kappa, mu in kappas]
-    b = np.zeros((m**3, 3))
-    b[: m * m] = np.random.default_rng(3).uniform(0.5, 1.0, (m * m, 3))   # the z = 0 face lit
-    return mats, b
 
 
 # ---- the numpy reference --------------------------------------------------------------------
