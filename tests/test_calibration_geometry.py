@@ -22,9 +22,7 @@ from glsldiff.calibration import camera, graycode, projector, views
 from glsldiff.calibration.camera import BoardSpec
 from glsldiff.core.errors import InputError
 
-CAM, PROJ = (640, 512), (512, 384)
-BOARD = BoardSpec(9, 7, 20.0)
-BOARD_ARGS = ["--board", "9x7", "--square", "20"]
+from calibration_rig import BOARD, BOARD_ARGS, CAM, PROJ, check_cli_error, rel_err   # tests/calibration_rig.py
 
 
 # ---- fixtures --------------------------------------------------------------------------------
@@ -44,25 +42,11 @@ def cam_data(tmp_path_factory) -> tuple[Path, views.SyntheticRig]:
     return views.write_camera_dataset(tmp_path_factory.mktemp("cam") / "views", rig), rig
 
 
-def rel_err(a: float, b: float) -> float:
-    return abs(a / b - 1.0)
-
-
 def copy_poses(src: Path, dst: Path, n: int) -> Path:
     """The first ``n`` capture folders of ``src`` copied into ``dst``."""
     for sub in projector.capture_folders(src)[:n]:
         shutil.copytree(sub, dst / sub.name)
     return dst
-
-
-def check_cli_error(capsys, rc: int, *needles: str) -> str:
-    """The command returned 2 and printed one error line containing every ``needle``."""
-    err = capsys.readouterr().err.strip()
-    assert rc == 2
-    assert err.startswith("glsldiff-calibration: error: ") and "\n" not in err, err
-    for n in needles:
-        assert n in err, err
-    return err
 
 
 # ---- Gray code -------------------------------------------------------------------------------

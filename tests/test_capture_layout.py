@@ -12,13 +12,9 @@ import numpy as np
 import pytest
 
 from glsldiff.calibration import camera, graycode, projector, views
-from glsldiff.calibration.camera import BoardSpec
 from glsldiff.core.errors import InputError
 
-CAM, PROJ = (640, 512), (512, 384)
-BOARD = BoardSpec(9, 7, 20.0)
-BOARD_ARGS = ["--board", "9x7", "--square", "20"]
-ERR = "glsldiff-calibration: error: "
+from calibration_rig import BOARD, BOARD_ARGS, CAM, PROJ, check_cli_error, rel_err   # tests/calibration_rig.py
 
 
 @pytest.fixture(scope="module")
@@ -30,16 +26,6 @@ def procam(tmp_path_factory) -> tuple[Path, views.SyntheticRig]:
     shutil.copy(root / "capture_1" / "graycode_36.png", root / "capture_1" / "preview.png")
     graycode.write_patterns(root / "graycode_pattern", PROJ)
     return root, rig
-
-
-def rel_err(a: float, b: float) -> float:
-    return abs(a / b - 1.0)
-
-
-def one_error_line(capsys, rc: int, *needles: str) -> None:
-    err = capsys.readouterr().err.strip()
-    assert rc == 2 and err.startswith(ERR) and "\n" not in err, err
-    assert all(n in err for n in needles), err
 
 
 def camera_config(truth: dict, size: bool = True) -> dict:
@@ -96,7 +82,7 @@ def test_reference_camera_file_without_size_and_bad_ones(procam, tmp_path, capsy
     config.write_text(json.dumps(bad))
     rc = projector.main(["calibrate", str(sub), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
                          "--camera", str(config), "-o", str(tmp_path / "r.json")])
-    one_error_line(capsys, rc, "--camera", "1280x512")
+    check_cli_error(capsys, rc, "--camera", "1280x512")
     config.write_text(json.dumps({"camera": {"P": [1.0, 0.0, 2.0], "distortion": [0, 0, 0, 0, 0]}}))
     with pytest.raises(InputError, match=r"camera_config\.json: not a camera calibration .*camera\.P"):
         camera.load_intrinsics(config)
@@ -136,6 +122,6 @@ def test_camera_from_projector_captures(procam, tmp_path, capsys):
     shutil.copytree(root / "capture_0", odd)
     (odd / "graycode_37.png").unlink()
     capsys.readouterr()
-    one_error_line(capsys, camera.main([str(odd), *BOARD_ARGS, "-o", str(tmp_path / "c3.json")]),
+    check_cli_error(capsys, camera.main([str(odd), *BOARD_ARGS, "-o", str(tmp_path / "c3.json")]),
                    "capture_odd: 37 images", "white frame")
     assert not (tmp_path / "c3.json").exists()
