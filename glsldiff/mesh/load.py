@@ -100,14 +100,7 @@ def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: b
     except Exception as exc:  # pymeshlab.PyMeshLabException and friends
         raise InputError(f"mesh file {str(path)!r} could not be read by pymeshlab ({exc}); "
                          "check the file format (obj, ply, stl, off, ...)") from exc
-    if size_mm is None:   # a file's units are taken as mm: they must make a physical size
-        v = np.asarray(ms.current_mesh().vertex_matrix(), dtype=np.float64)
-        longest = float(np.ptp(v, axis=0).max()) if v.size and np.isfinite(v).all() else None
-        if longest is not None and not MIN_SIZE_MM <= longest <= MAX_SIZE_MM:
-            raise InputError(f"mesh {name!r} is {longest:.3g} mm across in its file's units (taken as mm), "
-                             f"outside {MIN_SIZE_MM:g} .. {MAX_SIZE_MM:g} mm; scale it to a physical size with "
-                             "--size-mm (polygrid) or [mesh].size_mm (scenes)")
-    return _finish(ms, name, size_mm, repair, component)
+    return _finish(ms, name, size_mm, repair, component, file_units=True)
 
 
 def mesh_from_arrays(vertices: ArrayLike, faces: ArrayLike, size_mm: float | None = None,
@@ -278,7 +271,10 @@ def _repair(ms: Any) -> dict[str, int]:
     return {k: n for k, n in rep.items() if n}
 
 
-def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: str) -> Mesh:
+def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: str,
+            file_units: bool = False) -> Mesh:
+    """Validate, repair and scale the meshset's mesh. ``file_units``: a file read without
+    ``size_mm`` keeps its units, taken as mm, which must then make a physical size."""
     label = f"mesh {name!r}" if name else "mesh"
     choice(component, f"{label}: component", COMPONENT_MODES)
     if size_mm is not None:
@@ -288,6 +284,10 @@ def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: 
         raise InputError(f"{label} has no faces ({len(v)} vertices); pass a closed triangle "
                          "surface")
     _check_finite(v, label)
+    if size_mm is None and file_units and not MIN_SIZE_MM <= (longest := float(np.ptp(v, axis=0).max())) <= MAX_SIZE_MM:
+        raise InputError(f"mesh {name!r} is {longest:.3g} mm across in its file's units (taken as mm), "
+                         f"outside {MIN_SIZE_MM:g} .. {MAX_SIZE_MM:g} mm; scale it to a physical size with "
+                         "--size-mm (polygrid) or [mesh].size_mm (scenes)")
     repairs = _repair(ms) if repair else {}
     v, f = _arrays(ms)
     if len(f) == 0:
