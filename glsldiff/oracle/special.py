@@ -15,6 +15,14 @@ from glsldiff.core import checks
 __all__ = ["gauss_legendre", "bessel_ratio_t", "log_bessel_g", "log_sinhc"]
 
 
+def _legendre_and_derivative(n: int, x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``P_n(x)`` and ``P_n'(x)`` by the three-term recurrence (|x| < 1)."""
+    p0, p1 = np.ones_like(x), x.copy()
+    for j in range(1, n):
+        p0, p1 = p1, ((2 * j + 1) * x * p1 - j * p0) / (j + 1)
+    return p1, n * (p0 - x * p1) / (1.0 - x * x)
+
+
 @lru_cache(maxsize=24)
 def _gauss_legendre_cached(n: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     if n <= 64:
@@ -24,18 +32,12 @@ def _gauss_legendre_cached(n: int) -> tuple[NDArray[np.float64], NDArray[np.floa
     k = np.arange(1, n // 2 + 1, dtype=np.float64)
     x = (1.0 - (n - 1.0) / (8.0 * n ** 3)) * np.cos(math.pi * (4.0 * k - 1.0) / (4.0 * n + 2.0))
     for it in range(12):
-        p0, p1 = np.ones_like(x), x.copy()
-        for j in range(1, n):
-            p0, p1 = p1, ((2 * j + 1) * x * p1 - j * p0) / (j + 1)
-        dp = n * (p0 - x * p1) / (1.0 - x * x)
+        p1, dp = _legendre_and_derivative(n, x)
         dx = p1 / dp
         x = x - dx
         if np.abs(dx).max() < 1e-15 and it >= 1:
             break
-    p0, p1 = np.ones_like(x), x.copy()
-    for j in range(1, n):
-        p0, p1 = p1, ((2 * j + 1) * x * p1 - j * p0) / (j + 1)
-    dp = n * (p0 - x * p1) / (1.0 - x * x)
+    _, dp = _legendre_and_derivative(n, x)
     w = 2.0 / ((1.0 - x * x) * dp * dp)
     if n % 2:
         xs = np.concatenate([-x, [0.0], x[::-1]])
