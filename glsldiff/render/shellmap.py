@@ -178,7 +178,10 @@ class _Shell:
 
 def _shell(pg: Any) -> _Shell:
     """The :class:`_Shell` of a :class:`Polygrid` or a :class:`FemGrid`. A fem surface node at a
-    polycube edge or corner takes the one of its outer faces closest to its mesh normal."""
+    polycube edge or corner takes the one of its outer faces closest to its mesh normal (a
+    :class:`_Shell` is returned as it is)."""
+    if isinstance(pg, _Shell):
+        return pg
     if isinstance(pg, Polygrid):
         lat = pg.lattice
         return _Shell(pg.positions, lat.boundary, lat.kind != INACTIVE, lat.outward_slot[lat.boundary],
@@ -200,7 +203,7 @@ def _cover_radius(sh: _Shell, tree: cKDTree) -> float:
     return float(d.max())
 
 
-def shell_coordinates(pg: Polygrid | FemGrid, *, depth_from: DepthFrom = "auto",
+def shell_coordinates(pg: Polygrid | FemGrid | _Shell, *, depth_from: DepthFrom = "auto",
                       max_depth_mm: float = np.inf) -> dict[str, Any]:
     """Depth below the surface and polycube surface coordinates of every node (flat order).
 
@@ -354,7 +357,7 @@ def map_shell(pg: Polygrid | FemGrid, kappa_block: ArrayLike, mu_block: ArrayLik
     sigma_t = 1.0 / (3.0 * kb)
     core_st, core_mu = _core(core, sigma_t, mb)
 
-    geo = shell_coordinates(pg, depth_from=depth_from, max_depth_mm=thickness)
+    geo = shell_coordinates(sh, depth_from=depth_from, max_depth_mm=thickness)
     depth, face = geo["depth"], geo["face"]
     act = np.flatnonzero(sh.active)
     width = min(voxel, thickness)
@@ -401,7 +404,8 @@ def map_surface(pg: Polygrid | FemGrid, image: ArrayLike, period_mm: tuple[float
         raise InputError(f"a surface map must be a finite (H, W, C) array, got shape {img.shape}")
     px, py = (real(p, "period_mm (map extent, mm)", 0.0, lo_open=True) for p in period_mm)
     choice(tiling, "tiling", TILINGS)
-    geo = shell_coordinates(pg, depth_from="nodes")
-    b = _shell(pg).boundary
+    sh = _shell(pg)
+    geo = shell_coordinates(sh, depth_from="nodes")
+    b = sh.boundary
     h, w = img.shape[:2]
     return _trilinear(img[None], geo["u"][b] / (px / w), geo["v"][b] / (py / h), np.zeros(b.size), tiling)
