@@ -1,11 +1,19 @@
 """``glsldiff bench meshes``: the tetrahedral polygrid on meshes nobody tuned it for.
 
 For each mesh (the pymeshlab samples bunny, cow, bone, airplane; a torus; a 100 x 100 x 2 mm
-tile; a 100 mm cube; all 100 mm long) and each target cube count: the grid's node count,
-inverted and worst tetrahedra (quality 1 = regular, <= 0 inverted), coverage (largest and
-99th-percentile distance from a mesh vertex to its nearest surface node, in lattice spacings
-h), the pass-2 solve (sweeps, status) and the render time, with a front-lit and a back-lit
-render of each (veined marble, 256 x 256) saved as PNG beside ``meshes.csv``.
+tile; a 100 mm cube; all 100 mm long) and each target cube count (default: the scene
+default's): the grid's node count, inverted and worst tetrahedra (quality 1 = regular, <= 0
+inverted), coverage (largest and 99th-percentile distance from a mesh vertex to its nearest
+surface node, in lattice spacings h), the pass-2 solve (sweeps, status) and the render time,
+with a front-lit and a back-lit render of each (veined marble, 256 x 256) saved as PNG beside
+``meshes.csv``.
+
+Against the oracle, on the front-lit frame: the GLSL solve's largest surface-fluence
+difference from the CPU solve of the same system (:func:`glsldiff.oracle.fem.solve_system_direct`),
+relative to the largest fluence (``glsl_vs_oracle``; the GPU stops at the scene's ``tol``);
+the node pairs with a positive off-diagonal entry (``positive_couplings``, red channel: the
+discrete maximum principle does not hold there) and the nodes whose exact discrete fluence
+is negative in any channel (``negative_nodes``).
 """
 from __future__ import annotations
 
@@ -18,9 +26,10 @@ import numpy as np
 from glsldiff.core import io
 from glsldiff.core.errors import GlsldiffError
 from glsldiff.mesh import Mesh, box_mesh, torus_mesh
+from glsldiff.oracle.fem import positive_couplings, solve_system_direct
 from glsldiff.render.output import save
 from glsldiff.render.renderer import Renderer
-from glsldiff.render.scene import parse_scene
+from glsldiff.render.scene import default_cubes, parse_scene
 
 MESHES = ("bunny", "cow", "bone", "airplane", "torus", "tile", "cube")
 _GENERATED: dict[str, Callable[[], Mesh]] = {
@@ -42,10 +51,27 @@ def _source(name: str, out: Path) -> str:
     return str(path)
 
 
-def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] = (1600,), n: int = 2,
+def _against_oracle(r: Renderer) -> dict[str, object]:
+    """The oracle columns (module docstring) of the renderer's last frame."""
+    s = r.fem_system
+    if s is None:
+        return {}
+    x = solve_system_direct(s).reshape(3, s.n).T
+    full = np.zeros((len(r.polygrid.positions), 3))
+    full[s.active] = x
+    exact = full[r.polygrid.surface_nodes]
+    scale = float(np.abs(exact).max()) or 1.0
+    return {"glsl_vs_oracle": float(np.abs(r.surface_fluence - exact).max()) / scale,
+            "positive_couplings": positive_couplings(s.block(0)[0]),
+            "negative_nodes": int((x < 0).any(axis=1).sum())}
+
+
+def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = None, n: int = 2,
                out: Path = Path("bench-out"), size: int = 256,
                progress: Callable[[str], None] | None = None) -> list[dict[str, object]]:
-    """The table (module docstring); renders and ``meshes.csv`` go to ``out``."""
+    """The table (module docstring); renders and ``meshes.csv`` go to ``out``. ``cubes``
+    defaults to the scene default's count for ``n`` (:func:`glsldiff.render.scene.default_cubes`)."""
+    cubes = [default_cubes("fem", n)] if cubes is None else cubes
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, object]] = []
     tiles: dict[str, list[np.ndarray]] = {}
@@ -72,6 +98,8 @@ def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] = (1600,), n
                     row[f"{light}_sweeps"] = rep.solver.sweeps
                     row[f"{light}_status"] = rep.solver.status
                     row[f"{light}_clamped"] = rep.clamped_vertices
+                    if light == "front":
+                        row.update(_against_oracle(r))
                     _, _, exposure = save(img, out / f"{name}_{k}_{light}.exr", scene, rep)
                     tiles.setdefault(f"{name}_{k}", []).append(io.tonemap(img, exposure))
                 g = r.polygrid if "front_s" in row or "back_s" in row else None

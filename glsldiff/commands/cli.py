@@ -290,7 +290,8 @@ def build_parser() -> argparse.ArgumentParser:
     b = bsub.add_parser("meshes", help="tetrahedral polygrid on sample and generated meshes: quality, coverage, "
                                         "front- and back-lit renders")
     b.add_argument("--meshes", nargs="+", default=list(BENCH_MESHES), choices=BENCH_MESHES)
-    b.add_argument("--cubes", type=A.integer(1), nargs="+", default=[1600], help="target cube counts")
+    b.add_argument("--cubes", type=A.integer(1), nargs="+", default=None,
+                   help="target cube counts (default: the scene default's for --n)")
     b.add_argument("--n", type=A.integer(2, 16), default=2, help="nodes per cube edge")
     b.add_argument("--size", type=A.integer(16, 2048), default=256, help="render side, px")
     b.add_argument("--out", default="bench-out")

@@ -32,8 +32,8 @@ from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.system.report import REFERENCE_TOL, SolveReport
 from glsldiff.system.tet_problem import TetProblem
 
-__all__ = ["TetGeometry", "assemble_p1", "assemble_tet", "solve_tet_direct", "tet_geometry", "tet_rhs",
-           "DIRECT_MAX_NODES"]
+__all__ = ["TetGeometry", "assemble_p1", "assemble_tet", "positive_couplings", "solve_system_direct",
+           "solve_tet_direct", "tet_geometry", "tet_rhs", "DIRECT_MAX_NODES"]
 
 logger = logging.getLogger(__name__)
 
@@ -204,11 +204,9 @@ def assemble_tet(problem: TetProblem, geo: TetGeometry | None = None) -> LinearS
     return LinearSystem(A, np.concatenate(rhs), diag, active)
 
 
-def solve_tet_direct(problem: TetProblem) -> tuple[NDArray[np.float64], SolveReport]:
-    """Exact discrete solution (SuperLU per channel; pyamg to a 1e-12 residual above
-    :data:`~glsldiff.oracle.solvers.DIRECT_MAX_NODES` nodes): fluence ``(n, 3)`` and report."""
-    t0 = time.perf_counter()
-    s = assemble_tet(problem)
+def solve_system_direct(s: LinearSystem) -> NDArray[np.float64]:
+    """``x`` ``(3n,)`` (channel-major) of an assembled P1 system: SuperLU per channel, pyamg
+    to a 1e-12 residual above :data:`DIRECT_MAX_NODES` unknowns."""
     x = np.zeros(3 * s.n)
     for c in range(3):
         A, b = s.block(c)
@@ -217,6 +215,23 @@ def solve_tet_direct(problem: TetProblem) -> tuple[NDArray[np.float64], SolveRep
         else:
             ml = pyamg.smoothed_aggregation_solver(A, symmetry="symmetric")
             x[c * s.n:(c + 1) * s.n] = ml.solve(b, tol=REFERENCE_TOL, maxiter=200, accel="cg")
+    return x
+
+
+def positive_couplings(A: sp.spmatrix) -> int:
+    """How many node pairs couple with a positive off-diagonal entry of one channel's ``A``
+    (each breaks the discrete maximum principle: P1 on tetrahedra with obtuse dihedral angles,
+    or the consistent surface mass; where such entries dominate, the solution can dip below 0)."""
+    C = sp.coo_matrix(A)
+    return int(((C.row < C.col) & (C.data > 0)).sum())
+
+
+def solve_tet_direct(problem: TetProblem) -> tuple[NDArray[np.float64], SolveReport]:
+    """Exact discrete solution (SuperLU per channel; pyamg to a 1e-12 residual above
+    :data:`~glsldiff.oracle.solvers.DIRECT_MAX_NODES` nodes): fluence ``(n, 3)`` and report."""
+    t0 = time.perf_counter()
+    s = assemble_tet(problem)
+    x = solve_system_direct(s)
     phi = np.zeros((problem.n_nodes, 3))
     phi[s.active] = x.reshape(3, s.n).T
     rep = SolveReport(method="scipy-direct" if s.n <= DIRECT_MAX_NODES else "pyamg-sa-cg", nodes=s.n, sweeps=0,

@@ -124,6 +124,19 @@ class Renderer:
     def polygrid(self) -> Any:
         return self._geo["pg"]
 
+    @property
+    def fem_system(self) -> LinearSystem | None:
+        """The P1 system (over the active nodes, with the last frame's source) a tetrahedral
+        grid solved in pass 2; ``None`` on the lattice or before the first frame."""
+        return self._fem_system
+
+    @property
+    def surface_fluence(self) -> NDArray[np.float64]:
+        """``(n_boundary, 3)`` the last frame's pass-2 fluence at the boundary nodes."""
+        if self._phi_b is None:
+            raise RuntimeError("no frame rendered yet")
+        return self._phi_b
+
     # -- stages --------------------------------------------------------------------
     def _setup(self, scene: Scene) -> None:
         m, g = scene.mesh, scene.polygrid
@@ -202,7 +215,10 @@ class Renderer:
             self._solver = self._fem_solver(scene) if fem else self._lattice_solver(scene)
             x0 = None
         elif fem:
-            self._solver.set_b(self._fem_rhs(scene))
+            rhs = self._fem_rhs(scene)
+            self._solver.set_b(rhs)
+            if self._fem_system is not None:     # keep fem_system's b the frame's source
+                self._fem_system.b = rhs.T.reshape(-1)
         else:
             self._solver.set_q(self._q)
         self._from_cache = False
