@@ -189,10 +189,11 @@ class VirtualRig:
         out = np.stack([g.boundary_to_face(obs, fac.radiance(fac.solve(Q[:, c:c + 1]), Q[:, c:c + 1])[:, 0])
                         for c, fac in enumerate(self._factors)], axis=-1)
         if lit == obs:
-            # front-lit: the camera sees F_t phi / (2 pi) (the net-flux radiance plus the F_t q / (2 pi)
-            # it subtracts, which is negative where light enters) plus the surface reflection: linear
-            # in the light and >= 0, and equal to the fit's model F_t (phi - q) / (2 pi) where q = 0
-            out = out + self._ft * (self._ft * E) / (2.0 * np.pi) + self.surface_reflection * E / np.pi
+            # front-lit: the camera sees the model's outgoing part F_t a phi (its radiance
+            # F_t (a phi - b q) plus the F_t b q it subtracts, which can dip below 0 where light
+            # enters) plus the surface reflection: linear in the light and >= 0, and equal to the
+            # fit's model where q = 0
+            out = out + self._ft * self._model.exit_b * (self._ft * E) + self.surface_reflection * E / np.pi
         self._cache[key] = out
         return out
 

@@ -10,6 +10,7 @@ Each test runs once per backend (``bctx``: egl, osmesa) and, where relevant, per
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import moderngl
 import numpy as np
@@ -19,7 +20,7 @@ from glsldiff.physics import procedural
 from glsldiff.solve.jacobi import GlslDiffusion, solve_glsl
 from glsldiff.core.errors import InputError
 from glsldiff.grids.regular import RegularGrid
-from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.optics import fdr, fresnel_transmittance
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.oracle.assembly import assemble
 from glsldiff.oracle.solvers import DirectSolver, jacobi
@@ -261,23 +262,49 @@ def test_zero_budget_returns_initial_guess(bctx, smooth_kappa, stencil):
 
 
 # ---------------------------------------------------------------- exitant radiance
+@pytest.mark.parametrize("exitant", ["p1", "paper"])
 @pytest.mark.parametrize("stencil", ["paper", "conservative"])
-def test_exitant_radiance(bctx, smooth_kappa, stencil):
-    """report.radiance['z+'] = F_t(eta, 1) (phi - q)/(2 pi) on z+; >= 0 on the unlit z+ face,
-    < 0 (net inflow) on the lit z- face; equal to the direct solve's radiance (1e-4)."""
+def test_exitant_radiance(bctx, smooth_kappa, stencil, exitant):
+    """report.radiance = F_t(eta, 1) (a phi - b q) with the problem's convention (default p1:
+    a = (1 + 1.5/C) / (4 pi eta^2), b = 1.5 / (C 4 pi eta^2); paper: a = b = 1/(2 pi)); >= 0 on
+    the unlit z+ face, and for the paper's net flux < 0 on the lit z- face; equal to the
+    direct solve's radiance (1e-4)."""
     p = _smooth_problem(smooth_kappa, (13, 9, 7), 1, stencil).with_q(
         {"z-": np.random.default_rng(1).uniform(0.5, 1.5, (7, 11, 3))})
+    assert p.exitant == "p1"
+    p = replace(p, exitant=exitant)
     g = p.grid
     phi, rep = solve_glsl(p, bctx, tol=1e-7)
     _, ref_rep = DirectSolver(p).solve()
     ft = float(fresnel_transmittance(p.eta, 1.0))
+    if exitant == "paper":
+        a = b = 1.0 / (2 * np.pi)
+    else:
+        s = 4 * np.pi * p.eta ** 2
+        a, b = (1 + 1.5 / p.C) / s, 1.5 / (p.C * s)
     for name in ("z+", "z-", "x-"):
-        want = ft * (g.face(phi, name) - g.face(p.q, name)) / (2 * np.pi)
+        want = ft * (a * g.face(phi, name) - b * g.face(p.q, name))
         np.testing.assert_allclose(rep.radiance[name], want, rtol=1e-12, atol=0)
         assert rep.radiance[name].shape == g.face_shape(name) + (3,)
         assert relative_l2(rep.radiance[name], ref_rep.radiance[name]) <= 1e-4
     assert rep.radiance["z+"].min() >= 0.0 and rep.radiance["z+"].max() > 0.0
-    assert rep.radiance["z-"].max() < 0.0
+    if exitant == "paper":
+        assert rep.radiance["z-"].max() < 0.0
+
+
+def test_problem_from_irradiance_is_calibrated():
+    """DiffusionProblem.from_irradiance: q is the Marshak source 4 E_t / (1 - Fdr) under p1 and
+    E_t under the paper's convention; a bad convention is one InputError."""
+    g = RegularGrid(6, 5, 4, 0.5)
+    E = {"z-": 2.0}
+    p1 = DiffusionProblem.from_irradiance(g, 0.3, 0.01, E, eta=1.4)
+    paper = DiffusionProblem.from_irradiance(g, 0.3, 0.01, E, eta=1.4, exitant="paper")
+    lit = g.face(p1.q, "z-")
+    np.testing.assert_allclose(lit, 4 * 2.0 / (1 - float(fdr(1.4))))
+    np.testing.assert_allclose(g.face(paper.q, "z-"), 2.0)
+    np.testing.assert_allclose(g.face(p1.with_irradiance({"z-": 1.0}).q, "z-"), lit / 2)
+    with pytest.raises(InputError, match="exitant"):
+        DiffusionProblem(g, 0.3, 0.01, exitant="net")
 
 
 # ---------------------------------------------------------------- GPU objects

@@ -23,6 +23,7 @@ from glsldiff.core import io
 from glsldiff.solve.jacobi import GlslDiffusion
 from glsldiff.grids.regular import RegularGrid
 from glsldiff.inverse.synthetic import region_patterns
+from glsldiff.physics.exitance import source_from_irradiance
 from glsldiff.physics.optics import fresnel_transmittance
 from glsldiff.physics.procedural import marble_volume
 from glsldiff.system.problem import DiffusionProblem, relative_l2
@@ -51,12 +52,12 @@ class DemoConfig:
     out: Path = Path("glsldiff-out")
 
 
-def region_sources(grid: RegularGrid, regions: int, irradiance: float, eta: float) -> list[dict[str, NDArray]]:
-    """Back-face (z-) sources, one per lit region, row-major over (y, x) regions.
-
-    ``q = F_t(eta, 1) E`` for normal-incidence projector irradiance ``E``.
-    """
-    value = float(fresnel_transmittance(eta, 1.0)) * irradiance
+def region_sources(grid: RegularGrid, regions: int, irradiance: float, eta: float,
+                   exitant: str = "p1") -> list[dict[str, NDArray]]:
+    """Back-face (z-) sources, one per lit region, row-major over (y, x) regions: the source
+    of ``exitant``'s convention for the transmitted irradiance ``E_t = F_t(eta, 1) E`` of
+    normal-incidence projector irradiance ``E`` (:func:`source_from_irradiance`)."""
+    value = float(source_from_irradiance(float(fresnel_transmittance(eta, 1.0)) * irradiance, eta, exitant))
     return [{"z-": q} for q in region_patterns(grid, "z-", regions, value)]
 
 
@@ -84,8 +85,9 @@ def run(cfg: DemoConfig, progress: bool = True) -> list[dict[str, object]]:
             img = front_image(rep)
             err_img = relative_l2(img, front_image(rep_ref))
             name = f"front_r{i // cfg.regions}c{i % cfg.regions}.exr"
-            io.write_exr(out / name, img, {"glsldiff": "front-face exitant radiance, paper eq. 3",
-                                            "units": "relative radiance (irradiance 1)"})
+            io.write_exr(out / name, img, {"glsldiff": "front-face exitant radiance (P1, calibrated "
+                                                         "against Monte Carlo; physics.exitance)",
+                                            "units": "radiance per unit projector irradiance, sr^-1"})
             images.append(img)
             rows.append({"image": name, "sweeps": rep.sweeps, "residual": rep.residual,
                          "est_error": rep.error_estimate, "error_phi": rep.error,

@@ -20,6 +20,7 @@ from glsldiff.inverse.measurements import load_measurements, save_measurements
 from glsldiff.inverse.reflectance import diffuse_reflectance
 from glsldiff.inverse.synthetic import bssrdf_error, synthetic_measurements
 from glsldiff.physics.procedural import synthetic_volume
+from glsldiff.physics.exitance import EXITANT
 
 
 def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersAction) -> None:
@@ -42,6 +43,9 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                    help="optimiser (cg = the paper's Table I)")
     p.add_argument("--lam", type=A.nonnegative, default=1e-5, help="kappa-gradient regularisation weight")
     p.add_argument("--stencil", choices=("conservative", "paper"), default="conservative")
+    p.add_argument("--exitant", choices=EXITANT, default="p1",
+                   help="forward model's source and exitance: p1 (calibrated against Monte Carlo: "
+                        "physical kappa and mu) or the paper's net flux")
     p.add_argument("--backend", choices=("cpu", "glsl"), default="cpu",
                    help="forward/adjoint solves: one SuperLU factor (cpu) or GLSL Jacobi (glsl)")
     p.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for --backend glsl")
@@ -110,7 +114,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     out = check_output(args.out)
     options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,
                          mu0=args.mu0, max_evals=args.max_evals, max_seconds=args.max_seconds,
-                         backend=args.backend)
+                         backend=args.backend, exitant=args.exitant)
     meas = load_measurements(args.measurements)
     truth = None
     if args.truth:
@@ -176,7 +180,8 @@ def cmd_reflectance(args: argparse.Namespace) -> int:
     k, m = d["kappa"], d["mu"]
     stencil = str(d["stencil"]) if "stencil" in d else "conservative"
     face_mean = str(d["face_mean"]) if "face_mean" in d else "arithmetic"
-    r = diffuse_reflectance(meas, k, m, args.condition, args.irradiance, stencil, face_mean)
+    exitant = str(d["exitant"]) if "exitant" in d else "p1"
+    r = diffuse_reflectance(meas, k, m, args.condition, args.irradiance, stencil, face_mean, exitant)
     write_exr(out, r.rho.astype(np.float32), {"glsldiff": "diffuse surface reflectance, one pixel per block "
                                                           f"node of face {meas.observed_face}"})
     print(r.summary())

@@ -32,6 +32,7 @@ from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, minimize
+from glsldiff.physics.exitance import EXITANT
 
 Array = NDArray[np.float64]
 
@@ -54,9 +55,11 @@ class FitOptions:
     homogeneous_evals: int = 40
     parameterization: str = "log"
     backend: str = "cpu"          # "cpu": one SuperLU factor per material; "glsl": GPU Jacobi
+    exitant: str = "p1"           # source and exitance convention of the forward model
 
     def __post_init__(self) -> None:
         choice(self.backend, "backend", BACKENDS)
+        choice(self.exitant, "exitant", EXITANT)
         choice(self.method, "method", METHODS)
         real(self.kappa0, "kappa0 (mm)", 0.0, lo_open=True)
         real(self.mu0, "mu0 (mm^-1)", 0.0, lo_open=True)
@@ -106,7 +109,7 @@ def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: 
     o = objective
     model = o.model
     if type(model) is not ForwardModel:  # e.g. the GLSL path: the two-unknown fit runs on the CPU
-        model = ForwardModel(model.grid, model.stencil, model.face_mean, model.eta, model.C)
+        model = ForwardModel(model.grid, model.stencil, model.face_mean, model.eta, model.C, model.exitant)
     ones = np.ones(model.n)
     w = np.sqrt(o.W / o.norm)
     trace = Trace("homogeneous-trf")
@@ -178,9 +181,10 @@ def fit_measurements(meas: Measurements, options: FitOptions | None = None,
     options = options or FitOptions()
     t0 = time.perf_counter()
     if options.backend == "glsl":
-        model: ForwardModel = GlslForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)
+        model: ForwardModel = GlslForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C,
+                                               options.exitant)
     else:
-        model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C)
+        model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C, options.exitant)
     shared = meas.grey()
     fits: list[ChannelFit] = []
     notes: list[str] = ["grey data: one fit served all three channels"] if shared else []
@@ -219,7 +223,7 @@ def save_material(path: str | os.PathLike, result: FitResult) -> Path:
     to ``.npz`` atomically."""
     o = result.options
     arrays = dict(kappa=result.kappa, mu=result.mu, h=result.h, method=o.method, lam=o.lam, backend=o.backend,
-                  stencil=o.stencil, face_mean=o.face_mean, seconds=result.seconds,
+                  stencil=o.stencil, face_mean=o.face_mean, exitant=o.exitant, seconds=result.seconds,
                   data_error=np.array([f.data for f in result.channels]),
                   converged=np.array([f.converged for f in result.channels]),
                   interrupted=result.interrupted,

@@ -3,8 +3,13 @@
 For one RGB channel, material vectors ``kappa`` (mm) and ``mu`` (mm^-1) over the active
 nodes of a :class:`~glsldiff.grids.regular.RegularGrid` (order of ``grid.graph.active``) define the
 system ``A(kappa, mu) x_m = b_m(kappa)`` of :mod:`glsldiff.oracle.solvers` (either stencil), one
-right-hand side per illumination ``m``. The predicted radiance at boundary node ``b`` is the
-paper's ``L = F_t (phi_b - q_b) / (2 pi)`` (:meth:`DiffusionProblem.exitant_radiance`).
+right-hand side per illumination ``m``. An illumination ``Q`` is the transmitted irradiance at
+the boundary nodes; the predicted radiance at boundary node ``b`` is ``L = F_t B`` with the
+exitant bracket of the model's convention (:mod:`glsldiff.physics.exitance`): by default
+``"p1"``, the Marshak source ``q = s Q``, ``s = 4 / (1 - Fdr)``, and ``B = a phi - b q``, the
+form that matches Monte Carlo (so a fit recovers physical kappa and mu); ``"paper"``:
+``q = Q`` and ``B = (phi - q) / (2 pi)``, the paper's net flux. The fluence is linear in the
+source, so the model solves with ``Q`` itself and folds ``s`` into the bracket's coefficients.
 
 All M forward and all M adjoint systems share one matrix, so :class:`Factorized` factorises
 it once (SuperLU) and solves every right-hand side with that factor; the adjoint uses the
@@ -25,7 +30,7 @@ from numpy.typing import NDArray
 from glsldiff.core.checks import choice
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.regular import RegularGrid
-from glsldiff.physics.exitance import exitance_coefficients
+from glsldiff.physics.exitance import EXITANT, exitance_coefficients, source_from_irradiance
 from glsldiff.physics.optics import boundary_constant, fresnel_transmittance
 from glsldiff.system.problem import FACE_MEANS, STENCILS, DiffusionProblem
 from glsldiff.oracle.assembly import channel_matrix
@@ -62,6 +67,9 @@ class ForwardModel:
         not given, ``C = boundary_constant(eta)``.
     C
         Boundary constant; ``glsldiff.physics.optics.PAPER_C`` reproduces the paper's 2.1489.
+    exitant
+        Source and exitance convention (module docstring): ``"p1"`` (default), ``"arbree"``
+        or ``"paper"``.
     """
 
     grid: RegularGrid
@@ -69,6 +77,7 @@ class ForwardModel:
     face_mean: str = "arithmetic"
     eta: float = 1.3
     C: float | None = None
+    exitant: str = "p1"
     stats: SolveStats = field(default_factory=SolveStats)
 
     def __post_init__(self) -> None:
@@ -86,8 +95,11 @@ class ForwardModel:
         self.partner = pos[g.link]                            # (n_b,)
         self.weights, self.scale, self.d = g.weights, g.scale, g.d
         self.ft = float(fresnel_transmittance(self.eta, 1.0))
-        # L = F_t (a phi_b - b q_b): the paper's net-flux convention (glsldiff.physics.exitance)
-        self.exit_a, self.exit_b = exitance_coefficients(self.eta, "paper", self.C)
+        # L = F_t (a phi(q) - b q) with q = s Q: F_t s (a phi(Q) - b Q) (module docstring)
+        choice(self.exitant, "exitant", EXITANT)
+        a, b = exitance_coefficients(self.eta, self.exitant, self.C)
+        s = float(source_from_irradiance(np.ones(1), self.eta, self.exitant)[0])
+        self.exit_a, self.exit_b = s * a, s * b
 
     @property
     def n_boundary(self) -> int:
@@ -169,7 +181,8 @@ class Factorized:
         return xb / self.kappa[m.boundary][:, None] if m.stencil == "paper" else xb
 
     def radiance(self, X: Array, Q: Array) -> Array:
-        """Predicted radiance ``F_t (phi_b - q_b) / (2 pi)`` at the boundary nodes, ``(n_b, M)``."""
+        """Predicted radiance ``F_t B`` (module docstring) at the boundary nodes, ``(n_b, M)``,
+        for ``X = solve(Q)``."""
         m = self.model
         return m.ft * (m.exit_a * self.boundary_phi(X) - m.exit_b * Q)
 

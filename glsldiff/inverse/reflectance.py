@@ -38,7 +38,7 @@ from glsldiff.core.checks import choice, integer
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
-from glsldiff.physics.exitance import EXITANT, exitant_bracket, source_from_irradiance
+from glsldiff.physics.exitance import EXITANT
 from glsldiff.physics.optics import fresnel_transmittance
 
 Array = NDArray[np.float64]
@@ -85,17 +85,13 @@ def diffuse_reflectance(meas: Measurements, kappa: ArrayLike, mu: ArrayLike, con
     shape = meas.shape
     k = np.broadcast_to(np.asarray(kappa, dtype=np.float64).reshape(shape + (-1,)), shape + (3,))
     m = np.broadcast_to(np.asarray(mu, dtype=np.float64).reshape(shape + (-1,)), shape + (3,))
-    model = ForwardModel(meas.grid, stencil, face_mean, meas.eta, meas.C)
+    model = ForwardModel(meas.grid, stencil, face_mean, meas.eta, meas.C, exitant)
     face = meas.observed_face
-    # the fit's q is the transmitted irradiance; the exitant formula has its own source, a
-    # fixed multiple s of it (and the fluence is linear in the source)
-    s = float(source_from_irradiance(np.ones(1), meas.eta, exitant)[0])
     multiple = np.zeros(meas.radiance.shape[1:])
     for c in range(3):
         Q = meas.channel(c)[0][:, condition:condition + 1]
         fac = model.factorize(model.active_values(k[..., c]), model.active_values(m[..., c]))
-        phi_b = fac.boundary_phi(fac.solve(Q))[:, 0]
-        L = model.ft * exitant_bracket(s * phi_b, s * Q[:, 0], meas.eta, exitant)
+        L = fac.radiance(fac.solve(Q), Q)[:, 0]
         multiple[..., c] = meas.grid.boundary_to_face(face, L)
     measured = meas.radiance[condition]
     diff = measured - multiple

@@ -32,7 +32,7 @@ from glsldiff.grids.graph import NodeGraph
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.polygrid import Polygrid
 from glsldiff.grids.regular import RegularGrid
-from glsldiff.physics.exitance import exitant_bracket
+from glsldiff.physics.exitance import EXITANT, exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import validate_coefficients
 from glsldiff.physics.optics import boundary_constant, fresnel_transmittance
 
@@ -77,6 +77,12 @@ class DiffusionProblem:
         to reproduce the paper's 2.1489.
     stencil, face_mean
         Interior discretisation (module docstring).
+    exitant
+        Source and exitance convention of :meth:`exitant_radiance` (and the solve reports'
+        ``radiance``): ``"p1"`` (default; ``q`` is then the Marshak source ``4 E_t / (1 - Fdr)``
+        of transmitted irradiance ``E_t``, and the radiance matches Monte Carlo on slabs to
+        0.97-1.02x), ``"arbree"``, or ``"paper"`` (``q = E_t``, the paper's net flux).
+        :meth:`from_irradiance` builds ``q`` from ``E_t`` for the chosen convention.
     """
 
     grid: "RegularGrid | Polygrid"
@@ -87,6 +93,20 @@ class DiffusionProblem:
     C: float | None = None
     stencil: Stencil = "paper"
     face_mean: FaceMean = "arithmetic"
+    exitant: str = "p1"
+
+    @classmethod
+    def from_irradiance(cls, grid: "RegularGrid | Polygrid", kappa: ArrayLike, mu: ArrayLike,
+                        irradiance: ArrayLike | Mapping[str, ArrayLike], eta: float = 1.3,
+                        exitant: str = "p1", **options: object) -> "DiffusionProblem":
+        """The problem lit by transmitted irradiance ``E_t`` (same layout as ``q``: face arrays
+        or per boundary node), with ``q = source_from_irradiance(E_t, eta, exitant)``."""
+        return cls(grid, kappa, mu, q=_source_of(irradiance, eta, exitant), eta=eta, exitant=exitant,
+                   **options)  # type: ignore[arg-type]
+
+    def with_irradiance(self, irradiance: ArrayLike | Mapping[str, ArrayLike]) -> "DiffusionProblem":
+        """Same grid, material and options, lit by transmitted irradiance ``E_t``."""
+        return replace(self, q=_source_of(irradiance, self.eta, self.exitant))
 
     def __post_init__(self) -> None:
         if not hasattr(self.grid, "source_volume"):
@@ -106,6 +126,8 @@ class DiffusionProblem:
             raise InputError(f"stencil={self.stencil!r}; choose one of {STENCILS}")
         if self.face_mean not in FACE_MEANS:
             raise InputError(f"face_mean={self.face_mean!r}; choose one of {FACE_MEANS}")
+        if self.exitant not in EXITANT:
+            raise InputError(f"exitant={self.exitant!r}; choose one of {EXITANT}")
 
     # ---- derived quantities ------------------------------------------------------
     @property
@@ -137,16 +159,27 @@ class DiffusionProblem:
 
     def exitant_radiance(self, phi: NDArray, cos_o: float = 1.0) -> dict[str, NDArray] | NDArray:
         """Multiple-scattering radiance leaving each face (regular grid: dict of face
-        arrays) or each boundary node (polygrid: ``(n_boundary, 3)``), per channel.
+        arrays) or each boundary node (polygrid: ``(n_boundary, 3)``), per channel:
+        ``L = F_t(eta, cos_o) B`` with the bracket ``B = a phi - b q`` of :attr:`exitant`
+        (:mod:`glsldiff.physics.exitance`, with this problem's ``C``); ``cos_o`` is the
+        cosine of the viewing direction (1 = along the normal).
 
-        Paper eq. 3 with the boundary condition: ``L = F_t(eta, cos_o) (phi - q) / (2 pi)``,
-        equal to ``-(C/pi) F_t kappa dphi/dn``. This is the *net* flux: it is negative
-        where light enters (phi < q), so use it on unlit faces (the paper's setup);
-        ``cos_o`` is the cosine of the viewing direction (1 = along the normal).
+        ``"p1"`` is the P1 radiance refracted out, the form calibrated against Monte Carlo.
+        ``"paper"`` is paper eq. 3 with the boundary condition, ``(phi - q) / (2 pi)`` =
+        ``-(C/pi) kappa dphi/dn``: the *net* flux, negative where light enters (phi < q), so
+        meaningful on unlit faces only (the paper's setup).
         """
         ft = float(fresnel_transmittance(self.eta, cos_o))
-        L = ft * exitant_bracket(phi, self.q, self.eta, "paper")
+        L = ft * exitant_bracket(phi, self.q, self.eta, self.exitant, self.C)
         return self.grid.boundary_values(L)
+
+
+def _source_of(irradiance: ArrayLike | Mapping[str, ArrayLike], eta: float,
+               exitant: str) -> NDArray[np.float64] | dict[str, NDArray[np.float64]]:
+    """``source_from_irradiance`` of an array or of each face array of a mapping."""
+    if isinstance(irradiance, Mapping):
+        return {k: source_from_irradiance(v, eta, exitant) for k, v in irradiance.items()}
+    return source_from_irradiance(irradiance, eta, exitant)
 
 
 def boundary_C(eta: float, C: float | None) -> float:
