@@ -57,9 +57,7 @@ def _against_oracle(r: Renderer) -> dict[str, object]:
     if s is None:
         return {}
     x = solve_system_direct(s).reshape(3, s.n).T
-    full = np.zeros((len(r.polygrid.positions), 3))
-    full[s.active] = x
-    exact = full[r.polygrid.surface_nodes]
+    exact = r.surface_values(x)
     scale = float(np.abs(exact).max()) or 1.0
     return {"glsl_vs_oracle": float(np.abs(r.surface_fluence - exact).max()) / scale,
             "positive_couplings": positive_couplings(s.block(0)[0]),

@@ -178,10 +178,8 @@ def cmd_reflectance(args: argparse.Namespace) -> int:
     meas = load_measurements(args.measurements)
     d = _load_truth(args.material, meas.shape, "material file")
     k, m = d["kappa"], d["mu"]
-    stencil = str(d["stencil"]) if "stencil" in d else "conservative"
-    face_mean = str(d["face_mean"]) if "face_mean" in d else "arithmetic"
-    exitant = str(d["exitant"]) if "exitant" in d else "p1"
-    r = diffuse_reflectance(meas, k, m, args.condition, args.irradiance, stencil, face_mean, exitant)
+    fitted = {key: str(d[key]) for key in ("stencil", "face_mean", "exitant") if key in d}   # the fit's options
+    r = diffuse_reflectance(meas, k, m, args.condition, args.irradiance, **fitted)
     write_exr(out, r.rho.astype(np.float32), {"glsldiff": "diffuse surface reflectance, one pixel per block "
                                                           f"node of face {meas.observed_face}"})
     print(r.summary())

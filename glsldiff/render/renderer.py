@@ -130,6 +130,14 @@ class Renderer:
         grid solved in pass 2; ``None`` on the lattice or before the first frame."""
         return self._fem_system
 
+    def surface_values(self, x: NDArray) -> NDArray[np.float64]:
+        """``(n_surface, 3)``: per-active-node values ``(n_active, 3)`` of a tetrahedral grid
+        (e.g. a solution of :attr:`fem_system`) at its surface nodes."""
+        pg = self._geo["pg"]
+        full = np.zeros((len(pg.positions), 3))
+        full[self._fem_active] = x
+        return full[pg.surface_nodes]
+
     @property
     def surface_fluence(self) -> NDArray[np.float64]:
         """``(n_boundary, 3)`` the last frame's pass-2 fluence at the boundary nodes."""
@@ -214,11 +222,8 @@ class Renderer:
         if self._solver is None:
             self._solver = self._fem_solver(scene) if fem else self._lattice_solver(scene)
             x0 = None
-        elif fem:
-            rhs = self._fem_rhs(scene)
-            self._solver.set_b(rhs)
-            if self._fem_system is not None:     # keep fem_system's b the frame's source
-                self._fem_system.b = rhs.T.reshape(-1)
+        elif fem:    # the assembled system takes the frame's source, the GPU solver its b
+            self._solver.set_b(self._fem_linear_system(scene).b.reshape(3, -1).T)
         else:
             self._solver.set_q(self._q)
         self._from_cache = False
@@ -238,9 +243,7 @@ class Renderer:
 
     def _finish_pass2(self, pg: Any, phi: NDArray, rep: SolveReport, fem: bool) -> None:
         if fem:
-            full = np.zeros((len(pg.positions), 3))
-            full[self._fem_active] = phi
-            self._phi_b = full[pg.surface_nodes]
+            self._phi_b = self.surface_values(phi)
         else:
             self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
         self._solve_report = rep

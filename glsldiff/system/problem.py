@@ -27,6 +27,7 @@ from typing import Literal, Mapping
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.checks import choice
 from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import NodeGraph
 from glsldiff.grids.hierarchy import Hierarchy
@@ -122,12 +123,9 @@ class DiffusionProblem:
         self.kappa, self.mu = validate_coefficients(kappa, mu)
         self.q = self.grid.source_volume(self.q)
         self.C = boundary_C(self.eta, self.C)
-        if self.stencil not in STENCILS:
-            raise InputError(f"stencil={self.stencil!r}; choose one of {STENCILS}")
-        if self.face_mean not in FACE_MEANS:
-            raise InputError(f"face_mean={self.face_mean!r}; choose one of {FACE_MEANS}")
-        if self.exitant not in EXITANT:
-            raise InputError(f"exitant={self.exitant!r}; choose one of {EXITANT}")
+        choice(self.stencil, "stencil", STENCILS)
+        choice(self.face_mean, "face_mean", FACE_MEANS)
+        choice(self.exitant, "exitant", EXITANT)
 
     # ---- derived quantities ------------------------------------------------------
     @property
