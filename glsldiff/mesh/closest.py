@@ -137,8 +137,9 @@ def closest_points(mesh: Mesh, points: ArrayLike) -> tuple[NDArray[np.float64], 
     triangle
         ``(N,)`` index of the face holding the closest point.
     normal
-        ``(N, 3)`` unit outward normal at the closest point: the vertex normals
-        interpolated barycentrically, then normalised.
+        ``(N, 3)`` unit outward normal at the closest point: the face's corner normals
+        (:attr:`glsldiff.mesh.types.Mesh.corner_normals`, vertex normals that do not smooth
+        across sharp edges) interpolated barycentrically, then normalised.
     """
     p = query_points(points)
     faces = np.empty(len(p), dtype=np.int64)
@@ -149,6 +150,6 @@ def closest_points(mesh: Mesh, points: ArrayLike) -> tuple[NDArray[np.float64], 
     bary = closest_on_triangles(p, t[:, 0], t[:, 1], t[:, 2])
     cp = np.einsum("ij,ijk->ik", bary, t)
     dist = np.linalg.norm(p - cp, axis=1)
-    vn = mesh.vertex_normals[mesh.faces[faces]]
+    vn = mesh.corner_normals[faces]
     normal = normalize(np.einsum("ij,ijk->ik", bary, vn))
     return cp, dist, faces, normal

@@ -4,6 +4,7 @@ checks, geometry and topology helpers that it, the loader and the queries share.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import TYPE_CHECKING
@@ -15,6 +16,10 @@ from scipy.sparse.csgraph import connected_components
 
 from glsldiff.core.checks import points as check_points
 from glsldiff.core.errors import InputError
+
+#: Faces meeting at a larger angle than this (degrees) do not share corner normals
+#: (:attr:`Mesh.corner_normals`): a sharp edge.
+CREASE_DEG = 45.0
 from glsldiff.mesh.accel import BVH, RayIndex
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -125,6 +130,28 @@ class Mesh:
         for k in range(3):  # |cross| = 2 * area: the area weighting
             np.add.at(acc, self.faces[:, k], self._face_cross)
         return normalize(acc)
+
+    @cached_property
+    def corner_normals(self) -> NDArray[np.float64]:
+        """``(F, 3, 3)`` unit normal at each face corner: the area-weighted mean of the normals
+        of the faces around that vertex that lie within :data:`CREASE_DEG` of this face's
+        normal (smoothing groups). Equal to :attr:`vertex_normals` on a smooth surface; on a
+        flat face next to a sharp edge or corner it is the face's own normal, where the plain
+        vertex normals would tilt it towards the neighbouring faces."""
+        f = self.faces
+        cross, nf = self._face_cross, self.face_normals
+        corner_vertex = f.ravel()
+        order = np.argsort(corner_vertex, kind="stable")
+        start = np.searchsorted(corner_vertex[order], np.arange(len(self.vertices) + 1))
+        deg = np.diff(start)
+        rep = deg[corner_vertex]                                   # faces around each corner's vertex
+        owner = np.repeat(np.arange(len(corner_vertex)), rep)
+        pos = np.arange(len(owner)) - np.repeat(np.cumsum(rep) - rep, rep)
+        partner = order[start[corner_vertex[owner]] + pos] // 3   # a face around the vertex
+        keep = np.einsum("ij,ij->i", nf[owner // 3], nf[partner]) >= math.cos(math.radians(CREASE_DEG))
+        acc = np.zeros((len(corner_vertex), 3))
+        np.add.at(acc, owner[keep], cross[partner[keep]])
+        return normalize(acc).reshape(len(f), 3, 3)
 
     # ---- acceleration structures (built on first query) --------------------------------
     @cached_property
