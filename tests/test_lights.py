@@ -101,7 +101,7 @@ def test_incidence_is_the_normal_irradiance_of_each_kind():
 def test_kinds_and_image_digests():
     """Every kind has one name; lights with an image name their pixels in their repr (render
     stages key on it), not the array."""
-    assert list(KINDS) == ["directional", "point", "spot", "projector", "environment"]
+    assert list(KINDS) == ["directional", "point", "spot", "projector", "area", "environment"]
     assert light_kind(PointLight((0, 0, 0), 1.0)) == "point"
     with pytest.raises(InputError, match="light must be a DirectionalLight"):
         check_light("sun")

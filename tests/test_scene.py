@@ -125,7 +125,8 @@ def test_light_kinds_parse_into_the_physics_types(tmp_path):
     assert (spot.cone_deg, spot.falloff_deg, spot.intensity) == (20.0, 20.0, (1e4, 1e4, 1e4))
     assert point.position == (1.0, 2.0, 3.0) and not point.shadows
     assert set(LIGHT_KEYS) == {"type", "direction", "position", "irradiance", "intensity", "cone_deg",
-                               "falloff_deg", "path", "scale", "shadows", "image", "up", "fov_deg"}
+                               "falloff_deg", "path", "scale", "shadows", "image", "up", "fov_deg", "size", "radiance",
+                               "samples"}
     with pytest.raises(InputError, match=r"\[lights.1\].colour: unknown key; valid keys: cone_deg, direction"):
         load_scene(_write(tmp_path, text.replace("cone_deg = 20", "colour = 1")))
     from PIL import Image

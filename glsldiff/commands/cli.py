@@ -32,6 +32,7 @@ from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
 from glsldiff.render.scene import default_scene, example_names, example_scene, load_scene
+from glsldiff.physics.collision import SOURCES
 from glsldiff.validation.validate import validate
 
 
@@ -77,7 +78,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp)
+    rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp, source=args.source)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
                 "eta != 1: surface reflection removed) and the dipole", rows)
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
@@ -215,6 +216,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--size", type=A.integer(8, 8192), default=64, help="image side, pixels")
     p.add_argument("--spp", type=A.integer(8), default=256, help="Monte Carlo samples per pixel (a power of two >= 8: "
                    "split into 2-4 renders of 4^k samples, all Mitsuba's low-discrepancy sampler takes)")
+    p.add_argument("--source", choices=SOURCES, default=None,
+                   help="diffusion source model for every case (default: each case's own; slab-patch: volume)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)

@@ -18,6 +18,12 @@ intensity in the caller's units (irradiance = intensity / mm^2).
     times its ``image`` sampled where x projects (:func:`projector_factor`): irradiance
     ``I img(u, v) (n . w)^+ / r^2``, 0 outside the image's frustum and behind the projector.
     Shadowed as the hard-edged spot light whose cone circumscribes its frustum (:attr:`spot`).
+:class:`AreaLight`
+    A one-sided Lambertian rectangle (a light box, a lit projector region) of ``radiance``
+    L: irradiance ``L * integral over the rectangle of cos_r cos_e / r^2 dA``, computed by
+    :mod:`glsldiff.physics.area` (exact polygon form factors of its ``samples`` x ``samples``
+    sub-rectangles). Not shadowed (``shadows`` must stay False) and not in pass 3's
+    specular term.
 :class:`EnvironmentLight`
     A lat-long radiance map (convention: :func:`glsldiff.physics.sh.latlong_directions`),
     projected onto spherical harmonics (:attr:`EnvironmentLight.sh`).
@@ -46,7 +52,7 @@ from glsldiff.core.camera import orthonormal_frame
 from glsldiff.core.errors import InputError
 from glsldiff.physics.sh import MAX_DIRECTIONS, MAX_SH_ORDER, sh_project
 
-__all__ = ["DirectionalLight", "PointLight", "SpotLight", "ProjectorLight", "EnvironmentLight", "Light",
+__all__ = ["DirectionalLight", "PointLight", "SpotLight", "ProjectorLight", "AreaLight", "EnvironmentLight", "Light",
            "DirectLight", "KINDS", "light_kind", "check_light", "casts_shadows", "spot_factor",
            "projector_factor", "to_light", "incidence"]
 
@@ -225,6 +231,74 @@ class ProjectorLight:
                          shadows=self.shadows)
 
 
+@dataclass(frozen=True)
+class AreaLight:
+    """One-sided Lambertian rectangle (module docstring).
+
+    Parameters
+    ----------
+    position
+        ``(3,)`` centre of the rectangle, mm.
+    direction
+        ``(3,)`` the emitting side's normal, from the rectangle *into* the scene
+        (normalised on construction); nothing is emitted behind it.
+    size
+        ``(width, height)`` mm, > 0: along ``right`` and ``up`` of :attr:`frame`.
+    radiance
+        ``(3,)`` RGB radiance of the emitting side (irradiance = radiance x sr).
+    up
+        ``(3,)`` the direction of the height (orthogonalised against ``direction``).
+    samples
+        Sub-rectangles per side for pass 1's form factors and the first-collision beams
+        (:mod:`glsldiff.physics.area`), 1-64. The form factors are exact at any count; it
+        sets how finely the Fresnel factor and the refracted direction follow the rectangle
+        (4: within 0.1 % of the converged transmitted irradiance in the tests).
+    shadows
+        Must be False: area lights are not shadowed (an occluder between the rectangle
+        and a surface point is not seen).
+    """
+
+    position: tuple[float, float, float]
+    direction: tuple[float, float, float]
+    size: tuple[float, float]
+    radiance: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    samples: int = 4
+    shadows: bool = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "position", _position(self.position, "AreaLight.position"))
+        fwd = unit_vector(self.direction, "AreaLight.direction")
+        up = unit_vector(self.up, "AreaLight.up")
+        if np.linalg.norm(np.cross(fwd, up)) < 1e-6:
+            raise InputError(f"AreaLight.up={self.up!r} is parallel to direction={self.direction!r}; "
+                             "give an up vector in the rectangle's plane")
+        object.__setattr__(self, "direction", fwd)
+        object.__setattr__(self, "up", up)
+        size = checks.finite_array(self.size, "AreaLight.size")
+        if size.shape != (2,) or np.any(size <= 0):
+            raise InputError(f"AreaLight.size={self.size!r} must be (width, height) in mm, both > 0")
+        object.__setattr__(self, "size", (float(size[0]), float(size[1])))
+        object.__setattr__(self, "radiance", rgb(self.radiance, "AreaLight.radiance"))
+        object.__setattr__(self, "samples", integer(self.samples, "AreaLight.samples", 1, 64))
+        if boolean(self.shadows, "AreaLight.shadows"):
+            raise InputError("AreaLight.shadows = true is not supported: area lights are not shadowed; "
+                             "set shadows = false")
+
+    @cached_property
+    def frame(self) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """Unit ``right, up, forward`` (forward = the emitting normal)."""
+        return orthonormal_frame(self.direction, self.up)
+
+    @property
+    def corners(self) -> NDArray[np.float64]:
+        """``(4, 3)`` corners, mm, counter-clockwise seen from the emitting side."""
+        right, up, _ = self.frame
+        c, w, h = np.asarray(self.position), self.size[0] / 2.0, self.size[1] / 2.0
+        return np.array([c - w * right - h * up, c - w * right + h * up, c + w * right + h * up,
+                         c + w * right - h * up])
+
+
 @dataclass(frozen=True, eq=False)
 class EnvironmentLight:
     """Distant radiance from every direction: a lat-long (equirectangular) map.
@@ -271,14 +345,14 @@ class EnvironmentLight:
         return self.scale * sh_project(self.image, self.order)
 
 
-Light = Union[DirectionalLight, PointLight, SpotLight, ProjectorLight, EnvironmentLight]
-#: Lights that reach a point from one direction (all but the environment).
+Light = Union[DirectionalLight, PointLight, SpotLight, ProjectorLight, AreaLight, EnvironmentLight]
+#: Lights that reach a point from one direction (all but the area and environment lights).
 DirectLight = Union[DirectionalLight, PointLight, SpotLight, ProjectorLight]
 #: Kind names (scene files' ``type``, pass 1's reports) and their types.
 KINDS: dict[str, type] = {"directional": DirectionalLight, "point": PointLight, "spot": SpotLight,
-                          "projector": ProjectorLight, "environment": EnvironmentLight}
+                          "projector": ProjectorLight, "area": AreaLight, "environment": EnvironmentLight}
 _KIND_OF = {cls: name for name, cls in KINDS.items()}
-_KIND_NAMES = "a DirectionalLight, PointLight, SpotLight, ProjectorLight or EnvironmentLight"
+_KIND_NAMES = "a DirectionalLight, PointLight, SpotLight, ProjectorLight, AreaLight or EnvironmentLight"
 
 
 def check_light(light: Any, name: str = "light") -> Light:
@@ -346,9 +420,9 @@ def projector_factor(light: ProjectorLight, points: ArrayLike) -> NDArray[np.flo
 
 
 def _direct(light: Any) -> DirectLight:
-    if isinstance(check_light(light), EnvironmentLight):
-        raise InputError("light must be a directional, point, spot or projector light (an environment "
-                         "light reaches a point from every direction)")
+    if isinstance(check_light(light), (EnvironmentLight, AreaLight)):
+        raise InputError("light must be a directional, point, spot or projector light (an environment or "
+                         "area light reaches a point from many directions)")
     return light
 
 

@@ -16,7 +16,7 @@ from glsldiff.core.checks import finite_values, real, require
 from glsldiff.core.errors import InputError
 from glsldiff.physics.optics import _out, optical_pair
 
-__all__ = ["Preset", "PRESETS", "preset", "coefficients", "optical_properties",
+__all__ = ["Preset", "PRESETS", "preset", "coefficients", "optical_properties", "regime", "TRUSTED_ALBEDO",
            "validate_coefficients"]
 
 Array = NDArray[np.float64]
@@ -148,3 +148,29 @@ def validate_coefficients(kappa: ArrayLike, mu: ArrayLike,
                          f"the spatial shape {S}: give {name} shape {S}, {S + (3,)} or a scalar")
 
     return _kappa_mu(np.array(rgb("kappa", k)), np.array(rgb("mu", m)))
+
+
+#: Below this single-scattering albedo sigma_s' / sigma_t' the diffusion model is not trusted:
+#: against Monte Carlo every diffusion variant was off by about 30 % at albedo 0.91 and within a
+#: few percent at 0.99 and above (``../shared/notes/wang2008.md``, section 1).
+TRUSTED_ALBEDO = 0.95
+
+
+def regime(kappa: ArrayLike, mu: ArrayLike, h: float) -> str:
+    """One line saying where the diffusion model is trusted for the material at the nodes
+    (``kappa`` mm, ``mu`` mm^-1 per node and channel) on a grid of spacing ``h`` mm: the
+    albedo range and the share of nodes below :data:`TRUSTED_ALBEDO`, and the transport mean
+    free path ``1 / sigma_t'`` against ``h`` (the light's first-collision depth is resolved when
+    it is at least h)."""
+    k = np.asarray(kappa, dtype=np.float64)
+    m = np.asarray(mu, dtype=np.float64)
+    st = 1.0 / (3.0 * k)
+    albedo = np.clip(1.0 - m / st, 0.0, 1.0)
+    low = float((albedo < TRUSTED_ALBEDO).any(axis=-1).mean()) if albedo.ndim > 1 else float((albedo < TRUSTED_ALBEDO).mean())
+    mfp = 1.0 / st
+    text = (f"regime: albedo {albedo.min():.3g}-{albedo.max():.3g}; "
+            f"{100 * low:.1f} % of nodes below {TRUSTED_ALBEDO} in some channel (diffusion off by up to ~30 % there); "
+            f"mean free path {mfp.min():.3g}-{mfp.max():.3g} mm vs node spacing {h:.3g} mm")
+    if mfp.min() < h:
+        text += " (finer than the grid: light entering and leaving within one spacing is smeared over it)"
+    return text

@@ -120,6 +120,19 @@ def latlong_directions(height: int, width: int) -> tuple[NDArray[np.float64], ND
     return d, np.repeat(band[:, None] * (2.0 * math.pi / width), width, axis=1)
 
 
+def latlong_lookup(image: ArrayLike, directions: ArrayLike) -> NDArray[np.float64]:
+    """The pixels ``(N, C)`` of a lat-long map ``(H, W, C)`` (convention of
+    :func:`latlong_directions`) that unit ``directions`` (N, 3) fall in (nearest pixel)."""
+    img = np.asarray(image, dtype=np.float64)
+    d = np.asarray(directions, dtype=np.float64)
+    h, w = img.shape[:2]
+    theta = np.arccos(np.clip(d[:, 2], -1.0, 1.0))
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    row = np.clip((theta / math.pi * h).astype(np.int64), 0, h - 1)
+    col = np.floor((phi + math.pi) / (2.0 * math.pi) * w).astype(np.int64) % w
+    return img[row, col]
+
+
 def sh_project(image: ArrayLike, order: int = 2) -> NDArray[np.float64]:
     """SH coefficients ``((order + 1)^2, 3)`` of a lat-long radiance map ``(H, W, 3)``.
 

@@ -33,6 +33,14 @@ instead of carrying the quadrature error of K directions (several percent for K 
 ratio tends to the plain sum as K grows. Where every weight of a channel vanishes the
 cosine-Fresnel weighted visible fraction is used instead.
 
+Area light: :func:`glsldiff.physics.area.area_beams` (exact clipped form factors of its
+sub-rectangles, Fresnel per sub-rectangle), not shadowed.
+
+Beams (for the first-collision volume source, :mod:`glsldiff.physics.collision`): on request
+each light is also returned as beams, transmitted irradiance with the refracted cosine it
+travels at into the medium. An environment light's beams assume uniform radiance over the
+hemisphere (:data:`ENV_BEAMS`); its visibility and spherical-harmonic shape scale them.
+
 GL objects are created per call and released before it returns. Units: mm, radiance and
 irradiance in the caller's units.
 """
@@ -49,15 +57,29 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff import gl
 from glsldiff.core import checks
 from glsldiff.core.errors import InputError
-from glsldiff.physics.lights import (EnvironmentLight, KINDS, Light, casts_shadows, check_light, incidence,
-                                     light_kind, to_light)
+from glsldiff.physics.area import area_beams, refracted_cosine
+from glsldiff.physics.lights import (AreaLight, EnvironmentLight, KINDS, Light, casts_shadows, check_light,
+                                     incidence, light_kind, to_light)
 from glsldiff.physics.optics import transmitted_cosine
 from glsldiff.physics.sh import fibonacci_directions, sh_evaluate, sh_irradiance
 from glsldiff.render.shadows import DepthRenderer
 
-__all__ = ["incident_light", "visibility", "ENV_SHADOW_MAP_MAX"]
+__all__ = ["incident_light", "visibility", "ENV_SHADOW_MAP_MAX", "Beam"]
 
 ENV_SHADOW_MAP_MAX = 512   # shadow maps of environment directions are at most this size
+#: Incidence cosines (3-point Gauss-Legendre on [0, 1]) of an environment light's beams.
+ENV_BEAMS = tuple(0.5 * (1.0 + x) for x in np.polynomial.legendre.leggauss(3)[0])
+#: A beam: transmitted irradiance ``(N, 3)`` and the refracted cosine ``(N,)`` it arrives at.
+Beam = tuple[NDArray[np.float64], NDArray[np.float64]]
+
+
+def _env_beams(eta: float | None) -> list[tuple[float, float]]:
+    """``(share, t)`` of the beams an environment light's ``E_t`` is split into: radiance taken
+    as uniform over the hemisphere, share ``prop. mu F_t(mu)`` at the Gauss points ``mu`` of
+    :data:`ENV_BEAMS` (Gauss weights), ``t`` their refracted cosines."""
+    mu = np.asarray(ENV_BEAMS)
+    w = np.polynomial.legendre.leggauss(3)[1] * transmitted_cosine(eta, mu)
+    return list(zip(w / w.sum(), refracted_cosine(eta, mu)))
 
 
 def _mesh_arrays(mesh: Any) -> None:
@@ -131,7 +153,8 @@ def visibility(mesh: Any, points: ArrayLike, light: Light, ctx: moderngl.Context
 
 def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Sequence[Light],
                    eta: float | None, ctx: moderngl.Context | None = None,
-                   shadow_map_size: int = 1024) -> tuple[NDArray[np.float64], list[dict[str, Any]]]:
+                   shadow_map_size: int = 1024, beams: list[Beam] | None = None,
+                   triangles: ArrayLike | None = None) -> tuple[NDArray[np.float64], list[dict[str, Any]]]:
     """Transmitted irradiance at boundary nodes (pass 1; formulas in the module docstring).
 
     Parameters
@@ -153,6 +176,14 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
     shadow_map_size
         Texels per side of each shadow-map view (environment directions: at most
         ``ENV_SHADOW_MAP_MAX``).
+    triangles
+        ``(F, 3)`` surface triangles over ``points`` (optional): area lights are then averaged
+        over each point's P1 support (:func:`_area_averaged`) instead of sampled at it.
+    beams
+        If a list, the light is also appended to it as beams ``(E (N, 3), t (N,))`` whose
+        ``E`` sum to ``E_t``, ``t`` the refracted cosine each arrives at (module docstring):
+        one per directional, point, spot or projector light, one per sub-rectangle of an
+        area light, ``len(ENV_BEAMS)`` per environment light.
 
     Returns
     -------
@@ -185,6 +216,16 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                 renderer = DepthRenderer(_context(ctx), mesh)
             if isinstance(light, EnvironmentLight):
                 e = _environment(light, p, n, eta_v, renderer if needs_map else None, size, info)
+                if beams is not None:
+                    beams.extend((e * w, np.full(len(p), t)) for w, t in _env_beams(eta_v))
+            elif isinstance(light, AreaLight):
+                g, t = _area_averaged(light, p, n, eta_v, triangles, info)
+                rad = np.asarray(light.radiance)
+                e = g.sum(axis=1)[:, None] * rad
+                if beams is not None:
+                    beams.extend((g[:, k, None] * rad, t[:, k]) for k in range(g.shape[1]))
+                info.update(shadow_map="none (area lights are not shadowed)", shadowed=0,
+                            facing=int((g.sum(axis=1) > 0).sum()), samples=light.samples ** 2)
             else:
                 w = to_light(light, p)
                 cos = np.einsum("ij,ij->i", n, w)
@@ -204,6 +245,8 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                     info["shadowed"] = 0
                 info["facing"] = int(facing.sum())
                 e = scale[:, None] * np.atleast_2d(colour)
+                if beams is not None:
+                    beams.append((e, refracted_cosine(eta_v, cos)))
             total += e
             info["max"] = [float(x) for x in (e.max(axis=0) if len(e) else np.zeros(3))]
             info["seconds"] = time.perf_counter() - t0
@@ -212,6 +255,81 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
         if renderer is not None:
             renderer.release()
     return total, infos
+
+
+#: Triangles whose corners' area-light irradiance differ by more than this share of the
+#: light's largest are integrated on REFINE x REFINE sub-triangles (:func:`_area_averaged`).
+REFINE_REL = 0.05
+#: ... and whose centroid's value differs from the mean of the corners' by more than this share.
+REFINE_CENTROID = 0.01
+REFINE = 4
+
+
+def _sub_barycentrics(m: int) -> NDArray[np.float64]:
+    """``(m^2, 3)`` barycentric centroids of the m^2 congruent sub-triangles of a triangle."""
+    out = []
+    for i in range(m):
+        for j in range(m - i):
+            out.append(((i + 1 / 3) / m, (j + 1 / 3) / m))          # upward sub-triangle
+            if i + j < m - 1:
+                out.append(((i + 2 / 3) / m, (j + 2 / 3) / m))      # downward one
+    a = np.array(out)
+    return np.column_stack([1.0 - a.sum(axis=1), a[:, 0], a[:, 1]])
+
+
+def _area_averaged(light: AreaLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float | None,
+                   triangles: ArrayLike | None, info: dict[str, Any]
+                   ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Beams ``(g (N, K), t (N, K))`` of an area light (:func:`glsldiff.physics.area.area_beams`)
+    at the points, each the average over the point's P1 support on ``triangles``:
+    ``g_i = sum_T int_T g v_i / sum_T int_T v_i``. A sharp light edge crossing a node's
+    cells then puts into the source the share of the cells it lights, not all or nothing
+    (which, sampled at the nodes, moved the edge by up to half a spacing: +9 % power for a
+    4 mm patch on a 0.42 mm grid). Triangles whose corners differ by less than ``REFINE_REL``
+    of the light's largest value, or whose centroid's value the corners' mean matches within
+    ``REFINE_CENTROID`` of it (smooth light), use the corner values (lumped); the others are integrated at the centroids of ``REFINE^2``
+    sub-triangles. ``t`` is averaged with the weights ``g v_i``."""
+    g, t = area_beams(light, p, n, eta)
+    if triangles is None or len(p) == 0:
+        return g, t
+    tri = np.asarray(triangles, dtype=np.int64)
+    P = p[tri]
+    area = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1)
+    G = g.sum(axis=1)[tri]
+    refine = (G.max(axis=1) - G.min(axis=1)) > REFINE_REL * G.max()
+    if refine.any():   # keep only those the linear interpolant misses at the centroid: an edge crosses them
+        cand = np.flatnonzero(refine)
+        nc = n[tri[cand]].sum(axis=1)
+        gc, _ = area_beams(light, P[cand].mean(axis=1), nc / np.linalg.norm(nc, axis=1, keepdims=True).clip(1e-300),
+                           eta)
+        refine[cand] = np.abs(gc.sum(axis=1) - G[cand].mean(axis=1)) > REFINE_CENTROID * G.max()
+    info["refined_triangles"] = int(refine.sum())
+    w = np.repeat(area / 3.0, 3)
+    num = np.zeros_like(g)
+    num_t = np.zeros_like(g)
+    den = np.bincount(tri.ravel(), w, minlength=len(p))
+    keep = ~refine
+    corner = tri[keep].ravel()
+    wk = np.repeat(area[keep] / 3.0, 3)[:, None]
+    np.add.at(num, corner, wk * g[corner])
+    np.add.at(num_t, corner, wk * g[corner] * t[corner])
+    if refine.any():
+        bary = _sub_barycentrics(REFINE)                                        # (m, 3)
+        rt = tri[refine]
+        pts = np.einsum("mk,fkj->fmj", bary, p[rt]).reshape(-1, 3)
+        nrm = np.einsum("mk,fkj->fmj", bary, n[rt]).reshape(-1, 3)
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True).clip(1e-300)
+        gs, ts = area_beams(light, pts, nrm, eta)
+        m = len(bary)
+        gs, ts = gs.reshape(len(rt), m, -1), ts.reshape(len(rt), m, -1)
+        wa = (area[refine] / m)[:, None, None] * bary[None, :, :]               # (f, m, 3) int of v_i per point
+        for k in range(3):
+            np.add.at(num, rt[:, k], np.einsum("fm,fmq->fq", wa[:, :, k], gs))
+            np.add.at(num_t, rt[:, k], np.einsum("fm,fmq->fq", wa[:, :, k], gs * ts))
+    has = den > 0
+    g_avg = np.where(has[:, None], num / np.where(has, den, 1.0)[:, None], g)
+    t_avg = np.where(has[:, None] & (num > 0), num_t / np.where(num > 0, num, 1.0), t)
+    return g_avg, t_avg
 
 
 def _environment(light: EnvironmentLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float | None,

@@ -9,7 +9,10 @@ Stages, in the one direction data flows (numpy arrays between them):
   and the GLSL solver that holds them as textures.
 * **pass 1** (t1, per light set): transmitted irradiance ``E_t`` at the boundary nodes
   (:func:`glsldiff.render.pass1.incident_light`: shadow maps, environment light with per-node
-  visibility), and the solver's boundary source ``q``.
+  visibility, area lights averaged over the nodes' surface cells), and the solver's source:
+  with ``[options].source = "surface"`` (default) the Marshak boundary source ``q``; with
+  ``"volume"`` the first-collision load of :mod:`glsldiff.render.collision` (light as reduced
+  intensity below the surface, ``q = 0``; tetrahedral grids only).
 * **pass 2** (t2): the polygrid diffusion solve (:class:`glsldiff.solve.multilevel.MultilevelDiffusion`;
   on tetrahedra, ``[polygrid] discretisation = "fem"``, GPU algebraic-multigrid-preconditioned
   CG, :class:`glsldiff.solve.gather_multigrid.GlslSparseMultigrid`),
@@ -23,7 +26,9 @@ Stages, in the one direction data flows (numpy arrays between them):
   plus Ward specular per light (per-vertex shadow visibility; a projector's image factor,
   :func:`glsldiff.physics.lights.projector_factor`, is folded into it as its channel mean, so the
   highlight takes the intensity's colour), plus optional single scattering
-  (:mod:`glsldiff.physics.single`, with the projector's RGB image factor), plus an optional
+  (:mod:`glsldiff.physics.single`, with the projector's RGB image factor), plus the
+  unscattered light of area and environment lights seen through the object
+  (:mod:`glsldiff.render.unscattered`, ``[options].unscattered``, default on), plus an optional
   measured diffuse surface reflectance ``rho_d / pi * E`` (``[material].reflectance``,
   :mod:`glsldiff.inverse.reflectance`; ``E`` the incident irradiance with shadows).
 
@@ -54,9 +59,12 @@ from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
-from glsldiff.physics.lights import DirectLight, EnvironmentLight, ProjectorLight, projector_factor
+from glsldiff.physics.material import regime
+from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
 from glsldiff.physics.single import light_single_scattering
 from glsldiff.render.camera import scene_camera
+from glsldiff.render.collision import first_collision_load
+from glsldiff.render.unscattered import sees_through, unscattered
 from glsldiff.render.materials import node_material, surface_reflectance
 from glsldiff.render.pass1 import incident_light, visibility
 from glsldiff.render.report import RenderReport
@@ -114,6 +122,7 @@ class Renderer:
         self._solve_report: Any = None
         self._from_cache = False
         self._fem_system: LinearSystem | None = None
+        self._load: NDArray | None = None
 
     @property
     def mesh(self) -> Any:
@@ -183,10 +192,19 @@ class Renderer:
 
     def _pass1(self, scene: Scene) -> None:
         pg = self._geo["pg"]
+        volume = scene.options.source == "volume"
+        beams: list | None = [] if volume else None
         E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, scene.lights,
-                                   scene.material.eta, ctx=self.ctx)
+                                   scene.material.eta, ctx=self.ctx, beams=beams,
+                                   triangles=pg.surface_triangles if self._geo["fem"] else None)
         self._E_t = np.asarray(E_t, dtype=np.float64)
         q = source_from_irradiance(self._E_t, scene.material.eta, scene.options.exitant)
+        self._load = None
+        if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
+            t0 = time.perf_counter()
+            self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams)
+            info.append({"light": "first-collision source", "beams": len(beams or ()),
+                         "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         if not np.all(np.isfinite(q)) or q.max() > Q_MAX:
             raise InputError(f"{scene.source}: [[lights]]: the transmitted irradiance reaches "
                              f"{np.nanmax(self._E_t):.3g}, beyond what the solver's float32 textures hold "
@@ -196,7 +214,7 @@ class Renderer:
             raise InputError(f"{scene.source}: [[lights]]: no light reaches the object (the source is 0 at "
                              "every boundary node); check the lights' directions, positions, cones and "
                              "intensities")
-        self._q = q
+        self._q = np.zeros_like(q) if volume else q
         self._light_info = info
 
     def _say(self, line: str) -> None:
@@ -210,7 +228,7 @@ class Renderer:
         gl.make_current(self.ctx)
         x0: Any = CURRENT if warm and opts.scheme != "multigrid" else None
         key = cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", scene.polygrid.discretisation, pg.positions,
-                           pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q,
+                           pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q, self._load,
                            scene.material.eta, opts.scheme, opts.precision, opts.tol)
         warm_from_disk = opts.scheme != "adaptive" and (x0 is None or self._solver is None)   # (adaptive: below)
         stored = cache.load("pass2", key, np.ndarray) if warm_from_disk or (fem and self._solver is None) else None
@@ -273,8 +291,12 @@ class Renderer:
         return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta)
 
     def _fem_rhs(self, scene: Scene, problem: TetProblem | None = None) -> NDArray[np.float64]:
-        """``(n_active, 3)`` right-hand side of the P1 system for the current source."""
-        return tet_rhs(self._fem_problem(scene) if problem is None else problem, self._geo["tetgeo"])
+        """``(n_active, 3)`` right-hand side of the P1 system for the current source (boundary
+        source, plus the first-collision load with ``source = "volume"``)."""
+        b = tet_rhs(self._fem_problem(scene) if problem is None else problem, self._geo["tetgeo"])
+        if self._load is not None:
+            b = b + self._load[self._fem_active]
+        return b
 
     def _fem_solver(self, scene: Scene) -> GlslSparseMultigrid:
         if scene.options.precision != "fp32":
@@ -288,17 +310,17 @@ class Renderer:
         residual check and the GPU solver of a later frame share it); its ``b`` is replaced by
         the current source's right-hand side."""
         problem = self._fem_problem(scene)
-        if self._fem_system is None:     # assembled with the current source's right-hand side
+        if self._fem_system is None:
             self._fem_system = assemble_tet(problem, self._geo["tetgeo"])
             self._fem_active = self._fem_system.active
-        else:
-            self._fem_system.b = self._fem_rhs(scene, problem).T.reshape(-1)
+        self._fem_system.b = self._fem_rhs(scene, problem).T.reshape(-1)
         return self._fem_system
 
     @staticmethod
     def _shader_lights(scene: Scene) -> list[DirectLight]:
-        """The lights pass 3 shades per light (all but environments, at most MAX_SHADER_LIGHTS)."""
-        return [lt for lt in scene.lights if not isinstance(lt, EnvironmentLight)][:MAX_SHADER_LIGHTS]
+        """The lights pass 3 shades per light (all but environment and area lights, at most
+        MAX_SHADER_LIGHTS)."""
+        return [lt for lt in scene.lights if not isinstance(lt, (EnvironmentLight, AreaLight))][:MAX_SHADER_LIGHTS]
 
     def _pass3(self, scene: Scene) -> NDArray[np.float32]:
         geo, opts = self._geo, scene.options
@@ -326,6 +348,8 @@ class Renderer:
             ss = self._single(scene, eye)
         if scene.material.reflectance is not None:
             ss = ss + self._surface_diffuse(scene)
+        if opts.unscattered and sees_through(scene.lights):
+            ss = ss + self._unscattered(scene, eye)
         vis = self._vis * self._tint.mean(axis=2)   # the shader's visibility is one number per light
         return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (scene.output.width, scene.output.height))
@@ -346,11 +370,10 @@ class Renderer:
             self._diffuse, self._keys["diffuse"] = self._rho * E / math.pi, key
         return self._diffuse
 
-    def _single(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
-        geo = self._geo
-        v, nrm = geo["vertices"], geo["normals"]
-        view = eye - v
-        view /= np.linalg.norm(view, axis=1, keepdims=True)
+    def _medium(self, scene: Scene) -> Any:
+        """The material for path integrals through the object: ``(sigma_a, sigma_s')`` RGB
+        arrays (mm^-1) when homogeneous, else a function of points ``(M, 3)`` returning both
+        ``(M, 3)``, evaluated in the nodes' unit box."""
         pg = self._geo["pg"]
         lo, hi = pg.positions.min(axis=0), pg.positions.max(axis=0)
 
@@ -359,10 +382,31 @@ class Renderer:
             kappa, mu = kappa[2:], mu[2:]
             return mu, np.maximum(1.0 / (3.0 * kappa) - mu, 0.0)
 
-        medium: Any = material
-        if not (scene.material.procedural or scene.material.volume):
-            sa, ss = material(v[:1])
-            medium = (sa[0], ss[0])
+        if scene.material.procedural or scene.material.volume:
+            return material
+        sa, ss = material(self._geo["vertices"][:1])
+        return sa[0], ss[0]
+
+    def _unscattered(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
+        """Per-vertex unscattered light seen through the object (:mod:`glsldiff.render.unscattered`),
+        kept while the camera, lights, material and geometry stay the same."""
+        key = _key(self._keys.get("material"), self._keys.get("light"), tuple(np.round(eye, 9)))
+        if self._keys.get("unscattered") != key:
+            t0 = time.perf_counter()
+            geo, medium = self._geo, self._medium(scene)
+            sigma_t: Any = (lambda p: np.add(*medium(p))) if callable(medium) else medium[0] + medium[1]
+            self._unsc = unscattered(geo["mesh"], geo["vertices"], geo["normals"], eye, scene.material.eta,
+                                     scene.lights, sigma_t)
+            self._keys["unscattered"] = key
+            self._unsc_seconds = time.perf_counter() - t0
+        return self._unsc
+
+    def _single(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
+        geo = self._geo
+        v, nrm = geo["vertices"], geo["normals"]
+        view = eye - v
+        view /= np.linalg.norm(view, axis=1, keepdims=True)
+        medium = self._medium(scene)
         out = np.zeros_like(v)
         for i, light in enumerate(self._shader_lights(scene)):   # a projector's image: in incidence
             out += light_single_scattering(v, nrm, view, light, medium, scene.material.eta, self._vis[:, i])
@@ -375,7 +419,8 @@ class Renderer:
         geo_key = _key(scene.mesh, scene.polygrid, str(scene.base_dir))
         mat_key = _key(geo_key, replace(scene.material, reflectance=None),  # pass 3 alone uses the reflectance
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
-        light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir))
+        light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
+                         scene.options.source, mat_key if scene.options.source == "volume" else None)
         solve_key = _key(mat_key, light_key, scene.options.tol)
 
         def stage(name: str, key_name: str, key: str, fn: Any, why_skip: str, timer: str | None) -> bool:
@@ -421,10 +466,14 @@ class Renderer:
             rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, {q.inverted} "
                              f"inverted, worst quality {q.worst_quality:.3g}; coverage: mesh vertices within "
                              f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
+        through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
+                         f"source: {scene.options.source}; "
                          f"single scattering: {'on' if scene.options.single_scattering else 'off'}; "
+                         f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "
                          f"{'off' if scene.material.reflectance is None else scene.material.reflectance}")
+        rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], pg.h if self._geo["fem"] else pg.lattice.h))
         for info in getattr(self, "_light_info", []):
             rep.notes.append("light: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                                                    for k, v in info.items()))

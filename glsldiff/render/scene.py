@@ -34,7 +34,7 @@ silently ignored).
                               # "rho.exr": a measured map over the block's face, tiled like the volume
                               # (glsldiff.inverse.reflectance)
 
-    [[lights]]                # directional | point | spot | projector | environment (glsldiff.physics.lights)
+    [[lights]]                # directional | point | spot | projector | area | environment (glsldiff.physics.lights)
     type = "directional"
     direction = [0.3, 1.0, 0.6]   # towards the light
     irradiance = [1.0, 1.0, 1.0]
@@ -48,6 +48,15 @@ silently ignored).
     up = [0, 1, 0]            # default [0, 1, 0]
     fov_deg = 30.0            # vertical full field of view
     intensity = [1e4, 1e4, 1e4]   # radiant intensity of a white pixel
+
+    [[lights]]                # a one-sided Lambertian rectangle (light box, lit patch); not shadowed
+    type = "area"
+    position = [0, 0, -3]     # centre
+    direction = [0, 0, 1]     # the emitting side's normal, into the scene
+    size = [4, 4]             # width (along right) and height (along up), mm
+    up = [0, 1, 0]            # default [0, 1, 0]
+    radiance = [1, 1, 1]
+    samples = 4               # sub-rectangles per side (Fresnel and refraction per sub-rectangle)
 
     [camera]
     position = [0, 40, 250]
@@ -70,6 +79,8 @@ silently ignored).
     precision = "fp32"        # fp32 | fp16 | paper
     exitant = "p1"            # p1 (P1 radiance, Marshak source) | arbree (TransCut eq. 3) | paper (net flux)
     single_scattering = false
+    source = "surface"        # surface (Marshak boundary source) | volume (first-collision source, fem only)
+    unscattered = true        # area/environment light seen straight through the object (thin parts)
 
 ``[[lights]]`` tables parse straight into the light types of :mod:`glsldiff.physics.lights`
 (``Scene.lights``); the other keys of a light table: ``cone_deg`` (in (0, 90], default 30) and
@@ -100,7 +111,8 @@ from glsldiff.grids.polygrid import node_budget_problem
 from glsldiff.mesh import SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.physics.exitance import EXITANT
-from glsldiff.physics.lights import (KINDS, DirectionalLight, EnvironmentLight, Light, PointLight, ProjectorLight,
+from glsldiff.physics.collision import SOURCES
+from glsldiff.physics.lights import (KINDS, AreaLight, DirectionalLight, EnvironmentLight, Light, PointLight, ProjectorLight,
                                      SpotLight)
 from glsldiff.physics.material import preset as lookup_preset
 from glsldiff.physics.procedural import POINT_KINDS
@@ -123,7 +135,7 @@ PROCEDURAL = ("veins",) + POINT_KINDS  # veins: a marble lattice; the others: we
 LIGHT_TYPES = tuple(KINDS)
 #: Keys of a ``[[lights]]`` table (module docstring); which ones each kind reads: :func:`_light`.
 LIGHT_KEYS = ("type", "direction", "position", "irradiance", "intensity", "cone_deg", "falloff_deg", "path",
-              "scale", "shadows", "image", "up", "fov_deg")
+              "scale", "shadows", "image", "up", "fov_deg", "size", "radiance", "samples")
 SCHEMES = ("single", "hierarchical", "multigrid")
 
 
@@ -184,6 +196,8 @@ class OptionsSpec:
     precision: str = "fp32"
     exitant: str = "p1"
     single_scattering: bool = False
+    source: str = "surface"
+    unscattered: bool = True
 
 
 @dataclass(frozen=True)
@@ -361,12 +375,21 @@ def _image(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool) -> N
     return img
 
 
+def _size2(t: _Table) -> tuple[float, float]:
+    v = t.data["size"]
+    if (not isinstance(v, list) or len(v) != 2 or not all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                           and math.isfinite(x) and x > 0 for x in v)):
+        t.fail("size", f"must be [width, height] in mm, both > 0, got {v!r}")
+    return float(v[0]), float(v[1])
+
+
 def _light(t: _Table, scene_dir: Path) -> Light:
     kind = t.data.get("type")
     if kind not in LIGHT_TYPES:
         t.fail("type", f"{kind!r} is not one of {', '.join(LIGHT_TYPES)}")
     need = {"directional": ("direction",), "point": ("position",), "spot": ("position", "direction"),
-            "projector": ("position", "direction", "image"), "environment": ("path",)}[kind]
+            "projector": ("position", "direction", "image"), "area": ("position", "direction", "size"),
+            "environment": ("path",)}[kind]
     for k in need:
         if not t.has(k):
             t.fail(k, f"a {kind} light needs {k}")
@@ -379,7 +402,7 @@ def _light(t: _Table, scene_dir: Path) -> Light:
         t.fail("fov_deg", f"must be < 180, got {fov}")
     direction = t.vec3("direction", None, nonzero=True)
     up = t.vec3("up", None, nonzero=True)
-    if kind == "projector":
+    if kind in ("projector", "area"):
         u = up if up is not None else (0.0, 1.0, 0.0)
         a, b = vec(direction), vec(u)
         if np.linalg.norm(np.cross(a, b)) < 1e-6 * np.linalg.norm(a) * np.linalg.norm(b):
@@ -390,7 +413,10 @@ def _light(t: _Table, scene_dir: Path) -> Light:
     intensity = t.vec3("intensity", (1.0e4, 1.0e4, 1.0e4), nonneg=True)
     env_map = _image(t, "path", scene_dir, "environment map", exr_only=True)
     scale = t.number("scale", 1.0, 0.0)
-    shadows = t.boolean("shadows", True)
+    shadows = t.boolean("shadows", kind != "area")
+    size = _size2(t) if kind == "area" else None
+    radiance = t.vec3("radiance", (1.0, 1.0, 1.0), nonneg=True)
+    samples = t.integer("samples", 4, 1)
     image = _image(t, "image", scene_dir, "projector image", exr_only=False)
     try:
         if kind == "directional":
@@ -402,6 +428,9 @@ def _light(t: _Table, scene_dir: Path) -> Light:
         if kind == "projector":
             return ProjectorLight(position, direction, image, intensity, up=up if up is not None else (0.0, 1.0, 0.0),
                                   fov_deg=fov, shadows=shadows)
+        if kind == "area":
+            return AreaLight(position, direction, size, radiance, up=up if up is not None else (0.0, 1.0, 0.0),
+                             samples=samples, shadows=shadows)
         return EnvironmentLight(env_map, scale)   # visibility on; ``shadows`` is not read
     except InputError as exc:   # e.g. "SpotLight.direction must be ...": name the table's key
         key = str(exc).split(" ", 1)[0].partition(".")[2].partition("=")[0]
@@ -477,7 +506,11 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     t = _Table(src, "options", data.get("options", {}), _keys(OptionsSpec))
     options = OptionsSpec(t.string("scheme", "hierarchical", SCHEMES), t.number("tol", 1e-4, 0.0, lo_open=True, hi=0.1),
                           t.string("precision", "fp32", ("fp32", "fp16", "paper")),
-                          t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False))
+                          t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False),
+                          t.string("source", "surface", SOURCES), t.boolean("unscattered", True))
+    if options.source == "volume" and poly.discretisation != "fem":
+        t.fail("source", "\"volume\" (the first-collision source) is solved on tetrahedra only; set [polygrid] "
+                         "discretisation = \"fem\" (the default) or source = \"surface\"")
     if options.scheme != "single" and poly.levels == 1:
         options = replace(options, scheme="single")
     return Scene(mesh, poly, material, lights, camera, output, specular, options, src, base_dir)

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from glsldiff.core import checks
 from glsldiff.core.errors import BackendError, InputError
 from glsldiff.mesh import Mesh
-from glsldiff.physics.lights import DirectionalLight, EnvironmentLight
+from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight
 
 #: Mitsuba variants usable here (RGB rendering: spectral variants would upsample coefficients).
 RGB_VARIANTS = ("scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb")
@@ -78,7 +78,9 @@ class McCamera:
 
 def check_light(light: Any, eta: float) -> dict[str, Any]:
     """The Mitsuba emitter parameters of ``light`` (module docstring): ``type`` (``directional``,
-    ``constant`` or ``envmap``) and its values as arrays."""
+    ``area`` (a ``rectangle`` shape with an ``area`` emitter, one-sided like the
+    :class:`~glsldiff.physics.lights.AreaLight`), ``constant`` or ``envmap``) and its values
+    as arrays."""
     if isinstance(light, DirectionalLight):
         if eta != 1.0:
             raise InputError(
@@ -87,6 +89,14 @@ def check_light(light: Any, eta: float) -> dict[str, Any]:
                 "use eta = 1 (index matched) or an environment light")
         return {"type": "directional", "direction": np.asarray(light.direction),
                 "irradiance": np.asarray(light.irradiance)}
+    if isinstance(light, AreaLight):
+        right, up, fwd = light.frame
+        w, h = light.size
+        # Mitsuba's rectangle: [-1, 1]^2 in local x, y, normal +z; x cross y must be the emitting side
+        to_world = np.eye(4)
+        to_world[:3, 0], to_world[:3, 1], to_world[:3, 2] = up * h / 2, right * w / 2, fwd
+        to_world[:3, 3] = light.position
+        return {"type": "area", "to_world": to_world, "radiance": np.asarray(light.radiance)}
     if isinstance(light, EnvironmentLight):
         img = light.image
         if np.all(img == img[0, 0]):   # uniform: Mitsuba's constant emitter, sampled exactly
@@ -95,7 +105,7 @@ def check_light(light: Any, eta: float) -> dict[str, Any]:
             raise InputError(f"light.image of an environment light must be at least 2 x 2 pixels for Mitsuba's "
                              f"envmap, got {img.shape[0]} x {img.shape[1]}")
         return {"type": "envmap", "image": img, "scale": light.scale}
-    raise InputError(f"light must be a DirectionalLight or an EnvironmentLight (glsldiff.physics.lights) for the "
+    raise InputError(f"light must be a DirectionalLight, AreaLight or EnvironmentLight (glsldiff.physics.lights) for the "
                      f"Monte Carlo reference, got {type(light).__name__}")
 
 
@@ -237,6 +247,9 @@ def emitter_dict(mi: Any, light: dict[str, Any]) -> dict[str, Any]:
     if light["type"] == "directional":
         return {"type": "directional", "direction": (-light["direction"]).tolist(),
                 "irradiance": {"type": "rgb", "value": light["irradiance"].tolist()}}
+    if light["type"] == "area":
+        return {"type": "rectangle", "to_world": mi.ScalarTransform4f(light["to_world"].tolist()),
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}}
     if light["type"] == "constant":
         return {"type": "constant", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}
     return {"type": "envmap", "scale": light["scale"],

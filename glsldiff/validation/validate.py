@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 import tempfile
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Sequence
@@ -46,16 +47,19 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import binary_erosion
 
-from glsldiff.core import io
+from glsldiff.core import checks, io
+from glsldiff.core.plotting import pyplot
 from glsldiff.core.errors import InputError
 from glsldiff.mesh import box_mesh
-from glsldiff.physics.lights import DirectionalLight, EnvironmentLight, Light
+from glsldiff.physics.collision import SOURCES
+from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight, Light
 from glsldiff.physics.optics import dipole_total_reflectance
 from glsldiff.physics.sh import latlong_directions
 from glsldiff.render.camera import frame_camera
 from glsldiff.render.materials import node_material
 from glsldiff.render.renderer import Renderer
-from glsldiff.render.scene import CameraSpec, MaterialSpec, MeshSpec, OutputSpec, PolygridSpec, Scene, SpecularSpec
+from glsldiff.render.scene import (CameraSpec, MaterialSpec, MeshSpec, OptionsSpec, OutputSpec, PolygridSpec, Scene,
+                                   SpecularSpec)
 from glsldiff.validation.mitsuba import McCamera, render_scattering_orders, render_subsurface
 from glsldiff.validation.mitsuba_scene import load_mitsuba
 
@@ -72,23 +76,33 @@ class Case:
     size_mm: float
     sigma_a: float
     sigma_s: float                  # sigma_s' (isotropic phase in Mitsuba)
-    light: tuple[float, float, float] | str   # towards a directional light, or a name in ENVIRONMENTS
+    light: tuple[float, float, float] | str   # towards a directional light, a name in ENVIRONMENTS, or "patch"
     camera_dir: tuple[float, float, float]
     procedural: str | None = None
     n: int = 8
     cubes: int = 64
     eta: float = 1.0                # relative index of refraction of the boundary
+    thickness_mm: float | None = None   # slab thickness (default size_mm / 3)
+    patch_mm: float = 4.0           # side of the "patch" light: a diffuse square against the slab's back face
+    view_mm: float | None = None    # half-width of the field seen (default: the object framed)
+    spp_factor: int = 1             # Monte Carlo samples per pixel: this times the command's spp
+    source: str = "surface"         # [options].source of the diffusion renderer
 
     def __post_init__(self) -> None:
-        if isinstance(self.light, str) and self.light not in ENVIRONMENTS:
+        if isinstance(self.light, str) and self.light not in ENVIRONMENTS + ("patch",):
             raise InputError(f"case {self.name}: light {self.light!r} is not an environment "
-                             f"({', '.join(ENVIRONMENTS)}) or a direction")
+                             f"({', '.join(ENVIRONMENTS)}), \"patch\" or a direction")
+        if self.light == "patch" and self.mesh != "slab":
+            raise InputError(f"case {self.name}: the patch light lies against a slab's back face; mesh = \"slab\"")
         if self.eta != 1.0 and not isinstance(self.light, str):
             raise InputError(f"case {self.name}: eta = {self.eta} needs an environment light (a directional "
                              "light cannot reach a dielectric interior by next-event estimation)")
 
 
 _SPHERE = Case("sphere", "sphere", 20.0, 0.005, 1.0, (1.0, 0.3, 0.6), (0.0, 0.0, 1.0))
+#: Issue 18's localized case: a 5 mm slab back-lit by a 4 x 4 mm diffuse patch, seen from the front.
+_PATCH = Case("slab-patch", "slab", 40.0, 0.02, 1.2, "patch", (0.0, 0.0, 1.0), n=2, cubes=15000, eta=1.4,
+              thickness_mm=5.0, view_mm=12.0, spp_factor=64, source="volume")
 #: Camera directions of the environment cases: the sky's zenith (+z) at the image's left.
 _ENV_VIEW = {"constant": (0.0, 0.0, 1.0), "sky": (1.0, 0.0, 0.0)}
 CASES = {c.name: c for c in (
@@ -100,7 +114,13 @@ CASES = {c.name: c for c in (
          cubes=120),
     *(replace(_SPHERE, name=f"sphere{'-eta1.3' if eta != 1.0 else ''}-{env}", light=env, eta=eta,
               camera_dir=_ENV_VIEW[env]) for eta in (1.0, 1.3) for env in ENVIRONMENTS),
+    _PATCH,
+    replace(_PATCH, name="slab-patch-surface", source="surface"),
 )}
+#: Samples per pixel of each of the two Monte Carlo renders of the unscattered light alone.
+UNSCATTERED_SPP = 8192
+#: Where the patch light sits below the slab's back face, mm (Mitsuba needs a gap between them).
+PATCH_GAP_MM = 0.02
 
 
 def environment_map(name: str, height: int = 64, width: int = 128) -> NDArray[np.float64]:
@@ -124,9 +144,16 @@ def environment_map(name: str, height: int = 64, width: int = 128) -> NDArray[np
     return 0.05 + np.array([0.20, 0.22, 0.25]) * (1.0 + z) ** 2 + np.array([0.15, 0.12, 0.08]) * (1.0 + y)
 
 
+def _thickness(case: Case) -> float:
+    return case.thickness_mm if case.thickness_mm is not None else case.size_mm / 3.0
+
+
 def _light(case: Case) -> Light:
     """The case's light, the same for the renderer and for
     :func:`glsldiff.validation.mitsuba.render_mitsuba`."""
+    if case.light == "patch":   # the slab spans z in [-thickness, 0]: the patch faces its back face
+        return AreaLight((0.0, 0.0, -_thickness(case) - PATCH_GAP_MM), (0.0, 0.0, 1.0), (case.patch_mm,) * 2,
+                         (1.0, 1.0, 1.0))
     if isinstance(case.light, str):
         return EnvironmentLight(environment_map(case.light))
     return DirectionalLight(case.light, (1.0, 1.0, 1.0))
@@ -138,7 +165,8 @@ def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
                  material=MaterialSpec(preset=None, sigma_a=(case.sigma_a,) * 3, sigma_s_prime=(case.sigma_s,) * 3,
                                        eta=case.eta, procedural=case.procedural),
                  lights=(_light(case),),
-                 camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2))
+                 camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2),
+                 options=OptionsSpec(source=case.source, tol=1e-5 if case.light == "patch" else 1e-4))
 
 
 def rmse(ours: NDArray, ref: NDArray, mask: NDArray) -> float:
@@ -156,10 +184,10 @@ def _standard_error(parts: Sequence[NDArray], mask: NDArray) -> float:
     return float(math.sqrt(np.mean(stack.var(axis=0, ddof=1)) / m / np.mean(stack.mean(axis=0) ** 2)))
 
 
-def _slab_file(folder: Path, size: float) -> str:
+def _slab_file(folder: Path, size: float, thickness: float) -> str:
     import trimesh   # heavy import, only for the PLY export
 
-    m = box_mesh((size, size, size / 3.0), origin=(-size / 2, -size / 2, -size / 3.0))
+    m = box_mesh((size, size, thickness), origin=(-size / 2, -size / 2, -thickness))
 
     path = folder / "slab.ply"
     trimesh.Trimesh(m.vertices, m.faces, process=False).export(path)
@@ -210,33 +238,49 @@ def mc_split(spp: int) -> tuple[int, int]:
 def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
              folder: Path | None = None) -> tuple[dict[str, Any], dict[str, NDArray]]:
     """One case: (row of numbers, images {"diffusion", "mc_subsurface", "mc_full"} and, with
-    eta = 1, "mc_multiple"). With ``folder``, an environment map is written there as
+    eta = 1, "mc_multiple"; the patch case adds "diffusion_unscattered" and "mc_unscattered").
+    With ``folder``, an environment map is written there as
     ``validation_<case>_environment.exr``."""
-    env = isinstance(case.light, str)
+    env = case.light in ENVIRONMENTS
+    patch = case.light == "patch"
     with tempfile.TemporaryDirectory() as tmp:
-        mesh_path = _slab_file(Path(tmp), case.size_mm) if case.mesh == "slab" else None
+        mesh_path = _slab_file(Path(tmp), case.size_mm, _thickness(case)) if case.mesh == "slab" else None
         if env and folder is not None:   # the map both renderers get, for the record
             folder.mkdir(parents=True, exist_ok=True)
-            io.write_exr(folder / f"validation_{case.name}_environment.exr", environment_map(case.light))
+            io.write_exr(folder / f"validation_{case.name}_environment.exr", environment_map(str(case.light)))
         scene = _scene(case, mesh_path, size)
         d = np.asarray(case.camera_dir, float)
+        d = d / np.linalg.norm(d)
         with Renderer() as r:
             _, rep1 = r.render(scene)             # set-up, passes 1-3 (camera framed automatically)
             eye, target, up = frame_camera(scene, r.mesh.vertices)
-            dist = float(np.linalg.norm(eye - target))
-            eye = target + dist * d / np.linalg.norm(d)
-            scene = replace(scene, camera=CameraSpec(tuple(eye), tuple(target), tuple(up), scene.camera.fov_deg))
+            fov = scene.camera.fov_deg
+            if case.view_mm is not None:          # a field of +-view_mm around the origin, from 200 mm
+                target, dist = np.zeros(3), 200.0
+                fov = 2.0 * math.degrees(math.atan(case.view_mm / dist))
+            else:
+                dist = float(np.linalg.norm(eye - target))
+            eye = target + dist * d
+            if abs(float(np.dot(up, d))) > 0.99:
+                up = np.array([0.0, 1.0, 0.0])
+            scene = replace(scene, camera=CameraSpec(tuple(eye), tuple(target), tuple(up), fov))
             ours, rep = r.render(scene)           # the compared view: pass 3 only
             rep.seconds.update({k: rep1.seconds[k] for k in ("t1", "t2") if k in rep1.seconds})
             rep.solver = rep1.solver
             ours_s = rep.frame_seconds
+            if patch:                             # the unscattered term alone: the frame without it
+                dark, _ = r.render(replace(scene, options=replace(scene.options, unscattered=False)))
+                ours_unscattered = ours - dark
             pg, mesh = r.polygrid, r.mesh
             volume = _volume(scene, pg) if case.procedural else None
-    cam = McCamera(tuple(eye), tuple(target), tuple(up), scene.camera.fov_deg, size, size)
-    renders, each = mc_split(spp)
+    cam = McCamera(tuple(eye), tuple(target), tuple(up), fov, size, size)
+    renders, each = mc_split(spp * case.spp_factor)
     parts, seconds = zip(*(_mc_render(case, mesh, cam, each, seed + k, volume) for k in range(renders)))
     mc = {k: np.mean([p[k] for p in parts], axis=0) for k in parts[0]}
     sub = mc["subsurface"]
+    if patch:
+        return _patch_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam, seed,
+                          renders * each)
     unsplit = np.full_like(sub, np.nan)   # eta != 1: no scattering orders, their numbers are NaN
     multiple, single = mc.get("multiple", unsplit), mc.get("single", unsplit)
     inside = binary_erosion((ours.sum(axis=2) > 0) & (sub.sum(axis=2) > 0), iterations=1)
@@ -244,7 +288,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
         raise InputError(f"case {case.name}: the object covers too few pixels ({int(inside.sum())}) to compare")
     sub_sum = max(float(sub[inside].sum()), 1e-30)
     row: dict[str, Any] = {
-        "case": case.name, "light": case.light if env else "directional", "eta": case.eta,
+        "case": case.name, "light": case.light if env else "directional", "eta": case.eta, "source": case.source,
         "albedo": case.sigma_s / (case.sigma_s + case.sigma_a), "material": case.procedural or "homogeneous",
         "nodes": rep.nodes, "pixels": int(inside.sum()),
         "rmse_vs_mc_multiple": rmse(ours, multiple, inside),
@@ -270,10 +314,87 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     return row, images
 
 
-def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256) -> list[dict[str, Any]]:
+def _centre(img: NDArray, half_px: int) -> float:
+    c0, c1 = img.shape[0] // 2, img.shape[1] // 2
+    return float(img[c0 - half_px:c0 + half_px, c1 - half_px:c1 + half_px].mean())
+
+
+def _patch_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArray, ours_s: float,
+               parts: Sequence[dict[str, NDArray]], mc: dict[str, NDArray], mc_s: float, mesh: Any,
+               cam: McCamera, seed: int, spp: int) -> tuple[dict[str, Any], dict[str, NDArray]]:
+    """Numbers and images of the back-lit patch case (module docstring): over the whole field
+    (the slab fills it), relative L2 of the subsurface image, the ratio of the summed images
+    (power), of the central 2 x 2 mm (peak), and of the unscattered images: Monte Carlo's is a
+    render of the same slab with sigma_s = 0 (extinction sigma_a + sigma_s, nothing scatters),
+    two renders of ``UNSCATTERED_SPP`` samples (their difference: the noise of its power)."""
+    from glsldiff.validation.mitsuba import render_mitsuba
+
+    sub = mc["subsurface"]
+    every = np.ones(sub.shape[:2], dtype=bool)
+    st = case.sigma_a + case.sigma_s
+    t0 = time.perf_counter()   # nothing scatters: a path survives with probability exp(-tau), so many samples
+    halves = [render_mitsuba(mesh, (st,) * 3, (0.0,) * 3, case.eta, cam, _light(case), UNSCATTERED_SPP, seed + 99 + k)[0]
+              for k in range(2)]
+    unsc = 0.5 * (halves[0] + halves[1])
+    mc_unsc_s = time.perf_counter() - t0
+    px_mm = 2.0 * case.view_mm / sub.shape[0] if case.view_mm else 1.0
+    half = max(1, int(round(1.0 / px_mm)))                   # 2 x 2 mm around the centre
+    peak_mc = _centre(sub, half)
+    row: dict[str, Any] = {
+        "case": case.name, "light": f"patch {case.patch_mm:g} mm", "eta": case.eta, "source": case.source,
+        "albedo": case.sigma_s / st, "thickness_mm": _thickness(case), "nodes": rep.nodes, "pixels": int(every.sum()),
+        "rel_l2": rmse(ours, sub, every), "power_ratio": float(ours.sum() / sub.sum()),
+        "peak_ratio": _centre(ours, half) / peak_mc, "peak_mc": peak_mc,
+        "mc_noise": _standard_error([p["subsurface"] for p in parts], every),
+        "unscattered_share_mc": float(unsc.sum() / sub.sum()),
+        "unscattered_mc_noise": float(abs(halves[0].sum() - halves[1].sum()) / max(2.0 * float(unsc.sum()), 1e-30)),
+        "unscattered_ratio": float(ours_unscattered.sum() / max(float(unsc.sum()), 1e-30)),
+        "diffusion_s": ours_s, "t1_t2_t3_ms": "/".join(f"{rep.seconds.get(k, 0) * 1e3:.0f}" for k in ("t1", "t2", "t3")),
+        "mc_s": mc_s + mc_unsc_s, "spp": spp, "solver_residual": rep.solver.residual if rep.solver else math.nan,
+    }
+    images = {"diffusion": ours, "mc_subsurface": sub, "mc_full": mc["full"], "diffusion_unscattered": ours_unscattered,
+              "mc_unscattered": np.asarray(unsc, dtype=np.float64)}
+    return row, images
+
+
+def _panels(path: Path, mc: NDArray, ours: NDArray, name: str) -> None:
+    """PNG of four panels (luminance, channel mean): Monte Carlo's subsurface image, ours, their
+    difference (ours - MC, symmetric colour scale) and both along the centre row."""
+    plt = pyplot()
+    a, b = mc.mean(axis=2), ours.mean(axis=2)
+    top = max(float(np.percentile(a, 99.5)), 1e-12)
+    fig, ax = plt.subplots(1, 4, figsize=(15, 3.6))
+    for k, (img, title) in enumerate(((a, "Monte Carlo (subsurface)"), (b, "diffusion (ours)"))):
+        im = ax[k].imshow(img, cmap="magma", vmin=0.0, vmax=top)
+        ax[k].set_title(title)
+        fig.colorbar(im, ax=ax[k], fraction=0.046)
+    lim = max(float(np.abs(b - a).max()), 1e-12)
+    im = ax[2].imshow(b - a, cmap="coolwarm", vmin=-lim, vmax=lim)
+    ax[2].set_title("ours - Monte Carlo")
+    fig.colorbar(im, ax=ax[2], fraction=0.046)
+    row = a.shape[0] // 2
+    ax[3].plot(a[row], "k-", label="Monte Carlo")
+    ax[3].plot(b[row], "r-", label="diffusion")
+    ax[3].set_title("centre row")
+    ax[3].set_xlabel("pixel")
+    ax[3].legend()
+    for k in range(3):
+        ax[k].axhline(row, color="w", lw=0.5, ls=":")
+        ax[k].set_xticks([])
+        ax[k].set_yticks([])
+    fig.suptitle(f"glsldiff validate: {name}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
+             source: str | None = None) -> list[dict[str, Any]]:
     """Run ``cases``; write validation.csv, and per case a PNG (diffusion | MC multiple scattering
     (eta = 1) or MC subsurface, all orders (eta != 1) | MC full image, surface reflection and
-    background included), the images as EXR and the environment map (if any)."""
+    background included), a PNG of panels (:func:`_panels`: MC, ours, difference, centre-row
+    profile), the images as EXR and the environment map (if any). ``source`` (``"surface"`` or
+    ``"volume"``) overrides every case's diffusion source model."""
     unknown = [c for c in cases if c not in CASES]
     if unknown:
         raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}")
@@ -282,12 +403,14 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256) ->
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in cases:
-        row, imgs = run_case(CASES[name], size, spp, folder=out)
+        case = CASES[name] if source is None else replace(CASES[name], source=checks.choice(source, "source", SOURCES))
+        row, imgs = run_case(case, size, spp, folder=out)
         rows.append(row)
         middle = imgs.get("mc_multiple", imgs["mc_subsurface"])
         expo = 0.8 / max(float(np.percentile(imgs["mc_subsurface"], 99)), 1e-12)
         sheet = io.contact_sheet([imgs["diffusion"], middle, imgs["mc_full"]], 3, expo, scale=2)
         io.write_png(out / f"validation_{name}.png", sheet)
+        _panels(out / f"validation_{name}_panels.png", imgs["mc_subsurface"], imgs["diffusion"], name)
         for key, img in imgs.items():
             io.write_exr(out / f"validation_{name}_{key}.exr", img)
         io.write_csv(out / "validation.csv", rows)

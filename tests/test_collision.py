@@ -1,0 +1,77 @@
+"""First-collision volume source: hat averages, loads, and ray casting."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from glsldiff.core.errors import InputError
+from glsldiff.mesh import box_mesh, load_mesh
+from glsldiff.mesh.raycast import first_hits
+from glsldiff.physics.collision import hat_average_exp, node_source
+
+
+def _hat_reference(a: float, d: float, h: float) -> float:
+    hat = lambda z: max(0.0, 1.0 - abs(z - d) / h)   # noqa: E731
+    lo = max(0.0, d - h)
+    num = quad(lambda z: np.exp(-a * z) * hat(z), lo, d + h, points=[d], epsabs=1e-15, limit=200)[0]
+    return num / quad(hat, lo, d + h, points=[d])[0]
+
+
+@pytest.mark.parametrize("a, d", [(1.2, 0.0), (1.2, 0.2), (1.2, 0.5), (1.2, 3.0), (1e-7, 1.0), (1e3, 0.0),
+                                  (1e3, 0.3), (50.0, 2.0), (1e-5, 0.01)])
+def test_hat_average_of_the_exponential_is_exact(a, d):
+    assert hat_average_exp(a, d, 0.5) == pytest.approx(_hat_reference(a, d, 0.5), rel=1e-9, abs=1e-300)
+
+
+def test_a_column_of_nodes_receives_the_collided_power():
+    """Layers h apart below a lit surface: the loads add up to sigma_s / sigma_t of the
+    transmitted irradiance (all of it collides in a thick medium), whatever sigma_t h is."""
+    for st, h in ((1.22, 0.4), (50.0, 0.4), (0.05, 0.4)):
+        depth = np.arange(0.0, 60.0 / st + 1e3 * (st < 0.1), h)
+        V = np.full(len(depth), h)
+        V[0] = h / 2
+        E = np.full((len(depth), 2, 3), 0.5)       # two beams
+        t = np.tile([1.0, 0.6], (len(depth), 1))
+        ss = np.full((len(depth), 3), 0.9 * st)
+        b = node_source(depth, V, E, t, ss, np.full((len(depth), 3), st), h)
+        assert b.sum(axis=0) == pytest.approx([0.9] * 3, rel=1e-6)
+        assert np.all(b >= 0) and np.all(np.diff(b[1:, 0]) <= 0)
+
+
+def test_grazing_beams_and_bad_input():
+    b = node_source([0.0], [1.0], [[[1.0, 1.0, 1.0]]], [[0.0]], [[1.0] * 3], [[1.0] * 3], 0.5)
+    assert not b.any()
+    with pytest.raises(InputError, match="spacing"):
+        node_source([0.0], [1.0], [[[1.0] * 3]], [[1.0]], [[1.0] * 3], [[1.0] * 3], 0.0)
+    with pytest.raises(InputError, match="do not match"):
+        node_source([0.0, 1.0], [1.0], [[[1.0] * 3]], [[1.0]], [[1.0] * 3], [[1.0] * 3], 0.5)
+    with pytest.raises(InputError, match="sigma_t"):
+        node_source([0.0], [1.0], [[[1.0] * 3]], [[1.0]], [[0.0] * 3], [[0.0] * 3], 0.5)
+
+
+def test_ray_casting_finds_the_nearest_face():
+    m = box_mesh((40, 40, 5), origin=(-20, -20, -5))
+    t, f = first_hits(m, [[0, 0, -1.0], [0, 0, -1], [0, 0, 10], [30, 0, 10], [0, 0, -1]],
+                      [[0, 0, 1.0], [0.3, 0, -1], [0, 0, -1], [0, 0, -1], [0, 0, 1.0]])
+    np.testing.assert_allclose(t[:3], [1.0, 4.0, 10.0])
+    assert t[3] == np.inf and f[3] == -1 and f[0] >= 0
+    t2, f2 = first_hits(m, [[0, 0, -1.0]], [[0, 0, 1.0]], t_max=0.5)
+    assert t2[0] == np.inf and f2[0] == -1
+    bunny = load_mesh("bunny", size_mm=100)
+    rng = np.random.default_rng(3)
+    o = rng.normal(size=(200, 3)) * 5 + bunny.vertices.mean(axis=0)
+    d = rng.normal(size=(200, 3))
+    t, f = first_hits(bunny, o, d)
+    tri = bunny.triangles
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    for i in range(0, 200, 7):                     # brute force over all faces
+        p = np.cross(d[i][None], e2)
+        det = np.einsum("ij,ij->i", e1, p)
+        s = o[i][None] - tri[:, 0]
+        u = np.einsum("ij,ij->i", s, p) / det
+        q = np.cross(s, e1)
+        v = q @ d[i] / det
+        tt = np.einsum("ij,ij->i", e2, q) / det
+        ok = (u >= 0) & (v >= 0) & (u + v <= 1) & (tt > 1e-6)
+        assert t[i] == pytest.approx(tt[ok].min(), rel=1e-9)
