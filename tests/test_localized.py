@@ -89,6 +89,11 @@ def test_unscattered_light_through_a_slab():
     out = unscattered(m, v, n, eye, 1.0, [env], np.array([1.0, 2.0, 3.0]))
     np.testing.assert_allclose(out[0], np.exp(-np.array([1.0, 2.0, 3.0]) * 5), rtol=1e-9)
     assert not unscattered(m, v, -n, eye, 1.4, [light], np.array([1.0] * 3)).any()    # facing away
+    # a heterogeneous medium is sampled at 16 midpoints along the path: an absorbing layer over
+    # the upper 1.875 mm (6 of the 16 segments of 5/16 mm) adds exactly 2/mm over 1.875 mm
+    layered = unscattered(m, v, n, eye, 1.4, [light], lambda p: np.where(p[:, 2:3] > -1.875, 3.22, 1.22) * np.ones(3),
+                          sigma_t_min=1.22)
+    np.testing.assert_allclose(layered[0], expect * math.exp(-2.0 * 1.875), rtol=1e-9)
 
 
 def test_tiny_back_lit_patch_validation_case(tmp_path, monkeypatch):
@@ -129,3 +134,26 @@ def test_stiff_cases_stay_finite_and_say_where_diffusion_holds(tmp_path, ctx, si
     albedo = sigma_s / (sigma_a + sigma_s)
     assert f"albedo {albedo:.3g}" in note
     assert ("100.0 % of nodes below" in note) == (albedo < 0.95)
+
+
+def test_tiny_spot_lit_slab_case(tmp_path, monkeypatch):
+    """A hard-edged 6 degree spot 100 mm in front of a 10 mm slab (eta = 1: Mitsuba reaches the
+    spot by next-event estimation), with Monte Carlo's scattering orders split: 16 px, 64 spp."""
+    pytest.importorskip("mitsuba")
+    tiny = dataclasses.replace(CASES["slab-spot"], name="tiny-spot", size_mm=20.0, cubes=1500, spp_factor=1)
+    monkeypatch.setitem(CASES, "tiny-spot", tiny)
+    r = validate(["tiny-spot"], tmp_path, size=16, spp=64)[0]
+    assert r["light"] == "spot 6 deg" and r["unscattered_share_mc"] == 0.0 and np.isnan(r["unscattered_ratio"])
+    assert 0.05 < r["single_share_mc"] < 0.4
+    assert 0.8 < r["power_ratio"] < 1.25 and 0.7 < r["peak_ratio"] < 1.4
+
+
+def test_mitsuba_spot_must_be_hard_edged_and_index_matched():
+    from glsldiff.physics.lights import SpotLight
+    from glsldiff.validation.mitsuba_scene import check_light
+    hard = SpotLight((0, 0, 100), (0, 0, -1), (1, 1, 1), cone_deg=3.0, falloff_deg=3.0)
+    assert check_light(hard, 1.0)["cone_deg"] == 3.0
+    with pytest.raises(InputError, match="hard-edged"):
+        check_light(SpotLight((0, 0, 100), (0, 0, -1), (1, 1, 1), cone_deg=3.0, falloff_deg=2.0), 1.0)
+    with pytest.raises(InputError, match="eta = 1.4"):
+        check_light(hard, 1.4)

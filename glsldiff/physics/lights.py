@@ -61,6 +61,18 @@ def _position(value: Any, name: str) -> tuple[float, float, float]:
     return tuple(float(x) for x in vector3(value, name))  # type: ignore[return-value]
 
 
+def _orient(light: Any, kind: str, where: str) -> None:
+    """Check and normalise the ``position``, ``direction`` and ``up`` of a light with a frame."""
+    object.__setattr__(light, "position", _position(light.position, f"{kind}.position"))
+    fwd = unit_vector(light.direction, f"{kind}.direction")
+    up = unit_vector(light.up, f"{kind}.up")
+    if np.linalg.norm(np.cross(fwd, up)) < 1e-6:
+        raise InputError(f"{kind}.up={light.up!r} is parallel to direction={light.direction!r}; "
+                         f"give an up vector {where}")
+    object.__setattr__(light, "direction", fwd)
+    object.__setattr__(light, "up", up)
+
+
 def _digest(image: NDArray[np.float64]) -> str:
     """Short hex digest of an image's shape and pixels."""
     h = hashlib.blake2b(repr(image.shape).encode(), digest_size=10)
@@ -195,14 +207,7 @@ class ProjectorLight:
     digest: str = field(init=False, default="")   #: of the image (module docstring)
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "position", _position(self.position, "ProjectorLight.position"))
-        fwd = unit_vector(self.direction, "ProjectorLight.direction")
-        up = unit_vector(self.up, "ProjectorLight.up")
-        if np.linalg.norm(np.cross(fwd, up)) < 1e-6:
-            raise InputError(f"ProjectorLight.up={self.up!r} is parallel to direction={self.direction!r}; "
-                             "give an up vector across the optical axis")
-        object.__setattr__(self, "direction", fwd)
-        object.__setattr__(self, "up", up)
+        _orient(self, "ProjectorLight", "across the optical axis")
         img = radiance_map(self.image, "ProjectorLight.image")
         img.setflags(write=False)
         object.__setattr__(self, "image", img)
@@ -267,14 +272,7 @@ class AreaLight:
     shadows: bool = False
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "position", _position(self.position, "AreaLight.position"))
-        fwd = unit_vector(self.direction, "AreaLight.direction")
-        up = unit_vector(self.up, "AreaLight.up")
-        if np.linalg.norm(np.cross(fwd, up)) < 1e-6:
-            raise InputError(f"AreaLight.up={self.up!r} is parallel to direction={self.direction!r}; "
-                             "give an up vector in the rectangle's plane")
-        object.__setattr__(self, "direction", fwd)
-        object.__setattr__(self, "up", up)
+        _orient(self, "AreaLight", "in the rectangle's plane")
         size = checks.finite_array(self.size, "AreaLight.size")
         if size.shape != (2,) or np.any(size <= 0):
             raise InputError(f"AreaLight.size={self.size!r} must be (width, height) in mm, both > 0")

@@ -36,6 +36,11 @@ cosine-Fresnel weighted visible fraction is used instead.
 Area light: :func:`glsldiff.physics.area.area_beams` (exact clipped form factors of its
 sub-rectangles, Fresnel per sub-rectangle), not shadowed.
 
+With the surface ``triangles`` over the points (tetrahedral grids), each light but the
+environment is averaged over every point's P1 cells rather than sampled at the point
+(:func:`_cell_averaged`), so sharp edges (patches, hard spots, projector pixels, shadows) enter
+the source with the share of each cell they light.
+
 Beams (for the first-collision volume source, :mod:`glsldiff.physics.collision`): on request
 each light is also returned as beams, transmitted irradiance with the refracted cosine it
 travels at into the medium. An environment light's beams assume uniform radiance over the
@@ -48,7 +53,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import moderngl
 import numpy as np
@@ -177,8 +182,9 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
         Texels per side of each shadow-map view (environment directions: at most
         ``ENV_SHADOW_MAP_MAX``).
     triangles
-        ``(F, 3)`` surface triangles over ``points`` (optional): area lights are then averaged
-        over each point's P1 support (:func:`_area_averaged`) instead of sampled at it.
+        ``(F, 3)`` surface triangles over ``points`` (optional): every light but the
+        environment is then averaged over each point's P1 support (:func:`_cell_averaged`)
+        instead of sampled at it.
     beams
         If a list, the light is also appended to it as beams ``(E (N, 3), t (N,))`` whose
         ``E`` sum to ``E_t``, ``t`` the refracted cosine each arrives at (module docstring):
@@ -219,7 +225,7 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                 if beams is not None:
                     beams.extend((e * w, np.full(len(p), t)) for w, t in _env_beams(eta_v))
             elif isinstance(light, AreaLight):
-                g, t = _area_averaged(light, p, n, eta_v, triangles, info)
+                g, t = _cell_averaged(lambda q, nq: area_beams(light, q, nq, eta_v), p, n, triangles, info)
                 rad = np.asarray(light.radiance)
                 e = g.sum(axis=1)[:, None] * rad
                 if beams is not None:
@@ -227,26 +233,13 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                 info.update(shadow_map="none (area lights are not shadowed)", shadowed=0,
                             facing=int((g.sum(axis=1) > 0).sum()), samples=light.samples ** 2)
             else:
-                w = to_light(light, p)
-                cos = np.einsum("ij,ij->i", n, w)
-                scale, colour = incidence(light, p, transmitted_cosine(eta_v, cos))
-                facing = scale > 0
-                if needs_map:
-                    assert renderer is not None
-                    sm = renderer.shadow_map(light, size)
-                    vis = np.ones(len(p))
-                    idx = np.flatnonzero(facing)
-                    vis[idx] = sm.lookup(p[idx] - renderer.centre, w[idx], n[idx])
-                    scale = scale * vis
-                    info["shadow_map"] = sm.label
-                    info["shadowed"] = int((vis[facing] < 0.5).sum())
-                else:
-                    info["shadow_map"] = "none (shadows off)"
-                    info["shadowed"] = 0
-                info["facing"] = int(facing.sum())
-                e = scale[:, None] * np.atleast_2d(colour)
+                e, t3 = _cell_averaged(_direct_evaluator(light, eta_v, renderer if needs_map else None, size, info),
+                                       p, n, triangles, info)
+                info.pop("points", None)
+                info["facing"] = int(np.count_nonzero(incidence(light, p, transmitted_cosine(
+                    eta_v, np.einsum("ij,ij->i", n, to_light(light, p))))[0] > 0))
                 if beams is not None:
-                    beams.append((e, refracted_cosine(eta_v, cos)))
+                    beams.append((e, t3[:, 0]))
             total += e
             info["max"] = [float(x) for x in (e.max(axis=0) if len(e) else np.zeros(3))]
             info["seconds"] = time.perf_counter() - t0
@@ -277,20 +270,24 @@ def _sub_barycentrics(m: int) -> NDArray[np.float64]:
     return np.column_stack([1.0 - a.sum(axis=1), a[:, 0], a[:, 1]])
 
 
-def _area_averaged(light: AreaLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float | None,
+Evaluate = Callable[[NDArray[np.float64], NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]]
+
+
+def _cell_averaged(evaluate: Evaluate, p: NDArray[np.float64], n: NDArray[np.float64],
                    triangles: ArrayLike | None, info: dict[str, Any]
                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Beams ``(g (N, K), t (N, K))`` of an area light (:func:`glsldiff.physics.area.area_beams`)
-    at the points, each the average over the point's P1 support on ``triangles``:
-    ``g_i = sum_T int_T g v_i / sum_T int_T v_i``. A sharp light edge crossing a node's
-    cells then puts into the source the share of the cells it lights, not all or nothing
-    (which, sampled at the nodes, moved the edge by up to half a spacing: +9 % power for a
-    4 mm patch on a 0.42 mm grid). Triangles whose corners differ by less than ``REFINE_REL``
-    of the light's largest value, or whose centroid's value the corners' mean matches within
-    ``REFINE_CENTROID`` of it (smooth light), use the corner values (lumped); the others are integrated at the centroids of ``REFINE^2``
-    sub-triangles. ``t`` is averaged with the weights ``g v_i``."""
-    g, t = area_beams(light, p, n, eta)
-    if triangles is None or len(p) == 0:
+    """Light values ``(g (N, K), t (N, K))`` at the points (``evaluate(points, normals)``: K
+    beams or colour channels with their refracted cosines), each the average over the point's
+    P1 support on ``triangles``: ``g_i = sum_T int_T g v_i / sum_T int_T v_i``. A sharp light
+    edge (a patch, a hard spot, a projector pixel, a shadow) crossing a node's cells then puts
+    into the source the share of the cells it lights, not all or nothing (which, sampled at the
+    nodes, moved the edge by up to half a spacing: +9 % power for a 4 mm patch on a 0.42 mm
+    grid). Triangles whose corners differ by less than ``REFINE_REL`` of the light's largest
+    value, or whose centroid's value the corners' mean matches within ``REFINE_CENTROID`` of
+    it (smooth light), use the corner values (lumped); the others are integrated at the
+    centroids of ``REFINE^2`` sub-triangles. ``t`` is averaged with the weights ``g v_i``."""
+    g, t = evaluate(p, n)
+    if triangles is None or len(p) == 0 or not g.any():
         return g, t
     tri = np.asarray(triangles, dtype=np.int64)
     P = p[tri]
@@ -300,8 +297,7 @@ def _area_averaged(light: AreaLight, p: NDArray[np.float64], n: NDArray[np.float
     if refine.any():   # keep only those the linear interpolant misses at the centroid: an edge crosses them
         cand = np.flatnonzero(refine)
         nc = n[tri[cand]].sum(axis=1)
-        gc, _ = area_beams(light, P[cand].mean(axis=1), nc / np.linalg.norm(nc, axis=1, keepdims=True).clip(1e-300),
-                           eta)
+        gc, _ = evaluate(P[cand].mean(axis=1), nc / np.linalg.norm(nc, axis=1, keepdims=True).clip(1e-300))
         refine[cand] = np.abs(gc.sum(axis=1) - G[cand].mean(axis=1)) > REFINE_CENTROID * G.max()
     info["refined_triangles"] = int(refine.sum())
     w = np.repeat(area / 3.0, 3)
@@ -319,7 +315,7 @@ def _area_averaged(light: AreaLight, p: NDArray[np.float64], n: NDArray[np.float
         pts = np.einsum("mk,fkj->fmj", bary, p[rt]).reshape(-1, 3)
         nrm = np.einsum("mk,fkj->fmj", bary, n[rt]).reshape(-1, 3)
         nrm /= np.linalg.norm(nrm, axis=1, keepdims=True).clip(1e-300)
-        gs, ts = area_beams(light, pts, nrm, eta)
+        gs, ts = evaluate(pts, nrm)
         m = len(bary)
         gs, ts = gs.reshape(len(rt), m, -1), ts.reshape(len(rt), m, -1)
         wa = (area[refine] / m)[:, None, None] * bary[None, :, :]               # (f, m, 3) int of v_i per point
@@ -330,6 +326,34 @@ def _area_averaged(light: AreaLight, p: NDArray[np.float64], n: NDArray[np.float
     g_avg = np.where(has[:, None], num / np.where(has, den, 1.0)[:, None], g)
     t_avg = np.where(has[:, None] & (num > 0), num_t / np.where(num > 0, num, 1.0), t)
     return g_avg, t_avg
+
+
+def _direct_evaluator(light: Light, eta: float | None, renderer: DepthRenderer | None, size: int,
+                      info: dict[str, Any]) -> Evaluate:
+    """``evaluate(points, normals) -> (E (M, 3), t (M, 3))`` of a directional, point, spot or
+    projector light: its transmitted irradiance with shadows (the light's shadow map, rendered
+    once here, when ``renderer`` is given) and the refracted cosine, repeated per channel."""
+    sm = renderer.shadow_map(light, size) if renderer is not None else None
+    info["shadow_map"] = sm.label if sm is not None else "none (shadows off)"
+    info["shadowed"] = 0
+
+    def evaluate(q: NDArray[np.float64], nq: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        w = to_light(light, q)
+        cos = np.einsum("ij,ij->i", nq, w)
+        scale, colour = incidence(light, q, transmitted_cosine(eta, cos))
+        if sm is not None:
+            assert renderer is not None
+            idx = np.flatnonzero(scale > 0)
+            vis = np.ones(len(q))
+            vis[idx] = sm.lookup(q[idx] - renderer.centre, w[idx], nq[idx])
+            scale = scale * vis
+            if "points" not in info:   # the first call: the nodes themselves
+                info["points"] = True
+                info["shadowed"] = int((vis[idx] < 0.5).sum())
+        e = scale[:, None] * np.atleast_2d(colour) * np.ones((len(q), 3))
+        return e, np.repeat(refracted_cosine(eta, cos)[:, None], 3, axis=1)
+
+    return evaluate
 
 
 def _environment(light: EnvironmentLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float | None,

@@ -249,11 +249,15 @@ class Renderer:
             x0 = stored
             self._from_cache = x0 is not None
         budget = {"maxiter": FEM_MAXITER} if fem else {}
-        phi, rep = self._solver.solve(tol=opts.tol, x0=x0, **budget)
+        hint = ("the object may be optically too small or thin for its material (size_mm, sigma), or "
+                "[options].tol too tight")
+        try:
+            phi, rep = self._solver.solve(tol=opts.tol, x0=x0, **budget)
+        except SolverError as exc:   # diverged: no image to keep, whatever allow_unconverged says
+            raise SolverError(f"pass 2 did not converge: {exc}; {hint}") from exc
         if rep.status not in ("converged", "stalled") and not self.allow_unconverged:
             raise SolverError(f"pass 2 did not converge: residual {rep.residual:.3g} > tol {opts.tol:g} after "
-                              f"{rep.sweeps} iterations ({rep.status}); the object may be optically too "
-                              "small or thin for its material (size_mm, sigma), or [options].tol too tight; "
+                              f"{rep.sweeps} iterations ({rep.status}); {hint}; "
                               "--allow-unconverged writes the unconverged image")
         if rep.status == "converged" and not self._from_cache:
             cache.store("pass2", key, np.asarray(phi))
@@ -396,7 +400,7 @@ class Renderer:
             geo, medium = self._geo, self._medium(scene)
             sigma_t: Any = (lambda p: np.add(*medium(p))) if callable(medium) else medium[0] + medium[1]
             self._unsc = unscattered(geo["mesh"], geo["vertices"], geo["normals"], eye, scene.material.eta,
-                                     scene.lights, sigma_t)
+                                     scene.lights, sigma_t, float((1.0 / (3.0 * self._mat["kappa"])).min()))
             self._keys["unscattered"] = key
             self._unsc_seconds = time.perf_counter() - t0
         return self._unsc

@@ -71,11 +71,13 @@ def _behind(lights: Sequence[Light], y: NDArray, w: NDArray) -> NDArray[np.float
 
 
 def unscattered(mesh: Any, vertices: NDArray, normals: NDArray, eye: NDArray, eta: float,
-                lights: Sequence[Light], sigma_t: NDArray | Callable[[NDArray], NDArray]) -> NDArray[np.float64]:
+                lights: Sequence[Light], sigma_t: NDArray | Callable[[NDArray], NDArray],
+                sigma_t_min: float | None = None) -> NDArray[np.float64]:
     """``(V, 3)`` unscattered radiance towards ``eye`` at ``vertices`` (module docstring).
 
     ``sigma_t``: ``(3,)`` homogeneous sigma_t' (mm^-1), or a function of points ``(M, 3)``
-    returning ``(M, 3)``."""
+    returning ``(M, 3)``; ``sigma_t_min``: its smallest value anywhere in the object (bounds the
+    path followed; default: that of the homogeneous ``sigma_t``, no bound for a function)."""
     v = np.asarray(vertices, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
     out = np.zeros((len(v), 3))
@@ -88,8 +90,9 @@ def unscattered(mesh: Any, vertices: NDArray, normals: NDArray, eye: NDArray, et
     idx = np.flatnonzero(mu > 0.0)
     d, _ = _refract(-w_o[idx], n[idx], 1.0 / eta)
     homogeneous = not callable(sigma_t)
-    st_min = float(np.min(sigma_t)) if homogeneous else float(np.min(sigma_t(v[idx[:: max(1, len(idx) // 64)]])))
-    reach = REACH / max(st_min, 1e-12)
+    if sigma_t_min is None:
+        sigma_t_min = float(np.min(sigma_t)) if homogeneous else 0.0
+    reach = REACH / sigma_t_min if sigma_t_min > 0 else np.inf
     h = 1e-6 * float(np.ptp(v, axis=0).max())
     s, face = first_hits(mesh, v[idx] + h * d, d, t_max=reach)
     hit = face >= 0

@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from glsldiff.core import checks
 from glsldiff.core.errors import BackendError, InputError
 from glsldiff.mesh import Mesh
-from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight
+from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight, SpotLight
 
 #: Mitsuba variants usable here (RGB rendering: spectral variants would upsample coefficients).
 RGB_VARIANTS = ("scalar_rgb", "llvm_ad_rgb", "cuda_ad_rgb")
@@ -78,9 +78,9 @@ class McCamera:
 
 def check_light(light: Any, eta: float) -> dict[str, Any]:
     """The Mitsuba emitter parameters of ``light`` (module docstring): ``type`` (``directional``,
-    ``area`` (a ``rectangle`` shape with an ``area`` emitter, one-sided like the
-    :class:`~glsldiff.physics.lights.AreaLight`), ``constant`` or ``envmap``) and its values
-    as arrays."""
+    ``spot`` (hard-edged only, eta = 1), ``area`` (a ``rectangle`` shape with an ``area``
+    emitter, one-sided like the :class:`~glsldiff.physics.lights.AreaLight`), ``constant`` or
+    ``envmap``) and its values as arrays."""
     if isinstance(light, DirectionalLight):
         if eta != 1.0:
             raise InputError(
@@ -89,6 +89,15 @@ def check_light(light: Any, eta: float) -> dict[str, Any]:
                 "use eta = 1 (index matched) or an environment light")
         return {"type": "directional", "direction": np.asarray(light.direction),
                 "irradiance": np.asarray(light.irradiance)}
+    if isinstance(light, SpotLight):
+        if light.falloff_deg != light.cone_deg:
+            raise InputError(f"a spot light for the Monte Carlo reference must be hard-edged (falloff_deg = cone_deg "
+                             f"= {light.cone_deg}): Mitsuba's spot fades linearly in angle, glsldiff's by smoothstep")
+        if eta != 1.0:
+            raise InputError(f"a spot (delta) light cannot be reached through a smooth dielectric boundary (eta = {eta}) "
+                             "by next-event estimation; use eta = 1")
+        return {"type": "spot", "position": np.asarray(light.position), "direction": np.asarray(light.direction),
+                "intensity": np.asarray(light.intensity), "cone_deg": light.cone_deg}
     if isinstance(light, AreaLight):
         right, up, fwd = light.frame
         w, h = light.size
@@ -105,7 +114,7 @@ def check_light(light: Any, eta: float) -> dict[str, Any]:
             raise InputError(f"light.image of an environment light must be at least 2 x 2 pixels for Mitsuba's "
                              f"envmap, got {img.shape[0]} x {img.shape[1]}")
         return {"type": "envmap", "image": img, "scale": light.scale}
-    raise InputError(f"light must be a DirectionalLight, AreaLight or EnvironmentLight (glsldiff.physics.lights) for the "
+    raise InputError(f"light must be a DirectionalLight, SpotLight, AreaLight or EnvironmentLight (glsldiff.physics.lights) for the "
                      f"Monte Carlo reference, got {type(light).__name__}")
 
 
@@ -247,6 +256,13 @@ def emitter_dict(mi: Any, light: dict[str, Any]) -> dict[str, Any]:
     if light["type"] == "directional":
         return {"type": "directional", "direction": (-light["direction"]).tolist(),
                 "irradiance": {"type": "rgb", "value": light["irradiance"].tolist()}}
+    if light["type"] == "spot":
+        target = light["position"] + light["direction"]
+        up = [0.0, 1.0, 0.0] if abs(light["direction"][1]) < 0.9 else [1.0, 0.0, 0.0]
+        return {"type": "spot", "cutoff_angle": light["cone_deg"], "beam_width": light["cone_deg"],
+                "intensity": {"type": "rgb", "value": light["intensity"].tolist()},
+                "to_world": mi.ScalarTransform4f().look_at(origin=light["position"].tolist(), target=target.tolist(),
+                                                           up=up)}
     if light["type"] == "area":
         return {"type": "rectangle", "to_world": mi.ScalarTransform4f(light["to_world"].tolist()),
                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}}

@@ -52,7 +52,7 @@ from glsldiff.core.plotting import pyplot
 from glsldiff.core.errors import InputError
 from glsldiff.mesh import box_mesh
 from glsldiff.physics.collision import SOURCES
-from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight, Light
+from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight, Light, SpotLight
 from glsldiff.physics.optics import dipole_total_reflectance
 from glsldiff.physics.sh import latlong_directions
 from glsldiff.render.camera import frame_camera
@@ -65,6 +65,10 @@ from glsldiff.validation.mitsuba_scene import load_mitsuba
 
 #: Environment lights a case may name (:func:`environment_map`).
 ENVIRONMENTS = ("constant", "sky")
+#: Localized lights a slab case may name: a diffuse square behind it, a hard-edged spot in front.
+LOCALIZED = ("patch", "spot")
+#: Distance of the "spot" light from the slab's front face, mm.
+SPOT_DISTANCE_MM = 100.0
 
 
 @dataclass(frozen=True)
@@ -83,17 +87,18 @@ class Case:
     cubes: int = 64
     eta: float = 1.0                # relative index of refraction of the boundary
     thickness_mm: float | None = None   # slab thickness (default size_mm / 3)
-    patch_mm: float = 4.0           # side of the "patch" light: a diffuse square against the slab's back face
+    patch_mm: float = 4.0           # side of the "patch" light: a diffuse square against the slab's back face;
+                                    # full cone angle of the "spot" light, 100 mm in front of the slab (degrees)
     view_mm: float | None = None    # half-width of the field seen (default: the object framed)
     spp_factor: int = 1             # Monte Carlo samples per pixel: this times the command's spp
     source: str = "surface"         # [options].source of the diffusion renderer
 
     def __post_init__(self) -> None:
-        if isinstance(self.light, str) and self.light not in ENVIRONMENTS + ("patch",):
+        if isinstance(self.light, str) and self.light not in ENVIRONMENTS + LOCALIZED:
             raise InputError(f"case {self.name}: light {self.light!r} is not an environment "
-                             f"({', '.join(ENVIRONMENTS)}), \"patch\" or a direction")
-        if self.light == "patch" and self.mesh != "slab":
-            raise InputError(f"case {self.name}: the patch light lies against a slab's back face; mesh = \"slab\"")
+                             f"({', '.join(ENVIRONMENTS)}), one of {', '.join(LOCALIZED)} or a direction")
+        if self.light in LOCALIZED and self.mesh != "slab":
+            raise InputError(f"case {self.name}: the {self.light} light is placed for a slab; mesh = \"slab\"")
         if self.eta != 1.0 and not isinstance(self.light, str):
             raise InputError(f"case {self.name}: eta = {self.eta} needs an environment light (a directional "
                              "light cannot reach a dielectric interior by next-event estimation)")
@@ -116,6 +121,8 @@ CASES = {c.name: c for c in (
               camera_dir=_ENV_VIEW[env]) for eta in (1.0, 1.3) for env in ENVIRONMENTS),
     _PATCH,
     replace(_PATCH, name="slab-patch-surface", source="surface"),
+    replace(_PATCH, name="slab-spot", light="spot", patch_mm=6.0, eta=1.0, thickness_mm=10.0, source="surface",
+            spp_factor=4),
 )}
 #: Samples per pixel of each of the two Monte Carlo renders of the unscattered light alone.
 UNSCATTERED_SPP = 8192
@@ -151,6 +158,10 @@ def _thickness(case: Case) -> float:
 def _light(case: Case) -> Light:
     """The case's light, the same for the renderer and for
     :func:`glsldiff.validation.mitsuba.render_mitsuba`."""
+    if case.light == "spot":    # irradiance 1 at the front face's centre, a disc of radius d tan(cone / 2)
+        d = SPOT_DISTANCE_MM
+        return SpotLight((0.0, 0.0, d), (0.0, 0.0, -1.0), (d * d,) * 3, cone_deg=case.patch_mm / 2.0,
+                         falloff_deg=case.patch_mm / 2.0)
     if case.light == "patch":   # the slab spans z in [-thickness, 0]: the patch faces its back face
         return AreaLight((0.0, 0.0, -_thickness(case) - PATCH_GAP_MM), (0.0, 0.0, 1.0), (case.patch_mm,) * 2,
                          (1.0, 1.0, 1.0))
@@ -166,7 +177,7 @@ def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
                                        eta=case.eta, procedural=case.procedural),
                  lights=(_light(case),),
                  camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2),
-                 options=OptionsSpec(source=case.source, tol=1e-5 if case.light == "patch" else 1e-4))
+                 options=OptionsSpec(source=case.source, tol=1e-5 if case.light in LOCALIZED else 1e-4))
 
 
 def rmse(ours: NDArray, ref: NDArray, mask: NDArray) -> float:
@@ -242,7 +253,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     With ``folder``, an environment map is written there as
     ``validation_<case>_environment.exr``."""
     env = case.light in ENVIRONMENTS
-    patch = case.light == "patch"
+    patch = case.light in LOCALIZED
     with tempfile.TemporaryDirectory() as tmp:
         mesh_path = _slab_file(Path(tmp), case.size_mm, _thickness(case)) if case.mesh == "slab" else None
         if env and folder is not None:   # the map both renderers get, for the record
@@ -279,7 +290,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     mc = {k: np.mean([p[k] for p in parts], axis=0) for k in parts[0]}
     sub = mc["subsurface"]
     if patch:
-        return _patch_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam, seed,
+        return _localized_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam, seed,
                           renders * each)
     unsplit = np.full_like(sub, np.nan)   # eta != 1: no scattering orders, their numbers are NaN
     multiple, single = mc.get("multiple", unsplit), mc.get("single", unsplit)
@@ -319,36 +330,43 @@ def _centre(img: NDArray, half_px: int) -> float:
     return float(img[c0 - half_px:c0 + half_px, c1 - half_px:c1 + half_px].mean())
 
 
-def _patch_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArray, ours_s: float,
+def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArray, ours_s: float,
                parts: Sequence[dict[str, NDArray]], mc: dict[str, NDArray], mc_s: float, mesh: Any,
                cam: McCamera, seed: int, spp: int) -> tuple[dict[str, Any], dict[str, NDArray]]:
-    """Numbers and images of the back-lit patch case (module docstring): over the whole field
+    """Numbers and images of the localized cases (back-lit patch, spot): over the whole field
     (the slab fills it), relative L2 of the subsurface image, the ratio of the summed images
-    (power), of the central 2 x 2 mm (peak), and of the unscattered images: Monte Carlo's is a
-    render of the same slab with sigma_s = 0 (extinction sigma_a + sigma_s, nothing scatters),
-    two renders of ``UNSCATTERED_SPP`` samples (their difference: the noise of its power)."""
+    (power), of the central 2 x 2 mm (peak), Monte Carlo's single-scattering share (eta = 1),
+    and of the unscattered images: Monte Carlo's is a render of the same slab with sigma_s = 0
+    (extinction sigma_a + sigma_s, nothing scatters), two renders of ``UNSCATTERED_SPP``
+    samples (their difference: the noise of its power); a spot light is never seen through."""
     from glsldiff.validation.mitsuba import render_mitsuba
 
     sub = mc["subsurface"]
     every = np.ones(sub.shape[:2], dtype=bool)
     st = case.sigma_a + case.sigma_s
     t0 = time.perf_counter()   # nothing scatters: a path survives with probability exp(-tau), so many samples
-    halves = [render_mitsuba(mesh, (st,) * 3, (0.0,) * 3, case.eta, cam, _light(case), UNSCATTERED_SPP, seed + 99 + k)[0]
-              for k in range(2)]
+    if case.light == "patch":
+        halves = [render_mitsuba(mesh, (st,) * 3, (0.0,) * 3, case.eta, cam, _light(case), UNSCATTERED_SPP,
+                                 seed + 99 + k)[0] for k in range(2)]
+    else:                      # a point light is never seen through the object
+        halves = [np.zeros_like(sub)] * 2
     unsc = 0.5 * (halves[0] + halves[1])
     mc_unsc_s = time.perf_counter() - t0
     px_mm = 2.0 * case.view_mm / sub.shape[0] if case.view_mm else 1.0
     half = max(1, int(round(1.0 / px_mm)))                   # 2 x 2 mm around the centre
     peak_mc = _centre(sub, half)
     row: dict[str, Any] = {
-        "case": case.name, "light": f"patch {case.patch_mm:g} mm", "eta": case.eta, "source": case.source,
+        "case": case.name, "eta": case.eta, "source": case.source,
+        "light": f"patch {case.patch_mm:g} mm" if case.light == "patch" else f"spot {case.patch_mm:g} deg",
         "albedo": case.sigma_s / st, "thickness_mm": _thickness(case), "nodes": rep.nodes, "pixels": int(every.sum()),
         "rel_l2": rmse(ours, sub, every), "power_ratio": float(ours.sum() / sub.sum()),
         "peak_ratio": _centre(ours, half) / peak_mc, "peak_mc": peak_mc,
         "mc_noise": _standard_error([p["subsurface"] for p in parts], every),
         "unscattered_share_mc": float(unsc.sum() / sub.sum()),
-        "unscattered_mc_noise": float(abs(halves[0].sum() - halves[1].sum()) / max(2.0 * float(unsc.sum()), 1e-30)),
-        "unscattered_ratio": float(ours_unscattered.sum() / max(float(unsc.sum()), 1e-30)),
+        "unscattered_mc_noise": (float(abs(halves[0].sum() - halves[1].sum()) / (2.0 * float(unsc.sum())))
+                                 if unsc.sum() > 0 else math.nan),
+        "unscattered_ratio": float(ours_unscattered.sum() / unsc.sum()) if unsc.sum() > 0 else math.nan,
+        "single_share_mc": float(mc["single"].sum() / sub.sum()) if "single" in mc else math.nan,
         "diffusion_s": ours_s, "t1_t2_t3_ms": "/".join(f"{rep.seconds.get(k, 0) * 1e3:.0f}" for k in ("t1", "t2", "t3")),
         "mc_s": mc_s + mc_unsc_s, "spp": spp, "solver_residual": rep.solver.residual if rep.solver else math.nan,
     }
