@@ -157,3 +157,8 @@ def test_mitsuba_spot_must_be_hard_edged_and_index_matched():
         check_light(SpotLight((0, 0, 100), (0, 0, -1), (1, 1, 1), cone_deg=3.0, falloff_deg=2.0), 1.0)
     with pytest.raises(InputError, match="eta = 1.4"):
         check_light(hard, 1.4)
+
+
+def test_area_light_up_parallel_to_its_normal_is_one_line():
+    with pytest.raises(InputError, match=r"\[lights.0\]\.up: .*parallel to direction .*in the rectangle's plane"):
+        parse_scene({"mesh": {"source": "sphere"}, "lights": [{**PATCH, "up": [0, 0, 1]}]})

@@ -405,9 +405,10 @@ def _light(t: _Table, scene_dir: Path) -> Light:
     if kind in ("projector", "area"):
         u = up if up is not None else (0.0, 1.0, 0.0)
         a, b = vec(direction), vec(u)
+        where = "across the optical axis" if kind == "projector" else "in the rectangle's plane"
         if np.linalg.norm(np.cross(a, b)) < 1e-6 * np.linalg.norm(a) * np.linalg.norm(b):
             t.fail("up", f"{list(u)}{'' if up else ' (the default)'} is parallel to direction "
-                         f"{list(direction)}; give an up vector across the optical axis")
+                         f"{list(direction)}; give an up vector {where}")
     position = t.vec3("position", None)
     irradiance = t.vec3("irradiance", (1.0, 1.0, 1.0), nonneg=True)
     intensity = t.vec3("intensity", (1.0e4, 1.0e4, 1.0e4), nonneg=True)
