@@ -66,10 +66,10 @@ class TetGeometry:
         return v <= 1e-12 * float(v.max(initial=0.0))
 
     @cached_property
-    def local_stiffness(self) -> NDArray[np.float64]:
-        """``(T, 4, 4)`` ``V_t grad(l_i).grad(l_j)`` (mm) of each tetrahedron (0 for
-        :attr:`degenerate` ones). With edges ``e_k = x_k - x_0``, ``grad l_1 = (e_2 x e_3) / 6V``
-        and cyclically, ``grad l_0 = -(sum of the others)``."""
+    def gradients(self) -> NDArray[np.float64]:
+        """``(T, 4, 3)`` gradients of the barycentric coordinates ``grad(l_i)`` (mm^-1; 0 for
+        :attr:`degenerate` tetrahedra). With edges ``e_k = x_k - x_0``, ``grad l_1 = (e_2 x e_3) /
+        6V`` and cyclically, ``grad l_0 = -(sum of the others)``."""
         P = self.positions[self.tets]
         e1, e2, e3 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
         det = 6.0 * self.volumes
@@ -79,7 +79,24 @@ class TetGeometry:
         G[:, 1], G[:, 2], G[:, 3] = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
         G[:, 1:] *= inv[:, None, None]
         G[:, 0] = -G[:, 1:].sum(axis=1)
-        return np.where(ok, np.abs(self.volumes), 0.0)[:, None, None] * np.einsum("tik,tjk->tij", G, G)
+        return G
+
+    @cached_property
+    def local_stiffness(self) -> NDArray[np.float64]:
+        """``(T, 4, 4)`` ``V_t grad(l_i).grad(l_j)`` (mm) of each tetrahedron (0 for
+        :attr:`degenerate` ones)."""
+        G = self.gradients
+        return np.where(~self.degenerate, np.abs(self.volumes), 0.0)[:, None, None] * np.einsum("tik,tjk->tij", G, G)
+
+    def recovered_gradient(self, phi: NDArray[np.float64]) -> NDArray[np.float64]:
+        """``(n, 3, C)`` gradient of the P1 field ``phi`` ``(n, C)`` at the nodes: the mean of
+        the constant gradients of the tetrahedra around each node, weighted by their volumes."""
+        g = np.einsum("tkj,tkc->tjc", self.gradients, phi[self.tets])            # (T, 3, C)
+        v = np.where(~self.degenerate, np.abs(self.volumes), 0.0)
+        acc = np.zeros((len(self.positions),) + g.shape[1:])
+        np.add.at(acc, self.tets.ravel(), np.repeat(g * v[:, None, None], 4, axis=0))
+        w = np.bincount(self.tets.ravel(), np.repeat(v, 4), minlength=len(self.positions))
+        return acc / np.maximum(w, 1e-300)[:, None, None]
 
     @cached_property
     def node_volumes(self) -> NDArray[np.float64]:

@@ -29,13 +29,6 @@ T_BINS = (0.0, 0.5, 0.65, 0.8, 0.9, 1.0 + 1e-9)
 _CHUNK = 8192
 
 
-def lumped_volumes(positions: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
-    """``(n,)`` a quarter of the volume of every tetrahedron around each node, mm^3."""
-    P = positions[tets]
-    v = np.abs(np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0])) / 6.0
-    return np.bincount(tets.ravel(), np.repeat(v / 4.0, 4), minlength=len(positions))
-
-
 def compress_beams(E: NDArray[np.float64], t: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Beams ``E (S, K, 3)``, ``t (S, K)`` merged into at most ``len(T_BINS) - 1`` per node by
     refracted cosine: each bin's irradiance summed, its cosine the irradiance-weighted mean.
@@ -82,10 +75,12 @@ def _closest_near(p: NDArray[np.float64], nearest: NDArray[np.int64], nodes: NDA
 
 
 def first_collision_load(pg: Any, kappa: NDArray[np.float64], mu: NDArray[np.float64],
-                         beams: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]]
-                         ) -> NDArray[np.float64]:
+                         beams: Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]],
+                         volumes: NDArray[np.float64]) -> NDArray[np.float64]:
     """``(n, 3)`` load of the first-collision source at every node of the tetrahedral grid
-    ``pg`` (``kappa`` mm, ``mu`` mm^-1 per node ``(n, 3)``; ``beams`` per boundary node)."""
+    ``pg`` (``kappa`` mm, ``mu`` mm^-1 per node ``(n, 3)``; ``beams`` per boundary node;
+    ``volumes`` the lumped node volumes, mm^3,
+    :attr:`glsldiff.oracle.fem.TetGeometry.node_volumes`)."""
     n = len(pg.positions)
     out = np.zeros((n, 3))
     if not beams:
@@ -104,7 +99,7 @@ def first_collision_load(pg: Any, kappa: NDArray[np.float64], mu: NDArray[np.flo
     nodes = np.flatnonzero(near)
     tris = np.asarray(pg.surface_triangles, dtype=np.int64)
     _, nearest = cKDTree(bpos).query(pg.positions[nodes])
-    V = lumped_volumes(pg.positions, pg.tets)
+    V = volumes
     for s in range(0, len(nodes), _CHUNK):
         idx = nodes[s:s + _CHUNK]
         p = pg.positions[idx]

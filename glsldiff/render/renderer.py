@@ -60,6 +60,7 @@ from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import regime
+from glsldiff.physics.optics import boundary_constant
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
 from glsldiff.physics.single import light_single_scattering
 from glsldiff.render.camera import scene_camera
@@ -123,6 +124,7 @@ class Renderer:
         self._from_cache = False
         self._fem_system: LinearSystem | None = None
         self._load: NDArray | None = None
+        self._flux_q: NDArray | None = None
 
     @property
     def mesh(self) -> Any:
@@ -202,7 +204,8 @@ class Renderer:
         self._load = None
         if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
             t0 = time.perf_counter()
-            self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams)
+            self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams,
+                                              self._geo["tetgeo"].node_volumes)
             info.append({"light": "first-collision source", "beams": len(beams or ()),
                          "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         if not np.all(np.isfinite(q)) or q.max() > Q_MAX:
@@ -264,8 +267,10 @@ class Renderer:
         self._finish_pass2(pg, phi, rep, fem)
 
     def _finish_pass2(self, pg: Any, phi: NDArray, rep: SolveReport, fem: bool) -> None:
+        self._flux_q = None
         if fem:
             self._phi_b = self.surface_values(phi)
+            self._phi_active = np.asarray(phi, dtype=np.float64)
         else:
             self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
         self._solve_report = rep
@@ -330,7 +335,7 @@ class Renderer:
         geo, opts = self._geo, scene.options
         v, f, nrm = geo["vertices"], geo["faces"], geo["normals"]
         eta = scene.material.eta
-        B = exitant_bracket(self._phi_b, self._q, eta, opts.exitant)
+        B = exitant_bracket(self._phi_b, self._bracket_source(scene), eta, opts.exitant)
         ms = geo["interp"] @ B
         neg = ms < 0.0
         self._clamped = int(np.any(neg, axis=1).sum())
@@ -357,6 +362,23 @@ class Renderer:
         vis = self._vis * self._tint.mean(axis=2)   # the shader's visibility is one number per light
         return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (scene.output.width, scene.output.height))
+
+    def _bracket_source(self, scene: Scene) -> NDArray[np.float64]:
+        """The ``q`` of the exitant bracket ``a phi - b q``: the boundary source (``[options].flux =
+        "boundary"``: the boundary condition's flux ``(phi - q) / (2C)``), or, with ``"gradient"``
+        (tetrahedral grids), the ``q`` for which that expression equals the outward flux
+        ``-kappa dphi/dn`` of the solution's recovered gradient (volume-weighted mean of the
+        tetrahedra's gradients at each surface node): smooth where ``q`` has a sharp edge."""
+        if scene.options.flux != "gradient" or not self._geo["fem"]:
+            return self._q
+        if self._flux_q is None:
+            pg, geo = self._geo["pg"], self._geo["tetgeo"]
+            full = np.zeros((len(pg.positions), 3))
+            full[self._fem_active] = self._phi_active
+            grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
+            flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
+            self._flux_q = self._phi_b - 2.0 * float(boundary_constant(scene.material.eta)) * flux
+        return self._flux_q
 
     def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:
         """Per-vertex measured diffuse surface reflection ``rho_d / pi * E`` (Lambertian), with

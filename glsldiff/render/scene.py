@@ -81,6 +81,7 @@ silently ignored).
     single_scattering = false
     source = "surface"        # surface (Marshak boundary source) | volume (first-collision source, fem only)
     unscattered = true        # area/environment light seen straight through the object (thin parts)
+    flux = "boundary"         # exitant flux: boundary (the Robin condition) | gradient (the solution's, fem only)
 
 ``[[lights]]`` tables parse straight into the light types of :mod:`glsldiff.physics.lights`
 (``Scene.lights``); the other keys of a light table: ``cone_deg`` (in (0, 90], default 30) and
@@ -137,6 +138,8 @@ LIGHT_TYPES = tuple(KINDS)
 LIGHT_KEYS = ("type", "direction", "position", "irradiance", "intensity", "cone_deg", "falloff_deg", "path",
               "scale", "shadows", "image", "up", "fov_deg", "size", "radiance", "samples")
 SCHEMES = ("single", "hierarchical", "multigrid")
+#: Where pass 3 takes the outward flux of the exitant bracket from (``[options].flux``).
+FLUXES = ("boundary", "gradient")
 
 
 @dataclass(frozen=True)
@@ -198,6 +201,7 @@ class OptionsSpec:
     single_scattering: bool = False
     source: str = "surface"
     unscattered: bool = True
+    flux: str = "boundary"
 
 
 @dataclass(frozen=True)
@@ -508,7 +512,11 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     options = OptionsSpec(t.string("scheme", "hierarchical", SCHEMES), t.number("tol", 1e-4, 0.0, lo_open=True, hi=0.1),
                           t.string("precision", "fp32", ("fp32", "fp16", "paper")),
                           t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False),
-                          t.string("source", "surface", SOURCES), t.boolean("unscattered", True))
+                          t.string("source", "surface", SOURCES), t.boolean("unscattered", True),
+                          t.string("flux", "boundary", FLUXES))
+    if options.flux == "gradient" and poly.discretisation != "fem":
+        t.fail("flux", "\"gradient\" (the flux of the solution's gradient) needs the tetrahedral grid; set "
+                       "[polygrid] discretisation = \"fem\" (the default) or flux = \"boundary\"")
     if options.source == "volume" and poly.discretisation != "fem":
         t.fail("source", "\"volume\" (the first-collision source) is solved on tetrahedra only; set [polygrid] "
                          "discretisation = \"fem\" (the default) or source = \"surface\"")
