@@ -119,6 +119,14 @@ class RayIndex:
         return pr[inside][ok], z[ok], t[inside, 0][ok].astype(np.int64)
 
 
+def faces_around_vertices(faces: NDArray[np.int64], n_vertices: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``(order, start)``: the faces around vertex ``i`` are ``order[start[i]:start[i + 1]]``
+    (in face order)."""
+    vf = faces.ravel()
+    corners = np.argsort(vf, kind="stable")
+    return corners // 3, np.searchsorted(vf[corners], np.arange(n_vertices + 1))
+
+
 class BVH:
     """Implicit complete binary tree over faces in Morton order, leaves of LEAF faces.
 
@@ -164,7 +172,4 @@ class BVH:
             self.boxes.append((bmin, bmax))
         self.boxes.reverse()  # boxes[level], level 0 = root
         self.tree = cKDTree(vertices)
-        vf = faces.ravel()
-        self.vf_order = np.argsort(vf, kind="stable") // 3
-        self.vf_start = np.searchsorted(vf[np.argsort(vf, kind="stable")],
-                                        np.arange(len(vertices) + 1))
+        self.vf_order, self.vf_start = faces_around_vertices(faces, len(vertices))

@@ -20,7 +20,7 @@ from glsldiff.core.errors import InputError
 #: Faces meeting at a larger angle than this (degrees) do not share corner normals
 #: (:attr:`Mesh.corner_normals`): a sharp edge.
 CREASE_DEG = 45.0
-from glsldiff.mesh.accel import BVH, RayIndex
+from glsldiff.mesh.accel import BVH, RayIndex, faces_around_vertices
 
 if TYPE_CHECKING:  # pragma: no cover
     import trimesh
@@ -141,13 +141,11 @@ class Mesh:
         f = self.faces
         cross, nf = self._face_cross, self.face_normals
         corner_vertex = f.ravel()
-        order = np.argsort(corner_vertex, kind="stable")
-        start = np.searchsorted(corner_vertex[order], np.arange(len(self.vertices) + 1))
-        deg = np.diff(start)
-        rep = deg[corner_vertex]                                   # faces around each corner's vertex
+        around, start = faces_around_vertices(f, len(self.vertices))
+        rep = np.diff(start)[corner_vertex]                        # faces around each corner's vertex
         owner = np.repeat(np.arange(len(corner_vertex)), rep)
         pos = np.arange(len(owner)) - np.repeat(np.cumsum(rep) - rep, rep)
-        partner = order[start[corner_vertex[owner]] + pos] // 3   # a face around the vertex
+        partner = around[start[corner_vertex[owner]] + pos]        # a face around the vertex
         keep = np.einsum("ij,ij->i", nf[owner // 3], nf[partner]) >= math.cos(math.radians(CREASE_DEG))
         acc = np.zeros((len(corner_vertex), 3))
         np.add.at(acc, owner[keep], cross[partner[keep]])
