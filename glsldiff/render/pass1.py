@@ -62,18 +62,19 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff import gl
 from glsldiff.core import checks
 from glsldiff.core.errors import InputError
-from glsldiff.physics.area import area_beams, refracted_cosine
+from glsldiff.physics.area import area_beams
 from glsldiff.physics.lights import (AreaLight, EnvironmentLight, KINDS, Light, casts_shadows, check_light,
                                      incidence, light_kind, to_light)
-from glsldiff.physics.optics import transmitted_cosine
+from glsldiff.physics.optics import refracted_cosine, transmitted_cosine
 from glsldiff.physics.sh import fibonacci_directions, sh_evaluate, sh_irradiance
 from glsldiff.render.shadows import DepthRenderer
 
 __all__ = ["incident_light", "visibility", "ENV_SHADOW_MAP_MAX", "Beam"]
 
 ENV_SHADOW_MAP_MAX = 512   # shadow maps of environment directions are at most this size
+_GAUSS3 = np.polynomial.legendre.leggauss(3)
 #: Incidence cosines (3-point Gauss-Legendre on [0, 1]) of an environment light's beams.
-ENV_BEAMS = tuple(0.5 * (1.0 + x) for x in np.polynomial.legendre.leggauss(3)[0])
+ENV_BEAMS = tuple(0.5 * (1.0 + x) for x in _GAUSS3[0])
 #: A beam: transmitted irradiance ``(N, 3)`` and the refracted cosine ``(N,)`` it arrives at.
 Beam = tuple[NDArray[np.float64], NDArray[np.float64]]
 
@@ -83,7 +84,7 @@ def _env_beams(eta: float | None) -> list[tuple[float, float]]:
     as uniform over the hemisphere, share ``prop. mu F_t(mu)`` at the Gauss points ``mu`` of
     :data:`ENV_BEAMS` (Gauss weights), ``t`` their refracted cosines."""
     mu = np.asarray(ENV_BEAMS)
-    w = np.polynomial.legendre.leggauss(3)[1] * transmitted_cosine(eta, mu)
+    w = _GAUSS3[1] * transmitted_cosine(eta, mu)
     return list(zip(w / w.sum(), refracted_cosine(eta, mu)))
 
 
@@ -225,7 +226,8 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                 if beams is not None:
                     beams.extend((e * w, np.full(len(p), t)) for w, t in _env_beams(eta_v))
             elif isinstance(light, AreaLight):
-                g, t = _cell_averaged(lambda q, nq: area_beams(light, q, nq, eta_v), p, n, triangles, info)
+                g, t = _cell_averaged(lambda q, nq: area_beams(light, q, nq, eta_v), p, n, triangles, info,
+                                      area_beams(light, p, n, eta_v))
                 rad = np.asarray(light.radiance)
                 e = g.sum(axis=1)[:, None] * rad
                 if beams is not None:
@@ -233,11 +235,13 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
                 info.update(shadow_map="none (area lights are not shadowed)", shadowed=0,
                             facing=int((g.sum(axis=1) > 0).sum()), samples=light.samples ** 2)
             else:
-                e, t3 = _cell_averaged(_direct_evaluator(light, eta_v, renderer if needs_map else None, size, info),
-                                       p, n, triangles, info)
-                info.pop("points", None)
-                info["facing"] = int(np.count_nonzero(incidence(light, p, transmitted_cosine(
-                    eta_v, np.einsum("ij,ij->i", n, to_light(light, p))))[0] > 0))
+                sm = renderer.shadow_map(light, size) if needs_map and renderer is not None else None
+                info["shadow_map"] = sm.label if sm is not None else "none (shadows off)"
+                e, t3, facing, vis = _direct_light(light, p, n, eta_v, sm, renderer)
+                info["facing"] = int(facing.sum())
+                info["shadowed"] = int((vis[facing] < 0.5).sum())
+                e, t3 = _cell_averaged(lambda q, nq: _direct_light(light, q, nq, eta_v, sm, renderer)[:2],
+                                       p, n, triangles, info, (e, t3))
                 if beams is not None:
                     beams.append((e, t3[:, 0]))
             total += e
@@ -250,8 +254,8 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
     return total, infos
 
 
-#: Triangles whose corners' area-light irradiance differ by more than this share of the
-#: light's largest are integrated on REFINE x REFINE sub-triangles (:func:`_area_averaged`).
+#: Triangles whose corners' values of a light differ by more than this share of the light's
+#: largest are integrated on REFINE x REFINE sub-triangles (:func:`_cell_averaged`) ...
 REFINE_REL = 0.05
 #: ... and whose centroid's value differs from the mean of the corners' by more than this share.
 REFINE_CENTROID = 0.01
@@ -274,10 +278,12 @@ Evaluate = Callable[[NDArray[np.float64], NDArray[np.float64]], tuple[NDArray[np
 
 
 def _cell_averaged(evaluate: Evaluate, p: NDArray[np.float64], n: NDArray[np.float64],
-                   triangles: ArrayLike | None, info: dict[str, Any]
+                   triangles: ArrayLike | None, info: dict[str, Any],
+                   at_points: tuple[NDArray[np.float64], NDArray[np.float64]]
                    ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Light values ``(g (N, K), t (N, K))`` at the points (``evaluate(points, normals)``: K
-    beams or colour channels with their refracted cosines), each the average over the point's
+    """The light values ``at_points`` ``(g (N, K), t (N, K))`` (``evaluate(points, normals)``
+    gives them anywhere: K beams or colour channels with their refracted cosines), each the
+    average over the point's
     P1 support on ``triangles``: ``g_i = sum_T int_T g v_i / sum_T int_T v_i``. A sharp light
     edge (a patch, a hard spot, a projector pixel, a shadow) crossing a node's cells then puts
     into the source the share of the cells it lights, not all or nothing (which, sampled at the
@@ -286,7 +292,7 @@ def _cell_averaged(evaluate: Evaluate, p: NDArray[np.float64], n: NDArray[np.flo
     value, or whose centroid's value the corners' mean matches within ``REFINE_CENTROID`` of
     it (smooth light), use the corner values (lumped); the others are integrated at the
     centroids of ``REFINE^2`` sub-triangles. ``t`` is averaged with the weights ``g v_i``."""
-    g, t = evaluate(p, n)
+    g, t = at_points
     if triangles is None or len(p) == 0 or not g.any():
         return g, t
     tri = np.asarray(triangles, dtype=np.int64)
@@ -328,32 +334,24 @@ def _cell_averaged(evaluate: Evaluate, p: NDArray[np.float64], n: NDArray[np.flo
     return g_avg, t_avg
 
 
-def _direct_evaluator(light: Light, eta: float | None, renderer: DepthRenderer | None, size: int,
-                      info: dict[str, Any]) -> Evaluate:
-    """``evaluate(points, normals) -> (E (M, 3), t (M, 3))`` of a directional, point, spot or
-    projector light: its transmitted irradiance with shadows (the light's shadow map, rendered
-    once here, when ``renderer`` is given) and the refracted cosine, repeated per channel."""
-    sm = renderer.shadow_map(light, size) if renderer is not None else None
-    info["shadow_map"] = sm.label if sm is not None else "none (shadows off)"
-    info["shadowed"] = 0
-
-    def evaluate(q: NDArray[np.float64], nq: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        w = to_light(light, q)
-        cos = np.einsum("ij,ij->i", nq, w)
-        scale, colour = incidence(light, q, transmitted_cosine(eta, cos))
-        if sm is not None:
-            assert renderer is not None
-            idx = np.flatnonzero(scale > 0)
-            vis = np.ones(len(q))
-            vis[idx] = sm.lookup(q[idx] - renderer.centre, w[idx], nq[idx])
-            scale = scale * vis
-            if "points" not in info:   # the first call: the nodes themselves
-                info["points"] = True
-                info["shadowed"] = int((vis[idx] < 0.5).sum())
-        e = scale[:, None] * np.atleast_2d(colour) * np.ones((len(q), 3))
-        return e, np.repeat(refracted_cosine(eta, cos)[:, None], 3, axis=1)
-
-    return evaluate
+def _direct_light(light: Light, q: NDArray[np.float64], nq: NDArray[np.float64], eta: float | None,
+                  sm: Any, renderer: DepthRenderer | None
+                  ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_], NDArray[np.float64]]:
+    """A directional, point, spot or projector light at points ``q`` with normals ``nq``: its
+    transmitted irradiance ``(M, 3)`` with shadows (shadow map ``sm``, or none), the refracted
+    cosine repeated per channel ``(M, 3)``, the facing points (lit but for shadows) and the
+    visibility ``(M,)``."""
+    w = to_light(light, q)
+    cos = np.einsum("ij,ij->i", nq, w)
+    scale, colour = incidence(light, q, transmitted_cosine(eta, cos))
+    facing = scale > 0
+    vis = np.ones(len(q))
+    if sm is not None:
+        assert renderer is not None
+        idx = np.flatnonzero(facing)
+        vis[idx] = sm.lookup(q[idx] - renderer.centre, w[idx], nq[idx])
+    e = (scale * vis)[:, None] * np.atleast_2d(colour) * np.ones((len(q), 3))
+    return e, np.repeat(refracted_cosine(eta, cos)[:, None], 3, axis=1), facing, vis
 
 
 def _environment(light: EnvironmentLight, p: NDArray[np.float64], n: NDArray[np.float64], eta: float | None,

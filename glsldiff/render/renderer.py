@@ -9,7 +9,8 @@ Stages, in the one direction data flows (numpy arrays between them):
   and the GLSL solver that holds them as textures.
 * **pass 1** (t1, per light set): transmitted irradiance ``E_t`` at the boundary nodes
   (:func:`glsldiff.render.pass1.incident_light`: shadow maps, environment light with per-node
-  visibility, area lights averaged over the nodes' surface cells), and the solver's source:
+  visibility; on tetrahedral grids every other light averaged over the surface nodes' cells),
+  and the solver's source:
   with ``[options].source = "surface"`` (default) the Marshak boundary source ``q``; with
   ``"volume"`` the first-collision load of :mod:`glsldiff.render.collision` (light as reduced
   intensity below the surface, ``q = 0``; tetrahedral grids only).
@@ -201,13 +202,6 @@ class Renderer:
                                    triangles=pg.surface_triangles if self._geo["fem"] else None)
         self._E_t = np.asarray(E_t, dtype=np.float64)
         q = source_from_irradiance(self._E_t, scene.material.eta, scene.options.exitant)
-        self._load = None
-        if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
-            t0 = time.perf_counter()
-            self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams,
-                                              self._geo["tetgeo"].node_volumes)
-            info.append({"light": "first-collision source", "beams": len(beams or ()),
-                         "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         if not np.all(np.isfinite(q)) or q.max() > Q_MAX:
             raise InputError(f"{scene.source}: [[lights]]: the transmitted irradiance reaches "
                              f"{np.nanmax(self._E_t):.3g}, beyond what the solver's float32 textures hold "
@@ -218,6 +212,13 @@ class Renderer:
                              "every boundary node); check the lights' directions, positions, cones and "
                              "intensities")
         self._q = np.zeros_like(q) if volume else q
+        self._load = None
+        if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
+            t0 = time.perf_counter()
+            self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams,
+                                              self._geo["tetgeo"].node_volumes)
+            info.append({"light": "first-collision source", "beams": len(beams or ()),
+                         "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         self._light_info = info
 
     def _say(self, line: str) -> None:
