@@ -8,9 +8,9 @@ import pytest
 
 from glsldiff.core.errors import InputError
 from glsldiff.mesh import box_mesh
-from glsldiff.physics.area import area_beams, form_factors, refracted_cosine
+from glsldiff.physics.area import area_beams, form_factors
 from glsldiff.physics.lights import AreaLight
-from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
 from glsldiff.render.pass1 import _sub_barycentrics, incident_light
 
 

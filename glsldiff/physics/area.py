@@ -25,25 +25,16 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core import checks
 from glsldiff.physics.lights import AreaLight
-from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
 
-__all__ = ["sub_rectangles", "form_factors", "area_beams", "refracted_cosine"]
+__all__ = ["sub_rectangles", "form_factors", "area_beams"]
 
 #: Points handled at once (memory: points x sub-rectangles x 4 corners x 3 floats).
 _CHUNK = 4096
 
 
-def refracted_cosine(eta: float | None, cos: ArrayLike) -> NDArray[np.float64]:
-    """Cosine to the normal of a direction of incidence cosine ``cos`` after refraction into
-    the medium of relative index ``eta`` (``cos`` itself for ``eta=None``); 0 where ``cos <= 0``."""
-    c = np.clip(np.asarray(cos, dtype=np.float64), 0.0, 1.0)
-    if eta is None:
-        return c
-    return np.where(c > 0.0, np.sqrt(np.clip(1.0 - (1.0 - c * c) / (eta * eta), 0.0, 1.0)), 0.0)
-
-
-def sub_rectangles(light: AreaLight) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
-    """``(corners (K, 4, 3), centres (K, 3), area)`` of the ``samples^2`` sub-rectangles, mm."""
+def sub_rectangles(light: AreaLight) -> NDArray[np.float64]:
+    """``(K, 4, 3)`` corners of the ``samples^2`` sub-rectangles, mm."""
     m = light.samples
     right, up, _ = light.frame
     w, h = light.size
@@ -51,9 +42,8 @@ def sub_rectangles(light: AreaLight) -> tuple[NDArray[np.float64], NDArray[np.fl
     i, j = np.meshgrid(np.arange(m), np.arange(m), indexing="ij")
     i, j = i.ravel()[:, None], j.ravel()[:, None]
     du, dv = w / m * right, h / m * up
-    corners = np.stack([c0 + i * du + j * dv, c0 + i * du + (j + 1) * dv,
-                        c0 + (i + 1) * du + (j + 1) * dv, c0 + (i + 1) * du + j * dv], axis=1)
-    return corners, corners.mean(axis=1), (w / m) * (h / m)
+    return np.stack([c0 + i * du + j * dv, c0 + i * du + (j + 1) * dv,
+                     c0 + (i + 1) * du + (j + 1) * dv, c0 + (i + 1) * du + j * dv], axis=1)
 
 
 def _clipped_lambert(d: NDArray[np.float64], n: NDArray[np.float64]
@@ -93,7 +83,7 @@ def form_factors(light: AreaLight, points: ArrayLike, normals: ArrayLike
     cosines ``(N, K)`` of their mean directions of arrival."""
     p = checks.points(points)
     n = checks.unit_rows(normals, "normals", len(p))
-    corners, _, _ = sub_rectangles(light)
+    corners = sub_rectangles(light)
     fwd = np.asarray(light.direction)
     out, cos = np.zeros((2, len(p), len(corners)))
     for s in range(0, len(p), _CHUNK):

@@ -57,14 +57,6 @@ def _ramp_up(L: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.where(small, 0.5 - L / 3.0, exact)
 
 
-def _ramp_down(L: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``int_0^1 e^{-L s} (1 - s) ds``."""
-    small = L < 1e-4
-    Ls = np.where(small, 1.0, L)
-    exact = -np.expm1(-Ls) / Ls - (1.0 - np.exp(-Ls) * (1.0 + Ls)) / (Ls * Ls)
-    return np.where(small, 0.5 - L / 6.0, exact)
-
-
 def _flat(L: NDArray[np.float64]) -> NDArray[np.float64]:
     """``int_0^1 e^{-L s} ds``."""
     small = L < 1e-4
@@ -83,7 +75,7 @@ def hat_average_exp(a: ArrayLike, d: ArrayLike, h: float) -> NDArray[np.float64]
     a, d = np.broadcast_arrays(np.asarray(a, dtype=np.float64), np.maximum(np.asarray(d, dtype=np.float64), 0.0))
     w = np.minimum(d, h)
     r = w / h
-    fall = h * np.exp(-a * d) * _ramp_down(a * h)
+    fall = h * np.exp(-a * d) * (_flat(a * h) - _ramp_up(a * h))   # int e^{-L u} (1 - u)
     L = a * w
     rise = w * np.exp(-a * (d - w)) * ((1.0 - r) * _flat(L) + r * _ramp_up(L))
     return (fall + rise) / (0.5 * h + w * (1.0 - 0.5 * r))

@@ -288,14 +288,6 @@ class AreaLight:
         """Unit ``right, up, forward`` (forward = the emitting normal)."""
         return orthonormal_frame(self.direction, self.up)
 
-    @property
-    def corners(self) -> NDArray[np.float64]:
-        """``(4, 3)`` corners, mm, counter-clockwise seen from the emitting side."""
-        right, up, _ = self.frame
-        c, w, h = np.asarray(self.position), self.size[0] / 2.0, self.size[1] / 2.0
-        return np.array([c - w * right - h * up, c - w * right + h * up, c + w * right + h * up,
-                         c + w * right - h * up])
-
 
 @dataclass(frozen=True, eq=False)
 class EnvironmentLight:

@@ -166,7 +166,7 @@ def regime(kappa: ArrayLike, mu: ArrayLike, h: float) -> str:
     m = np.asarray(mu, dtype=np.float64)
     st = 1.0 / (3.0 * k)
     albedo = np.clip(1.0 - m / st, 0.0, 1.0)
-    low = float((albedo < TRUSTED_ALBEDO).any(axis=-1).mean()) if albedo.ndim > 1 else float((albedo < TRUSTED_ALBEDO).mean())
+    low = float((albedo < TRUSTED_ALBEDO).reshape(len(albedo), -1).any(axis=1).mean())
     mfp = 1.0 / st
     text = (f"regime: albedo {albedo.min():.3g}-{albedo.max():.3g}; "
             f"{100 * low:.1f} % of nodes below {TRUSTED_ALBEDO} in some channel (diffusion off by up to ~30 % there); "

@@ -18,7 +18,8 @@ from glsldiff.core.checks import finite_values, require
 from glsldiff.core.errors import InputError
 
 __all__ = [
-    "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "transmitted_cosine", "fdr", "fdr_integral",
+    "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "transmitted_cosine", "refracted_cosine",
+    "fdr", "fdr_integral",
     "boundary_constant", "eta_for_boundary_constant", "DipoleConstants",
     "dipole_constants", "dipole_rd", "dipole_total_reflectance",
 ]
@@ -98,6 +99,15 @@ def transmitted_cosine(eta: float | None, cos: ArrayLike) -> NDArray[np.float64]
         return np.where(cos > 0.0, 1.0, 0.0) * cos.clip(0.0)
     c = np.clip(cos, 0.0, 1.0)
     return cos.clip(0.0) * np.where(cos > 0.0, np.asarray(fresnel_transmittance(eta, c)), 0.0)
+
+
+def refracted_cosine(eta: float | None, cos: ArrayLike) -> NDArray[np.float64]:
+    """Cosine to the normal of a direction of incidence cosine ``cos`` after refraction into
+    the medium of relative index ``eta`` (``cos`` itself for ``eta=None``); 0 where ``cos <= 0``."""
+    c = np.clip(np.asarray(cos, dtype=np.float64), 0.0, 1.0)
+    if eta is None:
+        return c
+    return np.where(c > 0.0, np.sqrt(np.clip(1.0 - (1.0 - c * c) / (eta * eta), 0.0, 1.0)), 0.0)
 
 
 def fdr(eta: ArrayLike) -> NDArray[np.float64] | np.float64:

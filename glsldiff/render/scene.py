@@ -421,7 +421,7 @@ def _light(t: _Table, scene_dir: Path) -> Light:
     shadows = t.boolean("shadows", kind != "area")
     size = _size2(t) if kind == "area" else None
     radiance = t.vec3("radiance", (1.0, 1.0, 1.0), nonneg=True)
-    samples = t.integer("samples", 4, 1)
+    samples = t.integer("samples", AreaLight.samples, 1)
     image = _image(t, "image", scene_dir, "projector image", exr_only=False)
     try:
         if kind == "directional":
