@@ -81,21 +81,18 @@ def check_light(light: Any, eta: float) -> dict[str, Any]:
     ``spot`` (hard-edged only, eta = 1), ``area`` (a ``rectangle`` shape with an ``area``
     emitter, one-sided like the :class:`~glsldiff.physics.lights.AreaLight`), ``constant`` or
     ``envmap``) and its values as arrays."""
+    if isinstance(light, (DirectionalLight, SpotLight)) and eta != 1.0:
+        raise InputError(
+            f"a {'directional' if isinstance(light, DirectionalLight) else 'spot'} (delta) light cannot be reached "
+            f"through a smooth dielectric boundary (eta = {eta}) by next-event estimation, so Mitsuba would render "
+            "the medium black; use eta = 1 (index matched) or an environment or area light")
     if isinstance(light, DirectionalLight):
-        if eta != 1.0:
-            raise InputError(
-                f"a directional (delta) light cannot be reached through a smooth dielectric boundary "
-                f"(eta = {eta}) by next-event estimation, so Mitsuba would render the medium black; "
-                "use eta = 1 (index matched) or an environment light")
         return {"type": "directional", "direction": np.asarray(light.direction),
                 "irradiance": np.asarray(light.irradiance)}
     if isinstance(light, SpotLight):
         if light.falloff_deg != light.cone_deg:
             raise InputError(f"a spot light for the Monte Carlo reference must be hard-edged (falloff_deg = cone_deg "
                              f"= {light.cone_deg}): Mitsuba's spot fades linearly in angle, glsldiff's by smoothstep")
-        if eta != 1.0:
-            raise InputError(f"a spot (delta) light cannot be reached through a smooth dielectric boundary (eta = {eta}) "
-                             "by next-event estimation; use eta = 1")
         return {"type": "spot", "position": np.asarray(light.position), "direction": np.asarray(light.direction),
                 "intensity": np.asarray(light.intensity), "cone_deg": light.cone_deg}
     if isinstance(light, AreaLight):

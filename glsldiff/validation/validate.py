@@ -58,6 +58,7 @@ from glsldiff.physics.sh import latlong_directions
 from glsldiff.render.camera import frame_camera
 from glsldiff.render.materials import node_material
 from glsldiff.render.renderer import Renderer
+from glsldiff.render.unscattered import sees_through
 from glsldiff.render.scene import (CameraSpec, MaterialSpec, MeshSpec, OptionsSpec, OutputSpec, PolygridSpec, Scene,
                                    SpecularSpec)
 from glsldiff.validation.mitsuba import McCamera, render_scattering_orders, render_subsurface
@@ -253,7 +254,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     With ``folder``, an environment map is written there as
     ``validation_<case>_environment.exr``."""
     env = case.light in ENVIRONMENTS
-    patch = case.light in LOCALIZED
+    localized = case.light in LOCALIZED
     with tempfile.TemporaryDirectory() as tmp:
         mesh_path = _slab_file(Path(tmp), case.size_mm, _thickness(case)) if case.mesh == "slab" else None
         if env and folder is not None:   # the map both renderers get, for the record
@@ -279,7 +280,8 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
             rep.seconds.update({k: rep1.seconds[k] for k in ("t1", "t2") if k in rep1.seconds})
             rep.solver = rep1.solver
             ours_s = rep.frame_seconds
-            if patch:                             # the unscattered term alone: the frame without it
+            ours_unscattered = np.zeros_like(ours)
+            if localized and sees_through(scene.lights):   # the unscattered term alone: the frame without it
                 dark, _ = r.render(replace(scene, options=replace(scene.options, unscattered=False)))
                 ours_unscattered = ours - dark
             pg, mesh = r.polygrid, r.mesh
@@ -289,9 +291,9 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     parts, seconds = zip(*(_mc_render(case, mesh, cam, each, seed + k, volume) for k in range(renders)))
     mc = {k: np.mean([p[k] for p in parts], axis=0) for k in parts[0]}
     sub = mc["subsurface"]
-    if patch:
+    if localized:
         return _localized_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam, seed,
-                          renders * each)
+                              renders * each)
     unsplit = np.full_like(sub, np.nan)   # eta != 1: no scattering orders, their numbers are NaN
     multiple, single = mc.get("multiple", unsplit), mc.get("single", unsplit)
     inside = binary_erosion((ours.sum(axis=2) > 0) & (sub.sum(axis=2) > 0), iterations=1)
@@ -331,8 +333,8 @@ def _centre(img: NDArray, half_px: int) -> float:
 
 
 def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArray, ours_s: float,
-               parts: Sequence[dict[str, NDArray]], mc: dict[str, NDArray], mc_s: float, mesh: Any,
-               cam: McCamera, seed: int, spp: int) -> tuple[dict[str, Any], dict[str, NDArray]]:
+                   parts: Sequence[dict[str, NDArray]], mc: dict[str, NDArray], mc_s: float, mesh: Any,
+                   cam: McCamera, seed: int, spp: int) -> tuple[dict[str, Any], dict[str, NDArray]]:
     """Numbers and images of the localized cases (back-lit patch, spot): over the whole field
     (the slab fills it), relative L2 of the subsurface image, the ratio of the summed images
     (power), of the central 2 x 2 mm (peak), Monte Carlo's single-scattering share (eta = 1),
@@ -417,11 +419,13 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
     if unknown:
         raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}")
     mc_split(spp)                           # a bad sample count fails before any rendering
+    if source is not None:                  # so does a bad source model
+        checks.choice(source, "source", SOURCES)
     load_mitsuba("scalar_rgb")              # so does a missing Mitsuba
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in cases:
-        case = CASES[name] if source is None else replace(CASES[name], source=checks.choice(source, "source", SOURCES))
+        case = CASES[name] if source is None else replace(CASES[name], source=source)
         row, imgs = run_case(case, size, spp, folder=out)
         rows.append(row)
         middle = imgs.get("mc_multiple", imgs["mc_subsurface"])
