@@ -106,3 +106,18 @@ def test_pass1_averages_an_area_light_over_the_node_cells(ctx):
     assert info[0]["refined_triangles"] > 0
     assert abs((area * averaged[:, 0]).sum() / exact - 1) < 0.01
     assert (area * sampled[:, 0]).sum() / exact - 1 > 0.08        # sampled: 9 x 9 whole cells lit (+12 %)
+
+
+def test_solid_angles_of_sub_rectangles_near_and_far():
+    """On the axis of a square of side a at height h: 4 arcsin(a^2 / (a^2 + 4 h^2)); 2 pi as h -> 0;
+    0 behind the emitting side; the far (point) form within 1.1 %."""
+    from glsldiff.physics.area import solid_angles
+
+    light = AreaLight((0, 0, 0), (0, 0, 1), (3.0, 3.0), (1, 1, 1), samples=3)   # 1 mm squares
+    h = np.array([1e-4, 0.1, 0.5, 2.0, 5.0, 50.0])
+    p = np.stack([np.zeros_like(h), np.zeros_like(h), h], 1)
+    omega = solid_angles(light, np.full(len(h), 4), p)                           # the centre square
+    np.testing.assert_allclose(omega, 4 * np.arcsin(1.0 / (1.0 + 4 * h * h)), rtol=1.1e-2)
+    np.testing.assert_allclose(omega[:4], 4 * np.arcsin(1.0 / (1.0 + 4 * h[:4] ** 2)), rtol=1e-9)
+    assert omega[0] == pytest.approx(2 * math.pi, rel=1e-3)
+    assert solid_angles(light, [4], [[0.0, 0.0, -1.0]])[0] == 0.0

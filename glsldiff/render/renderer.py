@@ -26,8 +26,9 @@ Stages, in the one direction data flows (numpy arrays between them):
   multiple-scattering term interpolated from the boundary nodes times ``F_t(eta, n.w_o)``,
   plus Ward specular per light (per-vertex shadow visibility; a projector's image factor,
   :func:`glsldiff.physics.lights.projector_factor`, is folded into it as its channel mean, so the
-  highlight takes the intensity's colour), plus optional single scattering
-  (:mod:`glsldiff.physics.single`, with the projector's RGB image factor), plus the
+  highlight takes the intensity's colour), plus optional single scattering of every light in
+  reflection and transmission (:mod:`glsldiff.render.single`, ``[options].single_scattering``),
+  plus the
   unscattered light of area and environment lights seen through the object
   (:mod:`glsldiff.render.unscattered`, ``[options].unscattered``, default on), plus an optional
   measured diffuse surface reflectance ``rho_d / pi * E`` (``[material].reflectance``,
@@ -63,7 +64,6 @@ from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import regime
 from glsldiff.physics.optics import boundary_constant
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
-from glsldiff.physics.single import light_single_scattering
 from glsldiff.render.camera import scene_camera
 from glsldiff.render.collision import first_collision_load
 from glsldiff.render.unscattered import sees_through, unscattered
@@ -71,6 +71,8 @@ from glsldiff.render.materials import node_material, surface_reflectance
 from glsldiff.render.pass1 import incident_light, visibility
 from glsldiff.render.report import RenderReport
 from glsldiff.render.scene import Scene
+from glsldiff.render.shadows import DepthRenderer
+from glsldiff.render.single import single_scattering_frame
 from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.oracle.assembly import LinearSystem
@@ -429,15 +431,19 @@ class Renderer:
         return self._unsc
 
     def _single(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
-        geo = self._geo
-        v, nrm = geo["vertices"], geo["normals"]
-        view = eye - v
-        view /= np.linalg.norm(view, axis=1, keepdims=True)
-        medium = self._medium(scene)
-        out = np.zeros_like(v)
-        for i, light in enumerate(self._shader_lights(scene)):   # a projector's image: in incidence
-            out += light_single_scattering(v, nrm, view, light, medium, scene.material.eta, self._vis[:, i])
-        return out
+        """Per-vertex single scattering of every light, reflection and transmission
+        (:mod:`glsldiff.render.single`), kept while the camera, lights, material and geometry
+        stay the same; its time is the report's ``single`` seconds."""
+        key = _key(self._keys.get("material"), self._keys.get("light"), tuple(np.round(eye, 9)))
+        if self._keys.get("single") != key:
+            t0 = time.perf_counter()
+            geo = self._geo
+            with DepthRenderer(self.ctx, geo["mesh"]) as depth:
+                self._ss = single_scattering_frame(geo["mesh"], geo["vertices"], geo["normals"], eye,
+                                                   scene.material.eta, scene.lights, self._medium(scene), depth)
+            self._keys["single"] = key
+            self._ss_seconds = time.perf_counter() - t0
+        return self._ss
 
     # -- the frame -----------------------------------------------------------------
     def render(self, scene: Scene) -> tuple[NDArray[np.float32], RenderReport]:
@@ -496,7 +502,7 @@ class Renderer:
         through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
                          f"source: {scene.options.source}; "
-                         f"single scattering: {'on' if scene.options.single_scattering else 'off'}; "
+                         f"single scattering: {f'{self._ss_seconds:.2f} s' if scene.options.single_scattering else 'off'}; "
                          f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "
                          f"{'off' if scene.material.reflectance is None else scene.material.reflectance}")

@@ -24,7 +24,7 @@ silently ignored).
     [material]                # exactly one of: preset / sigma_a + sigma_s_prime / volume / procedural
     preset = "marble"
     eta = 1.3
-    procedural = "veins"      # veins | layers | inclusions (base = preset, second = "vein")
+    procedural = "veins"      # veins | layers | inclusions | sphere (base = preset, second = "vein")
     vein = "skin1"            # the second material of a procedural volume (default: darker base)
     seed = 0
     volume = "block.npz"      # kappa, mu (nz, ny, nx, 3) and h_mm; mapped through a shell layer
@@ -78,7 +78,8 @@ silently ignored).
     tol = 1e-4
     precision = "fp32"        # fp32 | fp16 | paper
     exitant = "p1"            # p1 (P1 radiance, Marshak source) | arbree (TransCut eq. 3) | paper (net flux)
-    single_scattering = false
+    single_scattering = false # every light, reflection and transmission (glsldiff.render.single); the
+                              # diffusion already matches all orders front-lit: on adds ~20 % there
     source = "surface"        # surface (Marshak boundary source) | volume (first-collision source, fem only)
     unscattered = true        # area/environment light seen straight through the object (thin parts)
     flux = "boundary"         # exitant flux: boundary (the Robin condition) | gradient (the solution's, fem only)

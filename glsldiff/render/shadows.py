@@ -88,11 +88,54 @@ class ShadowMap:
     views: list[View]
     size: int
     mid: NDArray[np.float32] = field(repr=False)  # (rows * size, cols * size)
+    front: NDArray[np.float32] | None = field(default=None, repr=False)  # nearest surface facing the light
 
     @property
     def label(self) -> str:
         s = f"{self.size}x{self.size}"
         return s if len(self.views) == 1 else f"{len(self.views)} x {s} (cube)"
+
+    def _views_of(self, p: NDArray[np.float64]) -> NDArray[np.int64]:
+        """Index of the view each point (relative to the centre) falls in: 0, or for a cube the
+        face of the major axis of ``p - eye``."""
+        if len(self.views) == 1:
+            return np.zeros(len(p), dtype=np.int64)
+        d = p - self.views[0].eye
+        ax = np.argmax(np.abs(d), axis=1)
+        neg = d[np.arange(len(p)), ax] < 0
+        return 2 * ax + neg
+
+    @staticmethod
+    def _project(v: View, p: NDArray[np.float64], size: int
+                 ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64],
+                            NDArray[np.bool_], NDArray[np.float64]]:
+        """Points ``p`` in view ``v``: depth (the map's metric), continuous texel coordinates
+        (x, y) within the tile, inside-the-view mask and the window half-size at the point."""
+        d = p - v.eye
+        x, y, z = d @ v.right, d @ v.up, d @ v.forward
+        if v.ortho:
+            depth = z
+            scale = np.full(len(p), v.half)
+            ok = np.ones(len(p), dtype=bool)
+        else:
+            depth = np.linalg.norm(d, axis=1)
+            ok = z > 1e-9 * max(v.far, 1.0)
+            scale = np.where(ok, z, 1.0) * v.half
+        nx, ny = x / scale, y / scale
+        ok &= (np.abs(nx) <= 1.0) & (np.abs(ny) <= 1.0)
+        return depth, (nx + 1.0) * 0.5 * size - 0.5, (ny + 1.0) * 0.5 * size - 0.5, ok, scale
+
+    def _texels(self, v: View, fx: NDArray[np.float64], fy: NDArray[np.float64]
+                ) -> list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]]:
+        """The 2 x 2 texels around (fx, fy) of view ``v`` as atlas (row, column) and bilinear weights."""
+        S = self.size
+        x0, y0 = np.floor(fx), np.floor(fy)
+        wx, wy = fx - x0, fy - y0
+        x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+        ox, oy = v.tile[0] * S, v.tile[1] * S
+        return [(np.clip(y0 + dy, 0, S - 1) + oy, np.clip(x0 + dx, 0, S - 1) + ox, w)
+                for dx, dy, w in ((0, 0, (1 - wx) * (1 - wy)), (1, 0, wx * (1 - wy)),
+                                  (0, 1, (1 - wx) * wy), (1, 1, wx * wy))]
 
     def lookup(self, p: NDArray[np.float64], to_light: NDArray[np.float64],
                normals: NDArray[np.float64] | None) -> NDArray[np.float64]:
@@ -101,55 +144,52 @@ class ShadowMap:
         vis = np.ones(n_pts)
         if n_pts == 0:
             return vis
-        if len(self.views) == 1:
-            which = np.zeros(n_pts, dtype=np.int64)
-        else:  # cube: the face of the major axis of p - eye
-            d = p - self.views[0].eye
-            ax = np.argmax(np.abs(d), axis=1)
-            neg = d[np.arange(n_pts), ax] < 0
-            which = 2 * ax + neg
+        which = self._views_of(p)
         if normals is None:
             tan = np.ones(n_pts)
         else:  # points facing away lie on the far surface: no slope allowance for them
             c = np.einsum("ij,ij->i", normals, to_light)
             cc = np.clip(c, 1e-6, 1.0)
             tan = np.where(c > 0, np.minimum(np.sqrt(np.maximum(1.0 - cc * cc, 0.0)) / cc, MAX_BIAS_TAN), 0.0)
-        S = self.size
         for k, v in enumerate(self.views):
             sel = np.flatnonzero(which == k)
             if sel.size == 0:
                 continue
-            d = p[sel] - v.eye
-            x, y, z = d @ v.right, d @ v.up, d @ v.forward
-            if v.ortho:
-                depth = z
-                scale = np.full(sel.size, v.half)
-                ok = np.ones(sel.size, dtype=bool)
-            else:
-                depth = np.linalg.norm(d, axis=1)
-                ok = z > 1e-9 * max(v.far, 1.0)
-                scale = np.where(ok, z, 1.0) * v.half
-            nx, ny = x / scale, y / scale
-            ok &= (np.abs(nx) <= 1.0) & (np.abs(ny) <= 1.0)
-            texel = 2.0 * scale / S
-            bias = texel * (BIAS_TEXELS + BIAS_SLOPE * tan[sel])
-            fx = (nx + 1.0) * 0.5 * S - 0.5
-            fy = (ny + 1.0) * 0.5 * S - 0.5
-            x0, y0 = np.floor(fx), np.floor(fy)
-            wx, wy = fx - x0, fy - y0
-            x0, y0 = x0.astype(np.int64), y0.astype(np.int64)
+            depth, fx, fy, ok, scale = self._project(v, p[sel], self.size)
+            bias = 2.0 * scale / self.size * (BIAS_TEXELS + BIAS_SLOPE * tan[sel])
             acc = np.zeros(sel.size)
-            ox, oy = v.tile[0] * S, v.tile[1] * S
-            for dx, dy, w in ((0, 0, (1 - wx) * (1 - wy)), (1, 0, wx * (1 - wy)),
-                              (0, 1, (1 - wx) * wy), (1, 1, wx * wy)):
-                ix = np.clip(x0 + dx, 0, S - 1) + ox
-                iy = np.clip(y0 + dy, 0, S - 1) + oy
+            for iy, ix, w in self._texels(v, fx, fy):
                 acc += w * (depth <= self.mid[iy, ix] + bias)
             vis[sel] = np.where(ok, acc, 1.0)
         vis = np.clip(vis, 0.0, 1.0)
         vis[vis > 1.0 - 1e-9] = 1.0  # bilinear weights sum to 1 only up to rounding
         vis[vis < 1e-9] = 0.0
         return vis
+
+    def entry(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Distance (mm) from points ``p`` (relative to the centre, normally inside the object)
+        back along the light's ray to the nearest surface facing the light: the depth of ``p``
+        minus the stored front depth, bilinear over the 2 x 2 texels when all four hold a
+        surface, else the nearest one's; clipped at 0; NaN where no surface is stored or the
+        point is outside every view (translucent shadow maps, Dachsbacher and Stamminger 2003)."""
+        out = np.full(len(p), np.nan)
+        if self.front is None:
+            raise InputError("this shadow map has no front depths (rendered before entry() existed)")
+        which = self._views_of(p)
+        for k, v in enumerate(self.views):
+            sel = np.flatnonzero(which == k)
+            if sel.size == 0:
+                continue
+            depth, fx, fy, ok, _ = self._project(v, p[sel], self.size)
+            taps = self._texels(v, fx, fy)
+            vals = np.stack([self.front[iy, ix] for iy, ix, _ in taps])             # (4, n)
+            wts = np.stack([w for _, _, w in taps])
+            have = vals < 0.5 * _FAR
+            bil = (np.where(have, vals, 0.0) * wts).sum(axis=0)
+            near = vals[np.argmax(wts, axis=0), np.arange(sel.size)]
+            front = np.where(have.all(axis=0), bil, np.where(near < 0.5 * _FAR, near, np.nan))
+            out[sel] = np.where(ok, np.maximum(depth - front, 0.0), np.nan)
+        return out
 
 
 class DepthRenderer:
@@ -269,7 +309,7 @@ class DepthRenderer:
             scope.release()
         depth = np.frombuffer(raw, dtype=np.float32).reshape(shape[1], shape[0], 2)
         mid = 0.5 * (depth[..., 0].astype(np.float64) + depth[..., 1])
-        return ShadowMap(views, size, mid)
+        return ShadowMap(views, size, mid, depth[..., 0])
 
     def shadow_map(self, light: Light, size: int, direction: NDArray[np.float64] | None = None
                    ) -> ShadowMap:
