@@ -235,3 +235,17 @@ def test_random_volume_bounds():
 def test_public_api_listed():
     """Every name in material.__all__ exists."""
     assert all(hasattr(material, n) for n in material.__all__)
+
+
+def test_sphere_weight_is_one_centred_ball_of_the_smallest_extent():
+    """validate's absorbing inclusion: a ball at the box centre, radius 0.3 of the smallest
+    extent, soft over 10 % of it; point_weight("sphere") is the same."""
+    from glsldiff.physics.procedural import point_weight, sphere_weight
+
+    x = np.linspace(-20.0, 20.0, 81)
+    p = np.stack(np.meshgrid(x, x, np.linspace(-2.5, 2.5, 11), indexing="ij"), -1).reshape(-1, 3)
+    w = sphere_weight(p)
+    d = np.linalg.norm(p, axis=1)
+    assert np.all(w[d < 1.5 * 0.95] == 1.0) and np.all(w[d > 1.5 * 1.05] == 0.0)
+    assert np.any((w > 0) & (w < 1))                       # the soft rim
+    np.testing.assert_array_equal(point_weight("sphere", p, seed=7), w)

@@ -35,7 +35,7 @@ from glsldiff.physics.material import Preset, coefficients, preset
 
 __all__ = ["VEIN_ABSORPTION", "VEIN_SCATTERING", "SYNTHETIC_KINDS", "POINT_KINDS", "lattice_noise",
            "point_noise", "unit_box", "vein_weight", "layer_weight", "inclusion_weight",
-           "depth_inclusions", "point_weight", "default_vein", "blend", "marble_volume",
+           "depth_inclusions", "sphere_weight", "point_weight", "default_vein", "blend", "marble_volume",
            "random_volume", "synthetic_volume"]
 
 Array = NDArray[np.float64]
@@ -44,7 +44,7 @@ Pair = tuple[Array, Array]  # (sigma_a, sigma_s') [mm^-1], each (3,)
 VEIN_ABSORPTION = 20.0  # default second material: base sigma_a times this ...
 VEIN_SCATTERING = 0.5   # ... and base sigma_s' times this (darker, more absorbing)
 SYNTHETIC_KINDS = ("layers", "veins", "inclusions", "mixed")
-POINT_KINDS = ("layers", "inclusions")
+POINT_KINDS = ("layers", "inclusions", "sphere")
 
 
 def _grid_shape(shape: tuple[int, ...] | int) -> tuple[int, ...]:
@@ -114,6 +114,17 @@ def inclusion_weight(u: Array, seed: int) -> Array:
     return t
 
 
+def sphere_weight(positions: ArrayLike, radius_share: float = 0.3, soft: float = 0.1) -> Array:
+    """One ball at the centre of the bounding box of ``positions`` ``(N, 3)`` mm, radius
+    ``radius_share`` of the box's smallest extent, soft (linear) over ``soft`` of the radius
+    (validate's absorbing inclusion)."""
+    p = np.asarray(positions, dtype=np.float64)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    r = radius_share * float(np.min(hi - lo))
+    d = np.linalg.norm(p - 0.5 * (lo + hi), axis=1)
+    return np.clip((r - d) / max(soft * r, 1e-12) + 0.5, 0.0, 1.0)
+
+
 def depth_inclusions(shape: tuple[int, int, int], rng: np.random.Generator, count: int) -> Array:
     """Weights over a node grid ``(nz, ny, nx)`` of ``count`` soft balls at several depths
     (one per depth band; radii 12-22 % of the smaller face side, stretched to nz/3 in z)."""
@@ -131,8 +142,11 @@ def depth_inclusions(shape: tuple[int, int, int], rng: np.random.Generator, coun
 
 def point_weight(kind: str, positions: ArrayLike, seed: int) -> Array:
     """Weight ``t`` in [0, 1] of a scene's second material at node ``positions`` ``(N, 3)`` mm:
-    ``kind`` "layers" (:func:`layer_weight`) or "inclusions" (:func:`inclusion_weight`)."""
+    ``kind`` "layers" (:func:`layer_weight`), "inclusions" (:func:`inclusion_weight`) or
+    "sphere" (:func:`sphere_weight`, one ball at the centre; ``seed`` unused)."""
     choice(kind, "procedural volume", POINT_KINDS)
+    if kind == "sphere":
+        return sphere_weight(positions)
     u = unit_box(positions)
     return layer_weight(u, seed) if kind == "layers" else inclusion_weight(u, seed)
 

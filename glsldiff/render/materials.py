@@ -4,7 +4,8 @@
 * procedural, evaluated over the nodes' bounding box (unit coordinates ``u`` in [0, 1]^3):
   ``veins`` (:func:`glsldiff.physics.procedural.marble_volume` on a 64^3 lattice, trilinear),
   ``layers`` and ``inclusions`` (:func:`glsldiff.physics.procedural.point_weight`: bands
-  along +y bent by smooth noise, or seeded spheres filling 5 % of the volume);
+  along +y bent by smooth noise, seeded spheres filling 5 % of the volume, or ``sphere``: one
+  ball at the box centre, radius 0.3 of its smallest extent);
 * a block volume file (``.npz`` with ``kappa``, ``mu`` of shape ``(nz, ny, nx, 3)`` and
   ``h_mm``), mapped through a shell layer (:func:`glsldiff.render.shellmap.map_shell`).
 

@@ -1,8 +1,13 @@
 """``glsldiff validate``: the diffusion renderer against Monte Carlo (Mitsuba 3) and the dipole.
 
-Each case is rendered twice with the same mesh, camera, light and material: by
-:class:`glsldiff.render.renderer.Renderer` (multiple scattering only: no specular, no single
-scattering) and by Mitsuba 3's ``volpath`` (:mod:`glsldiff.validation.mitsuba`).
+Each case is rendered with the same mesh, camera, light and material by
+:class:`glsldiff.render.renderer.Renderer` (the diffusion image: no specular, no single
+scattering; then the frame with single scattering, :mod:`glsldiff.render.single`, whose
+difference is our single-scattering image) and by Mitsuba 3's ``volpath``
+(:mod:`glsldiff.validation.mitsuba`). Components compared where Monte Carlo splits them
+(eta = 1): multiple (diffusion vs MC multiple), single (ours vs MC single, each with MC's
+noise), total (diffusion, and diffusion + single, vs all orders); the localized cases add the
+unscattered light.
 
 Lights: a directional light (irradiance 1 on a surface facing it), or an environment
 (:data:`ENVIRONMENTS`, radiance about 1): one :class:`~glsldiff.physics.lights.EnvironmentLight`
@@ -93,6 +98,7 @@ class Case:
     view_mm: float | None = None    # half-width of the field seen (default: the object framed)
     spp_factor: int = 1             # Monte Carlo samples per pixel: this times the command's spp
     source: str = "surface"         # [options].source of the diffusion renderer
+    volume_mm: float | None = None  # voxel size of Mitsuba's copy of a procedural material (default 48 cells)
 
     def __post_init__(self) -> None:
         if isinstance(self.light, str) and self.light not in ENVIRONMENTS + LOCALIZED:
@@ -124,6 +130,8 @@ CASES = {c.name: c for c in (
     replace(_PATCH, name="slab-patch-surface", source="surface"),
     replace(_PATCH, name="slab-spot", light="spot", patch_mm=6.0, eta=1.0, thickness_mm=10.0, source="surface",
             spp_factor=4),
+    replace(_PATCH, name="slab-patch-eta1", eta=1.0, spp_factor=16),
+    replace(_PATCH, name="slab-inclusion", eta=1.0, procedural="sphere", spp_factor=16, volume_mm=0.2),
 )}
 #: Samples per pixel of each of the two Monte Carlo renders of the unscattered light alone.
 UNSCATTERED_SPP = 8192
@@ -206,17 +214,21 @@ def _slab_file(folder: Path, size: float, thickness: float) -> str:
     return str(path)
 
 
-def _volume(scene: Scene, pg: Any, cells: int = 48) -> dict[str, Any]:
+def _volume(scene: Scene, pg: Any, voxel_mm: float | None = None) -> dict[str, Any]:
     """The scene's procedural material on a regular grid spanning the nodes' bounding box
-    (the same unit box :mod:`glsldiff.render.materials` evaluates it in), for Mitsuba."""
+    (the same unit box :mod:`glsldiff.render.materials` evaluates it in), for Mitsuba: 48
+    cells per axis, or cells of about ``voxel_mm`` (at most 256 per axis)."""
     lo, hi = pg.positions.min(axis=0), pg.positions.max(axis=0)
-    axes = [np.linspace(lo[i], hi[i], cells) for i in range(3)]
+    cells = [48] * 3 if voxel_mm is None else [int(min(256, max(8, np.ceil((hi[i] - lo[i]) / voxel_mm) + 1)))
+                                               for i in range(3)]
+    axes = [np.linspace(lo[i], hi[i], cells[i]) for i in range(3)]
     z, y, x = np.meshgrid(axes[2], axes[1], axes[0], indexing="ij")
     pts = np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
     kappa, mu, _ = node_material(scene, pts, pg)
-    sa = mu.reshape(cells, cells, cells, 3)
-    ss = np.maximum(1.0 / (3.0 * kappa) - mu, 0.0).reshape(cells, cells, cells, 3)
-    h = (hi - lo) / (cells - 1)
+    shape = (cells[2], cells[1], cells[0], 3)
+    sa = mu.reshape(shape)
+    ss = np.maximum(1.0 / (3.0 * kappa) - mu, 0.0).reshape(shape)
+    h = (hi - lo) / (np.asarray(cells) - 1)
     return {"sigma_a": sa, "sigma_s": ss, "bbox_min": lo - h / 2, "bbox_max": hi + h / 2}
 
 
@@ -249,8 +261,9 @@ def mc_split(spp: int) -> tuple[int, int]:
 
 def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
              folder: Path | None = None) -> tuple[dict[str, Any], dict[str, NDArray]]:
-    """One case: (row of numbers, images {"diffusion", "mc_subsurface", "mc_full"} and, with
-    eta = 1, "mc_multiple"; the patch case adds "diffusion_unscattered" and "mc_unscattered").
+    """One case: (row of numbers, images {"diffusion", "diffusion_single", "mc_subsurface",
+    "mc_full"} and, with eta = 1, "mc_multiple" and "mc_single"; the patch case adds
+    "diffusion_unscattered" and "mc_unscattered").
     With ``folder``, an environment map is written there as
     ``validation_<case>_environment.exr``."""
     env = case.light in ENVIRONMENTS
@@ -284,16 +297,28 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
             if localized and sees_through(scene.lights):   # the unscattered term alone: the frame without it
                 dark, _ = r.render(replace(scene, options=replace(scene.options, unscattered=False)))
                 ours_unscattered = ours - dark
+            t0 = time.perf_counter()                  # single scattering: the frame with it, minus without
+            lit, _ = r.render(replace(scene, options=replace(scene.options, single_scattering=True)))
+            single_s = time.perf_counter() - t0
+            ours_single = lit - ours
             pg, mesh = r.polygrid, r.mesh
-            volume = _volume(scene, pg) if case.procedural else None
+            volume = _volume(scene, pg, case.volume_mm) if case.procedural else None
     cam = McCamera(tuple(eye), tuple(target), tuple(up), fov, size, size)
     renders, each = mc_split(spp * case.spp_factor)
     parts, seconds = zip(*(_mc_render(case, mesh, cam, each, seed + k, volume) for k in range(renders)))
     mc = {k: np.mean([p[k] for p in parts], axis=0) for k in parts[0]}
     sub = mc["subsurface"]
     if localized:
-        return _localized_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam, seed,
-                              renders * each)
+        row, images = _localized_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam,
+                                     seed, renders * each)
+        every = np.ones(ours.shape[:2], dtype=bool)
+        row.update(_single_columns(ours, ours_single, single_s, parts, mc, every))
+        row["power_ratio_with_single"] = float((ours + ours_single).sum() / mc["subsurface"].sum())
+        row["peak_ratio_with_single"] = _centre(ours + ours_single, _peak_half(case, size)) / row["peak_mc"]
+        images["diffusion_single"] = ours_single
+        if "single" in mc:
+            images["mc_single"] = mc["single"]
+        return row, images
     unsplit = np.full_like(sub, np.nan)   # eta != 1: no scattering orders, their numbers are NaN
     multiple, single = mc.get("multiple", unsplit), mc.get("single", unsplit)
     inside = binary_erosion((ours.sum(axis=2) > 0) & (sub.sum(axis=2) > 0), iterations=1)
@@ -313,6 +338,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
         "surface_share": 1.0 - sub_sum / max(float(mc["full"][inside].sum()), 1e-30),
         "diffusion_s": ours_s, "t1_t2_t3_ms": "/".join(f"{rep.seconds.get(k, 0) * 1e3:.0f}" for k in ("t1", "t2", "t3")),
         "mc_s": sum(seconds), "spp": renders * each, "solver_residual": rep.solver.residual if rep.solver else math.nan,
+        **_single_columns(ours, ours_single, single_s, parts, mc, inside),
     }
     if case.mesh == "slab" and not env:
         c = size // 2
@@ -321,10 +347,36 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
         row["centre_diffusion"] = float(ours[patch].mean())
         row["centre_mc_multiple"] = float(multiple[patch].mean())
         row["centre_dipole"] = rho * 1.0 * abs(case.light[2]) / np.linalg.norm(case.light) / math.pi
-    images = {"diffusion": ours, "mc_subsurface": sub, "mc_full": mc["full"]}
+    images = {"diffusion": ours, "mc_subsurface": sub, "mc_full": mc["full"], "diffusion_single": ours_single}
     if "multiple" in mc:
-        images["mc_multiple"] = multiple
+        images["mc_multiple"], images["mc_single"] = multiple, single
     return row, images
+
+
+def _single_columns(ours: NDArray, single: NDArray, single_s: float, parts: Sequence[dict[str, NDArray]],
+                    mc: dict[str, NDArray], mask: NDArray) -> dict[str, Any]:
+    """Our single scattering (:mod:`glsldiff.render.single`) against Monte Carlo's (eta = 1:
+    relative RMSE, ratio of sums, the noise of MC's single- and multiple-scattering images;
+    NaN otherwise), and the frame with it (multiple + single) against all scattering orders."""
+    sub = mc["subsurface"]
+    row: dict[str, Any] = {"rmse_with_single_vs_mc_all": rmse(ours + single, sub, mask),
+                           "single_share_ours": float(single[mask].sum() / max(float((ours + single)[mask].sum()), 1e-30)),
+                           "single_s": single_s}
+    if "single" in mc and mc["single"][mask].sum() > 0:
+        row["rmse_single_vs_mc_single"] = rmse(single, mc["single"], mask)
+        row["single_ratio"] = float(single[mask].sum() / mc["single"][mask].sum())
+        row["mc_single_noise"] = _standard_error([p["single"] for p in parts], mask)
+    else:
+        row["rmse_single_vs_mc_single"] = row["single_ratio"] = row["mc_single_noise"] = math.nan
+    row["mc_multiple_noise"] = (_standard_error([p["multiple"] for p in parts], mask) if "multiple" in mc
+                                else math.nan)
+    return row
+
+
+def _peak_half(case: Case, size: int) -> int:
+    """Half-width in pixels of the central 2 x 2 mm where a localized case's peak is measured."""
+    px_mm = 2.0 * case.view_mm / size if case.view_mm else 1.0
+    return max(1, int(round(1.0 / px_mm)))
 
 
 def _centre(img: NDArray, half_px: int) -> float:
@@ -354,8 +406,7 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
         halves = [np.zeros_like(sub)] * 2
     unsc = 0.5 * (halves[0] + halves[1])
     mc_unsc_s = time.perf_counter() - t0
-    px_mm = 2.0 * case.view_mm / sub.shape[0] if case.view_mm else 1.0
-    half = max(1, int(round(1.0 / px_mm)))                   # 2 x 2 mm around the centre
+    half = _peak_half(case, sub.shape[0])
     peak_mc = _centre(sub, half)
     row: dict[str, Any] = {
         "case": case.name, "eta": case.eta, "source": case.source,
@@ -377,14 +428,15 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
     return row, images
 
 
-def _panels(path: Path, mc: NDArray, ours: NDArray, name: str) -> None:
+def _panels(path: Path, mc: NDArray, ours: NDArray, name: str, mc_title: str = "Monte Carlo (subsurface)",
+            ours_title: str = "diffusion (ours)") -> None:
     """PNG of four panels (luminance, channel mean): Monte Carlo's subsurface image, ours, their
     difference (ours - MC, symmetric colour scale) and both along the centre row."""
     plt = pyplot()
     a, b = mc.mean(axis=2), ours.mean(axis=2)
     top = max(float(np.percentile(a, 99.5)), 1e-12)
     fig, ax = plt.subplots(1, 4, figsize=(15, 3.6))
-    for k, (img, title) in enumerate(((a, "Monte Carlo (subsurface)"), (b, "diffusion (ours)"))):
+    for k, (img, title) in enumerate(((a, mc_title), (b, ours_title))):
         im = ax[k].imshow(img, cmap="magma", vmin=0.0, vmax=top)
         ax[k].set_title(title)
         fig.colorbar(im, ax=ax[k], fraction=0.046)
@@ -413,7 +465,8 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
     """Run ``cases``; write validation.csv, and per case a PNG (diffusion | MC multiple scattering
     (eta = 1) or MC subsurface, all orders (eta != 1) | MC full image, surface reflection and
     background included), a PNG of panels (:func:`_panels`: MC, ours, difference, centre-row
-    profile), the images as EXR and the environment map (if any). ``source`` (``"surface"`` or
+    profile) and with eta = 1 one of the single scattering alone, the images as EXR and the
+    environment map (if any). ``source`` (``"surface"`` or
     ``"volume"``) overrides every case's diffusion source model."""
     unknown = [c for c in cases if c not in CASES]
     if unknown:
@@ -433,6 +486,9 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
         sheet = io.contact_sheet([imgs["diffusion"], middle, imgs["mc_full"]], 3, expo, scale=2)
         io.write_png(out / f"validation_{name}.png", sheet)
         _panels(out / f"validation_{name}_panels.png", imgs["mc_subsurface"], imgs["diffusion"], name)
+        if "mc_single" in imgs:
+            _panels(out / f"validation_{name}_single_panels.png", imgs["mc_single"], imgs["diffusion_single"],
+                    f"{name}, single scattering", "Monte Carlo (single)", "ours (single)")
         for key, img in imgs.items():
             io.write_exr(out / f"validation_{name}_{key}.exr", img)
         io.write_csv(out / "validation.csv", rows)
