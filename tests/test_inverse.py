@@ -305,3 +305,28 @@ def test_the_calibrated_model_recovers_the_physical_material() -> None:
     assert kp == pytest.approx(0.25, rel=0.02) and mp == pytest.approx(0.02, rel=0.05), found
     kn, mn = found["paper"]
     assert abs(kn / 0.25 - 1) > 0.2 or abs(mn / 0.02 - 1) > 0.2, found
+
+
+def test_coefficient_errors_are_zero_for_the_truth_and_name_a_scale() -> None:
+    from glsldiff.inverse.synthetic import coefficient_errors
+
+    grid = RegularGrid(8, 8, 4, h=0.5)
+    k, m = np.full((4, 8, 8, 3), 0.2), np.full((4, 8, 8, 3), 0.03)
+    rows = coefficient_errors(grid, (k, m), (k, m))
+    assert [r["channel"] for r in rows] == ["R", "G", "B"]
+    assert all(r["sigma_a_median_rel_err"] == 0 and r["sigma_s_median_rel_err"] == 0 for r in rows)
+    assert rows[0]["sigma_s_true"] == pytest.approx(1 / 0.6 - 0.03)
+    rows = coefficient_errors(grid, (k, m), (k, 2 * m))
+    assert rows[1]["sigma_a_median_rel_err"] == pytest.approx(1.0) and rows[1]["sigma_a_fit"] == pytest.approx(0.06)
+
+
+@pytest.mark.parametrize("args, match", [
+    (["--setup", "front"], "back-lit setup only"),
+    (["--noise", "0.01"], "Monte Carlo has its own"),
+    (["--spp", "100"], "power of 4"),
+])
+def test_cli_synth_mitsuba_refuses_what_it_cannot_render(tmp_path, capsys, args, match) -> None:
+    assert main(["synth", str(tmp_path / "m.npz"), "--renderer", "mitsuba", *args]) == 2
+    err = capsys.readouterr().err
+    assert match in err and err.count("\n") == 1
+    assert not (tmp_path / "m.npz").exists()

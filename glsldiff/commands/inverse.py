@@ -16,9 +16,9 @@ from glsldiff.bench import fit as fit_bench
 from glsldiff.core.io import write_csv, write_exr, write_npz
 from glsldiff.inverse.figures import depth_slices
 from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
-from glsldiff.inverse.measurements import load_measurements, save_measurements
+from glsldiff.inverse.measurements import Measurements, load_measurements, save_measurements
 from glsldiff.inverse.reflectance import diffuse_reflectance
-from glsldiff.inverse.synthetic import bssrdf_error, synthetic_measurements
+from glsldiff.inverse.synthetic import bssrdf_error, coefficient_errors, synthetic_measurements
 from glsldiff.physics.procedural import synthetic_volume
 from glsldiff.physics.exitance import EXITANT
 
@@ -31,9 +31,18 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("--n", type=A.integer(1, 64), default=4, help="n x n projector regions")
     p.add_argument("--setup", choices=("back", "front"), default="back")
     p.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed")
-    p.add_argument("--noise", type=A.nonnegative, default=0.01, help="relative shot noise at the bright end")
+    p.add_argument("--noise", type=A.nonnegative, default=None,
+                   help="relative shot noise at the bright end (default 0.01; none with --renderer mitsuba)")
     p.add_argument("--saturation", type=A.positive, default=None, help="clip radiance at this value")
     p.add_argument("--seed", type=A.seed, default=0)
+    p.add_argument("--grey", action="store_true",
+                   help="the volume's green channel in all three (one fit serves all; one Monte Carlo render "
+                        "per region instead of three)")
+    p.add_argument("--renderer", choices=("diffusion", "mitsuba"), default="diffusion",
+                   help="render the captures with glsldiff's diffusion model, or path trace them with Mitsuba 3 "
+                        "(back setup, eta = 1; glsldiff.validation.measure)")
+    p.add_argument("--spp", type=A.integer(4, 1 << 20), default=1024,
+                   help="Monte Carlo samples per pixel with --renderer mitsuba (a power of 4)")
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("fit", help="fit kappa and mu to measurements by inverse diffusion")
@@ -90,13 +99,42 @@ def cmd_synth(args: argparse.Namespace) -> int:
     truth = check_output(out.with_name(out.stem + "_truth.npz"))
     nx, ny, nz = args.size
     kappa, mu = synthetic_volume((nz, ny, nx), args.volume, seed=args.seed)
-    meas = synthetic_measurements(kappa, mu, args.h, args.n, args.setup, noise=args.noise,
-                                  saturation=args.saturation, seed=args.seed + 1)
+    if args.grey:
+        kappa, mu = (np.repeat(a[..., 1:2], 3, axis=-1) for a in (kappa, mu))
+    if args.renderer == "mitsuba":
+        meas = _mitsuba_synth(args, kappa, mu)
+    else:
+        meas = synthetic_measurements(kappa, mu, args.h, args.n, args.setup,
+                                      noise=0.01 if args.noise is None else args.noise,
+                                      saturation=args.saturation, seed=args.seed + 1)
     save_measurements(out, meas)
     write_npz(truth, kappa=kappa, mu=mu, h=args.h)
     print(f"wrote {meas.M} {args.setup}-lit measurements of a {nx}x{ny}x{nz} {args.volume} block "
-          f"(h = {args.h} mm) to {out} and the true material to {truth}")
+          f"(h = {args.h} mm, {args.renderer}) to {out} and the true material to {truth}")
     return 0
+
+
+def _mitsuba_synth(args: argparse.Namespace, kappa: np.ndarray, mu: np.ndarray) -> Measurements:
+    """The captures path traced by Mitsuba 3 (:mod:`glsldiff.validation.measure`)."""
+    from glsldiff.validation.measure import mitsuba_measurements
+    from glsldiff.validation.mitsuba_scene import load_mitsuba
+
+    if args.setup != "back":
+        raise InputError("--renderer mitsuba renders the back-lit setup only; use --setup back")
+    if args.noise or args.saturation is not None:
+        raise InputError("--noise and --saturation apply to the diffusion renderer; Monte Carlo has its own "
+                         "noise (set it with --spp)")
+    if args.spp & (args.spp - 1) or (args.spp.bit_length() - 1) % 2:
+        raise InputError(f"--spp {args.spp} must be a power of 4 (Mitsuba's low-discrepancy sampler): 256, 1024, 4096")
+    load_mitsuba("scalar_rgb")             # a missing Mitsuba fails before any work
+
+    def progress(done: int, total: int, seconds: float) -> None:
+        print(f"  region {done}/{total}: {seconds:.0f} s", flush=True)
+
+    meas, info = mitsuba_measurements(kappa, mu, args.h, args.n, args.spp, args.seed, progress)
+    print(f"Mitsuba: {info['regions']} regions at {info['spp']} spp in {info['seconds']:.0f} s; unscattered light "
+          f"removed ({100 * info['unscattered_share']:.1f} % of the image)")
+    return meas
 
 
 def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -> dict[str, np.ndarray]:
@@ -159,6 +197,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
         print(note)
     if E is not None:
         print(f"figure-11 error E vs the true material ({meas.lit_face} -> {meas.observed_face} pairs): {E:.5f}")
+        print_table("recovered coefficients against the truth (interior nodes, mm^-1)",
+                    coefficient_errors(meas.grid, truth, (result.kappa, result.mu)))
     if not all(f.converged for f in result.channels):
         print("NOT converged (f >= 1e-4 of sum L^2 when the budget ran out); the best material found is saved")
     if not args.no_png:
