@@ -1,4 +1,6 @@
-r"""Single scattering below a locally planar surface (optional term of the final shading pass).
+r"""Single scattering below a locally planar surface: Jensen et al.'s front-lit model, the
+closed form that :mod:`glsldiff.render.single` (the renderer's term for every light, in
+reflection and transmission, following the object's geometry) is tested against.
 
 (Over 400 lines: the derivation and its checks are documented here, with the code.)
 

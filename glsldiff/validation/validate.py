@@ -310,7 +310,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     sub = mc["subsurface"]
     if localized:
         row, images = _localized_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam,
-                                     seed, renders * each)
+                                     seed, renders * each, volume)
         every = np.ones(ours.shape[:2], dtype=bool)
         row.update(_single_columns(ours, ours_single, single_s, parts, mc, every))
         row["power_ratio_with_single"] = float((ours + ours_single).sum() / mc["subsurface"].sum())
@@ -386,13 +386,15 @@ def _centre(img: NDArray, half_px: int) -> float:
 
 def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArray, ours_s: float,
                    parts: Sequence[dict[str, NDArray]], mc: dict[str, NDArray], mc_s: float, mesh: Any,
-                   cam: McCamera, seed: int, spp: int) -> tuple[dict[str, Any], dict[str, NDArray]]:
+                   cam: McCamera, seed: int, spp: int, volume: dict[str, Any] | None = None
+                   ) -> tuple[dict[str, Any], dict[str, NDArray]]:
     """Numbers and images of the localized cases (back-lit patch, spot): over the whole field
     (the slab fills it), relative L2 of the subsurface image, the ratio of the summed images
     (power), of the central 2 x 2 mm (peak), Monte Carlo's single-scattering share (eta = 1),
     and of the unscattered images: Monte Carlo's is a render of the same slab with sigma_s = 0
-    (extinction sigma_a + sigma_s, nothing scatters), two renders of ``UNSCATTERED_SPP``
-    samples (their difference: the noise of its power); a spot light is never seen through."""
+    (extinction sigma_a + sigma_s, nothing scatters; of the case's ``volume`` when
+    heterogeneous), two renders of ``UNSCATTERED_SPP`` samples (their difference: the noise of
+    its power); a spot light is never seen through."""
     from glsldiff.validation.mitsuba import render_mitsuba
 
     sub = mc["subsurface"]
@@ -400,8 +402,10 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
     st = case.sigma_a + case.sigma_s
     t0 = time.perf_counter()   # nothing scatters: a path survives with probability exp(-tau), so many samples
     if case.light == "patch":
+        straight = None if volume is None else {**volume, "sigma_a": volume["sigma_a"] + volume["sigma_s"],
+                                                "sigma_s": np.zeros_like(volume["sigma_s"])}
         halves = [render_mitsuba(mesh, (st,) * 3, (0.0,) * 3, case.eta, cam, _light(case), UNSCATTERED_SPP,
-                                 seed + 99 + k)[0] for k in range(2)]
+                                 seed + 99 + k, straight)[0] for k in range(2)]
     else:                      # a point light is never seen through the object
         halves = [np.zeros_like(sub)] * 2
     unsc = 0.5 * (halves[0] + halves[1])
@@ -445,8 +449,8 @@ def _panels(path: Path, mc: NDArray, ours: NDArray, name: str, mc_title: str = "
     ax[2].set_title("ours - Monte Carlo")
     fig.colorbar(im, ax=ax[2], fraction=0.046)
     row = a.shape[0] // 2
-    ax[3].plot(a[row], "k-", label="Monte Carlo")
-    ax[3].plot(b[row], "r-", label="diffusion")
+    ax[3].plot(a[row], "k-", label=mc_title)
+    ax[3].plot(b[row], "r-", label=ours_title)
     ax[3].set_title("centre row")
     ax[3].set_xlabel("pixel")
     ax[3].legend()
