@@ -7,14 +7,14 @@ fit must bridge the model's own error too, and the recovered coefficients are co
 the physical truth:
 
 * the block: nodes ``(nz, ny, nx)`` at spacing ``h`` (mm) span a box of ``(n - 1) h`` on each
-  axis centred at the origin (boundary nodes on its faces; placed at ``[0, (n - 1) h]`` instead,
-  Mitsuba's back-lit regions lost up to 35 % of their light depending on where they were, the
-  same rectangle 0.99x at one corner and 0.65x at the opposite one), filled with the node material as Mitsuba's grid
+  axis centred at the origin (boundary nodes on its faces), filled with the node material as Mitsuba's grid
   volume (cell centred on the nodes, trilinear): ``sigma_a = mu``, ``sigma_s = 1/(3 kappa) - mu``
   with the isotropic phase function; index matched (eta = 1, Mitsuba's null boundary);
 * each of the ``n x n`` regions of the lit face ``z-`` (:func:`glsldiff.inverse.measurements.
   face_regions`) is lit by a Lambertian rectangle of radiance ``1/pi`` covering the region's
-  node cells, ``GAP_MM`` below the face: the incoming ``q`` at each lit-face node is its exact
+  node cells, ``GAP_MM`` below the face (reached by phase sampling only: Mitsuba's next-event
+  estimation through the index-matched boundary lost light depending on the region's position,
+  see :mod:`glsldiff.validation.mitsuba`): the incoming ``q`` at each lit-face node is its exact
   irradiance (:func:`glsldiff.physics.area.area_beams`; 1 inside the region, a narrow
   penumbra at its edge);
 * the observed face ``z+`` is imaged by a pinhole 2 m away with one pixel per face node (pixel

@@ -213,13 +213,15 @@ def load_mitsuba(variant: str) -> Any:
 # ---------------------------------------------------------------------------------------
 # Scene assembly
 # ---------------------------------------------------------------------------------------
-def medium_dict(mi: Any, c: dict[str, Any], gridded: bool) -> Any:
-    """Mitsuba medium from checked coefficients: RGB (3,) arrays, or a checked volume dict."""
+def medium_dict(mi: Any, c: dict[str, Any], gridded: bool, sample_emitters: bool = True) -> Any:
+    """Mitsuba medium from checked coefficients: RGB (3,) arrays, or a checked volume dict;
+    ``sample_emitters``: next-event estimation from medium vertices (see
+    :func:`glsldiff.validation.mitsuba.render_mitsuba` for when it is off)."""
     st = c["sigma_a"] + c["sigma_s"]
     albedo = np.divide(c["sigma_s"], st, out=np.zeros_like(st), where=st > 0)
     if not gridded:
         scale = float(st.max()) or 1.0  # Mitsuba's 'rgb' inputs must lie in [0, 1]: scale them
-        return mi.load_dict({"type": "homogeneous", "sample_emitters": True,
+        return mi.load_dict({"type": "homogeneous", "sample_emitters": sample_emitters,
                              "albedo": {"type": "rgb", "value": albedo.tolist()},
                              "sigma_t": {"type": "rgb", "value": (st / scale).tolist()},
                              "scale": scale, "phase": {"type": "isotropic"}})
@@ -230,7 +232,7 @@ def medium_dict(mi: Any, c: dict[str, Any], gridded: bool) -> Any:
         return {"type": "gridvolume", "grid": mi.VolumeGrid(np.ascontiguousarray(data, dtype=np.float32)),
                 "to_world": to_world, "filter_type": c["filter"], "wrap_mode": "clamp", "raw": True}
 
-    return mi.load_dict({"type": "heterogeneous", "sample_emitters": True, "scale": 1.0,
+    return mi.load_dict({"type": "heterogeneous", "sample_emitters": sample_emitters, "scale": 1.0,
                          "albedo": grid(albedo), "sigma_t": grid(st), "phase": {"type": "isotropic"}})
 
 
