@@ -247,3 +247,21 @@ def test_dipole_bad_input():
 def test_public_api_listed():
     """Every name in optics.__all__ exists."""
     assert all(hasattr(optics, n) for n in optics.__all__)
+
+
+def test_refract_obeys_snell_and_flags_total_internal_reflection():
+    from glsldiff.physics.optics import refract
+
+    theta = np.radians([0.0, 20.0, 45.0, 80.0])
+    d = np.stack([np.sin(theta), np.zeros(4), -np.cos(theta)], 1)        # going down onto z = 0
+    n = np.tile([0.0, 0.0, 1.0], (4, 1))
+    t, ok = refract(d, n, 1.0 / 1.4)                                      # into the denser medium
+    assert ok.all() and np.allclose(np.linalg.norm(t, axis=1), 1.0)
+    np.testing.assert_allclose(t[:, 0], np.sin(theta) / 1.4, atol=1e-15)  # sin_t = sin_i / eta
+    assert np.all(t[:, 2] < 0)                                            # still going down
+    up = t * [1.0, 1.0, -1.0]                                             # the same ray inside, going up
+    back, ok = refract(up, -n, 1.4)                                       # leaving: the incident angle again
+    assert ok.all()
+    np.testing.assert_allclose(back[:, 0], np.sin(theta), atol=1e-12)
+    _, ok = refract(np.array([[np.sin(1.2), 0.0, np.cos(1.2)]]), np.array([[0.0, 0.0, -1.0]]), 1.4)
+    assert not ok[0]                                                      # 69 deg inside eta 1.4: totally reflected

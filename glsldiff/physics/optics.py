@@ -19,6 +19,7 @@ from glsldiff.core.errors import InputError
 
 __all__ = [
     "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "transmitted_cosine", "refracted_cosine",
+    "refract",
     "fdr", "fdr_integral",
     "boundary_constant", "eta_for_boundary_constant", "DipoleConstants",
     "dipole_constants", "dipole_rd", "dipole_total_reflectance",
@@ -108,6 +109,20 @@ def refracted_cosine(eta: float | None, cos: ArrayLike) -> NDArray[np.float64]:
     if eta is None:
         return c
     return np.where(c > 0.0, np.sqrt(np.clip(1.0 - (1.0 - c * c) / (eta * eta), 0.0, 1.0)), 0.0)
+
+
+def refract(d: NDArray[np.float64], n: NDArray[np.float64], eta_r: float
+            ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Snell: unit propagation directions ``d`` (N, 3) crossing surfaces with unit normals ``n``
+    facing against them (``n . d < 0``), ``eta_r = n_from / n_to``; returns the refracted unit
+    directions and a mask of rays not totally internally reflected (where it is False the
+    direction is the grazing limit)."""
+    cos_i = -np.einsum("ij,ij->i", n, d)
+    sin2 = eta_r * eta_r * (1.0 - cos_i * cos_i)
+    ok = sin2 <= 1.0
+    cos_t = np.sqrt(np.clip(1.0 - sin2, 0.0, 1.0))
+    t = eta_r * d + (eta_r * cos_i - cos_t)[:, None] * n
+    return t / np.linalg.norm(t, axis=1, keepdims=True).clip(1e-300), ok
 
 
 def fdr(eta: ArrayLike) -> NDArray[np.float64] | np.float64:

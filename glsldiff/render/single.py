@@ -58,7 +58,7 @@ from glsldiff.mesh import closest_points
 from glsldiff.mesh.raycast import first_hits
 from glsldiff.physics.area import solid_angles, sub_rectangles
 from glsldiff.physics.lights import AreaLight, EnvironmentLight, Light, incidence, to_light
-from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine, transmitted_cosine
+from glsldiff.physics.optics import fresnel_transmittance, refract, refracted_cosine, transmitted_cosine
 from glsldiff.physics.sh import fibonacci_directions, sh_evaluate
 from glsldiff.physics.single import henyey_greenstein
 from glsldiff.render.shadows import DepthRenderer
@@ -106,14 +106,6 @@ class _Medium:
             for ch in range(3):
                 out[a, :, ch] = map_coordinates(self.grid[a, ..., ch], c, order=1, mode="nearest")
         return out[0], out[1]
-
-
-def _refract_in(w_o: Array, n: Array, eta: float) -> tuple[Array, Array]:
-    """Propagation direction inside of the view ray seen along ``-w_o`` (``n . w_o > 0``) and
-    its refracted cosine."""
-    mu = np.einsum("ij,ij->i", n, w_o)
-    t = refracted_cosine(eta, mu)
-    return -w_o / eta + (mu / eta - t)[:, None] * n, t
 
 
 class _Beams:
@@ -192,7 +184,7 @@ def single_scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Arr
     if idx.size == 0:
         return out
     beams = [_Beams(lt, renderer, shadow_map_size) for lt in lights]
-    d, _ = _refract_in(w_o[idx], n[idx], eta)
+    d, _ = refract(-w_o[idx], n[idx], 1.0 / eta)                             # view ray, propagating in
     _, st0 = med(v[idx])
     lam = np.maximum(st0.min(axis=1), 1e-12)                                 # mm^-1; a clear channel: uniform
     h = 1e-6 * float(np.ptp(v, axis=0).max())
@@ -243,7 +235,7 @@ def _beam(bl: _Beams, b: int, x: Array, up: Array, mesh: Any, med: _Medium, eta:
     lit = c > 0.0
     t = np.maximum(refracted_cosine(eta, c), 1e-6)
     path = ell * c / t                                                       # Jensen's s'
-    T = -w_y / eta + (c / eta - t)[:, None] * n_y                            # refracted propagation
+    T, _ = refract(-w_y, n_y, 1.0 / eta)                                     # refracted propagation
     phase = henyey_greenstein(np.einsum("ij,ij->i", T, up[ok]), g)
     if med.homogeneous:
         tau = path[:, None] * med.const[1]

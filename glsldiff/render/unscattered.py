@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from glsldiff.mesh.raycast import first_hits
 from glsldiff.physics.lights import AreaLight, EnvironmentLight, Light
-from glsldiff.physics.optics import fresnel_transmittance
+from glsldiff.physics.optics import fresnel_transmittance, refract
 from glsldiff.physics.sh import latlong_lookup
 
 __all__ = ["unscattered", "sees_through", "REACH", "STEPS"]
@@ -40,17 +40,6 @@ STEPS = 16
 def sees_through(lights: Sequence[Light]) -> bool:
     """Whether any of ``lights`` can be seen through an object (area and environment lights)."""
     return any(isinstance(lt, (AreaLight, EnvironmentLight)) for lt in lights)
-
-
-def _refract(i: NDArray, n: NDArray, eta_r: float) -> tuple[NDArray, NDArray]:
-    """Refracted unit directions of unit ``i`` at normals ``n`` facing against ``i``,
-    ``eta_r = n1 / n2``; and a mask of rays not totally internally reflected."""
-    cos_i = -np.einsum("ij,ij->i", n, i)
-    sin2 = eta_r * eta_r * (1.0 - cos_i * cos_i)
-    ok = sin2 <= 1.0
-    cos_t = np.sqrt(np.clip(1.0 - sin2, 0.0, 1.0))
-    t = eta_r * i + (eta_r * cos_i - cos_t)[:, None] * n
-    return t / np.linalg.norm(t, axis=1, keepdims=True).clip(1e-300), ok
 
 
 def _behind(lights: Sequence[Light], y: NDArray, w: NDArray) -> NDArray[np.float64]:
@@ -88,7 +77,7 @@ def unscattered(mesh: Any, vertices: NDArray, normals: NDArray, eye: NDArray, et
     w_o /= np.linalg.norm(w_o, axis=1, keepdims=True).clip(1e-300)
     mu = np.einsum("ij,ij->i", n, w_o)
     idx = np.flatnonzero(mu > 0.0)
-    d, _ = _refract(-w_o[idx], n[idx], 1.0 / eta)
+    d, _ = refract(-w_o[idx], n[idx], 1.0 / eta)
     homogeneous = not callable(sigma_t)
     if sigma_t_min is None:
         sigma_t_min = float(np.min(sigma_t)) if homogeneous else 0.0
@@ -99,7 +88,7 @@ def unscattered(mesh: Any, vertices: NDArray, normals: NDArray, eye: NDArray, et
     idx, d, s, face = idx[hit], d[hit], s[hit] + h, face[hit]
     y = v[idx] + s[:, None] * d
     n_y = mesh.face_normals[face]
-    w_e, ok = _refract(d, -n_y, eta)
+    w_e, ok = refract(d, -n_y, eta)
     idx, d, s, y, n_y, w_e = idx[ok], d[ok], s[ok], y[ok], n_y[ok], w_e[ok]
     again, _ = first_hits(mesh, y + h * w_e, w_e)
     free = ~np.isfinite(again)                                       # the escaped ray leaves the object
