@@ -124,8 +124,6 @@ def _mitsuba_synth(args: argparse.Namespace, kappa: np.ndarray, mu: np.ndarray) 
     if args.noise or args.saturation is not None:
         raise InputError("--noise and --saturation apply to the diffusion renderer; Monte Carlo has its own "
                          "noise (set it with --spp)")
-    if args.spp & (args.spp - 1) or (args.spp.bit_length() - 1) % 2:
-        raise InputError(f"--spp {args.spp} must be a power of 4 (Mitsuba's low-discrepancy sampler): 256, 1024, 4096")
     load_mitsuba("scalar_rgb")             # a missing Mitsuba fails before any work
 
     def progress(done: int, total: int, seconds: float) -> None:

@@ -88,7 +88,7 @@ class ShadowMap:
     views: list[View]
     size: int
     mid: NDArray[np.float32] = field(repr=False)  # (rows * size, cols * size)
-    front: NDArray[np.float32] | None = field(default=None, repr=False)  # nearest surface facing the light
+    front: NDArray[np.float32] = field(repr=False)  # nearest surface facing the light
 
     @property
     def label(self) -> str:
@@ -173,8 +173,6 @@ class ShadowMap:
         surface, else the nearest one's; clipped at 0; NaN where no surface is stored or the
         point is outside every view (translucent shadow maps, Dachsbacher and Stamminger 2003)."""
         out = np.full(len(p), np.nan)
-        if self.front is None:
-            raise InputError("this shadow map has no front depths (rendered before entry() existed)")
         which = self._views_of(p)
         for k, v in enumerate(self.views):
             sel = np.flatnonzero(which == k)

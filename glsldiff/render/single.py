@@ -48,7 +48,7 @@ how finely an entry point is placed.
 """
 from __future__ import annotations
 
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,7 +78,6 @@ class _Medium:
     sampled on a lattice over ``[lo, hi]`` and interpolated trilinearly."""
 
     def __init__(self, medium: Any, lo: Array, hi: Array, g: float) -> None:
-        self.g = g
         if callable(medium):
             pad = 1e-3 * float(np.max(hi - lo))
             self.lo, self.hi = lo - pad, hi + pad
@@ -142,13 +141,15 @@ class _Beams:
     def entry(self, b: int, x: Array) -> Array:
         return self.maps[b].entry(x - self.centre)
 
-    def inside(self, b: int, x: Array, ell: Array, y: Array, n_y: Array, eta: float) -> tuple[Array, Array, Array]:
-        """At entry points ``y`` (normals ``n_y``) of samples ``x`` a straight distance ``ell``
-        inside: the beam's normal irradiance inside ``(M, 3)``, the incidence cosine ``(M,)``
-        and the direction towards the source at ``y``."""
+    def inside(self, b: int, y: Array, n_y: Array, ell: Array, eta: float
+               ) -> tuple[Array, Array, Array, Array]:
+        """At entry points ``y`` (normals ``n_y``) of samples a straight distance ``ell``
+        inside: the beam's normal irradiance inside ``(M, 3)``, the incidence cosine and the
+        refracted cosine ``(M,)``, and the direction towards the source at ``y``."""
         w = self.towards(b, y)
         c = np.maximum(np.einsum("ij,ij->i", n_y, w), 0.0)
-        share = transmitted_cosine(eta, c) / np.maximum(refracted_cosine(eta, c), 1e-6)   # F_t c / t
+        t = np.maximum(refracted_cosine(eta, c), 1e-6)
+        share = transmitted_cosine(eta, c) / t                                # F_t c / t
         if isinstance(self.light, AreaLight):
             # the solid angle seen from the sample, its inside leg shortened by eta (a flat interface
             # makes what lies outside look eta times farther; paraxial)
@@ -159,13 +160,12 @@ class _Beams:
         else:
             scale, colour = incidence(self.light, y)
             E_n = scale[:, None] * np.atleast_2d(colour)
-        return share[:, None] * E_n, c, w
+        return share[:, None] * E_n, c, t, w
 
 
 def single_scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Array, eta: float,
                             lights: Sequence[Light], medium: Any, renderer: DepthRenderer,
-                            shadow_map_size: int = 1024, samples: int = SAMPLES, g: float = 0.0,
-                            progress: Callable[[int, int], None] | None = None) -> Array:
+                            shadow_map_size: int = 1024, samples: int = SAMPLES, g: float = 0.0) -> Array:
     """``(V, 3)`` single-scattered radiance towards ``eye`` at ``vertices`` (module docstring).
 
     ``medium``: ``(sigma_a, sigma_s')`` RGB arrays (mm^-1) or a callable of points ``(M, 3)``
@@ -210,18 +210,19 @@ def single_scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Arr
             tau_o = np.cumsum(0.5 * (st_all[:, 1:] + st_all[:, :-1]) * np.diff(s_all, axis=1)[..., None], axis=1)
         incoming = np.zeros((m * samples, 3))
         up = -np.repeat(d[sl], samples, axis=0)                               # view propagation, to the surface
+        st_x = sig_t.reshape(-1, 3)
         for bl in beams:
             for b in range(len(bl)):
-                incoming += _beam(bl, b, x, up, mesh, med, eta, g)
+                incoming += _beam(bl, b, x, st_x, up, mesh, med, eta, g)
         L = (W[..., None] * sig_s * np.exp(-tau_o) * incoming.reshape(m, samples, 3)).sum(axis=1)
         out[idx[sl]] = f_o[sl, None] * L
-        if progress is not None:
-            progress(min(a + _CHUNK, len(idx)), len(idx))
     return out
 
 
-def _beam(bl: _Beams, b: int, x: Array, up: Array, mesh: Any, med: _Medium, eta: float, g: float) -> Array:
-    """Phase-weighted, attenuated normal irradiance ``(M, 3)`` of beam ``b`` at sample points ``x``."""
+def _beam(bl: _Beams, b: int, x: Array, st_x: Array, up: Array, mesh: Any, med: _Medium, eta: float,
+          g: float) -> Array:
+    """Phase-weighted, attenuated normal irradiance ``(M, 3)`` of beam ``b`` at sample points ``x``
+    (``st_x``: the extinction there)."""
     res = np.zeros((len(x), 3))
     ell = bl.entry(b, x)
     w = bl.towards(b, x)
@@ -231,16 +232,15 @@ def _beam(bl: _Beams, b: int, x: Array, up: Array, mesh: Any, med: _Medium, eta:
     x, w, ell = x[ok], w[ok], ell[ok]
     y = x + ell[:, None] * w
     _, _, _, n_y = closest_points(mesh, y, exact=False)
-    I, c, w_y = bl.inside(b, x, ell, y, n_y, eta)
+    I, c, t, w_y = bl.inside(b, y, n_y, ell, eta)
     lit = c > 0.0
-    t = np.maximum(refracted_cosine(eta, c), 1e-6)
     path = ell * c / t                                                       # Jensen's s'
     T, _ = refract(-w_y, n_y, 1.0 / eta)                                     # refracted propagation
     phase = henyey_greenstein(np.einsum("ij,ij->i", T, up[ok]), g)
     if med.homogeneous:
         tau = path[:, None] * med.const[1]
     else:
-        _, s0 = med(x)
+        s0 = st_x[ok]
         _, s1 = med(0.5 * (x + y))
         _, s2 = med(y)
         tau = path[:, None] * (s0 + 4.0 * s1 + s2) / 6.0

@@ -38,7 +38,7 @@ from glsldiff.inverse.measurements import Measurements, face_regions
 from glsldiff.mesh import box_mesh
 from glsldiff.physics.area import area_beams
 from glsldiff.physics.lights import AreaLight
-from glsldiff.validation.mitsuba import McCamera, render_scattering_orders
+from glsldiff.validation.mitsuba import McCamera, check_ldsampler_spp, render_scattering_orders
 
 __all__ = ["mitsuba_measurements", "GAP_MM", "CAMERA_DISTANCE_MM"]
 
@@ -63,6 +63,7 @@ def mitsuba_measurements(kappa: NDArray, mu: NDArray, h: float, n: int, spp: int
     ``(nz, ny, nx, 3)``, mm and mm^-1) with ``n x n`` regions, rendered by Mitsuba with ``spp``
     samples per pixel (a power of 4); and an info dict (seconds, spp, unscattered share).
     ``progress(done, total, seconds)`` after each region."""
+    check_ldsampler_spp(spp)                 # before any rendering
     kappa, mu = np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64)
     if kappa.ndim != 4 or kappa.shape[-1] != 3 or mu.shape != kappa.shape:
         raise InputError(f"kappa and mu must both have shape (nz, ny, nx, 3), got {kappa.shape} and {mu.shape}")

@@ -129,7 +129,7 @@ from glsldiff.validation.mitsuba_scene import (RGB_VARIANTS, SAMPLERS, McCamera,
                                                check_volume, emitter_dict, load_mitsuba, medium_dict,
                                                positive_int, sensor_dict, shape_dict)
 
-__all__ = ["McCamera", "render_mitsuba", "render_scattering_orders", "render_subsurface",
+__all__ = ["McCamera", "check_ldsampler_spp", "render_mitsuba", "render_scattering_orders", "render_subsurface",
            "single_scattering_share", "RGB_VARIANTS"]
 
 log = logging.getLogger(__name__)
@@ -139,6 +139,15 @@ OPAQUE_SIGMA_A = 1.0e4
 _NO_ROULETTE = 1_000_000
 _CHANNEL_MODES = ("auto", "split", "rgb")
 
+
+
+def check_ldsampler_spp(spp: int) -> int:
+    """``spp`` if it is a power of 4 (what Mitsuba's low-discrepancy sampler renders), else an
+    :class:`InputError`."""
+    if spp < 4 or spp & (spp - 1) or spp.bit_length() % 2 == 0:
+        raise InputError(f"spp = {spp} must be a power of 4 (4, 16, 64, 256, ...) with sampler='ldsampler' "
+                         "(Mitsuba would silently round it up to one)")
+    return spp
 
 
 def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | None, eta: float,
@@ -221,9 +230,8 @@ def render_mitsuba(mesh: Mesh, sigma_a: ArrayLike | None, sigma_s: ArrayLike | N
     rr_depth = positive_int("rr_depth", rr_depth)
     if sampler not in SAMPLERS:
         raise InputError(f"sampler must be one of {', '.join(SAMPLERS)}, got {sampler!r}")
-    if sampler == "ldsampler" and (spp < 4 or spp & (spp - 1) or spp.bit_length() % 2 == 0):
-        raise InputError(f"spp = {spp} must be a power of 4 (4, 16, 64, 256, ...) with sampler='ldsampler' "
-                         "(Mitsuba would silently round it up to one)")
+    if sampler == "ldsampler":
+        check_ldsampler_spp(spp)
     if channels not in _CHANNEL_MODES:
         raise InputError(f"channels must be one of {', '.join(_CHANNEL_MODES)}, got {channels!r}")
     if volume is None:
