@@ -265,3 +265,18 @@ def test_refract_obeys_snell_and_flags_total_internal_reflection():
     np.testing.assert_allclose(back[:, 0], np.sin(theta), atol=1e-12)
     _, ok = refract(np.array([[np.sin(1.2), 0.0, np.cos(1.2)]]), np.array([[0.0, 0.0, -1.0]]), 1.4)
     assert not ok[0]                                                      # 69 deg inside eta 1.4: totally reflected
+
+
+@pytest.mark.parametrize("eta", [0.8, 1.0, 1.3, 1.4, 1.5])
+def test_fresnel_moments_against_quadrature(eta):
+    """C1 = F_dr / 2 (fdr_integral), C2 by adaptive quadrature; A = (1 + 3 C2) / (1 - 2 C1)."""
+    from scipy.integrate import quad
+    from glsldiff.physics.optics import fdr_integral, fresnel_moments, moment_boundary_constant
+    c1, c2 = fresnel_moments(eta)
+    kink = [float(np.sqrt(1 - 1 / eta**2))] if eta > 1 else None
+    ref2 = quad(lambda m: float(fresnel_reflectance(1 / eta, m)) * m * m, 0, 1, points=kink, epsabs=1e-13)[0]
+    assert 2 * c1 == pytest.approx(float(fdr_integral(eta)), abs=1e-6)
+    assert c2 == pytest.approx(ref2, abs=1e-6)
+    assert moment_boundary_constant(eta) == pytest.approx((1 + 3 * c2) / (1 - 2 * c1), rel=1e-12)
+    if eta == 1.0:
+        assert (c1, c2) == (0.0, 0.0) and moment_boundary_constant(eta) == 1.0

@@ -8,6 +8,7 @@ All functions broadcast over scalars and arrays (e.g. RGB coefficients of shape 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,7 @@ from glsldiff.core.errors import InputError
 __all__ = [
     "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "transmitted_cosine", "refracted_cosine",
     "refract",
-    "fdr", "fdr_integral",
+    "fdr", "fdr_integral", "fresnel_moments", "moment_boundary_constant",
     "boundary_constant", "eta_for_boundary_constant", "DipoleConstants",
     "dipole_constants", "dipole_rd", "dipole_total_reflectance",
 ]
@@ -160,6 +161,32 @@ def boundary_constant(eta: ArrayLike) -> NDArray[np.float64] | np.float64:
         raise InputError("eta is outside the range (about 0.73 to 3.85) where the Groenhuis F_dr lies in "
                          "(-1, 1) and C is positive and finite; use a relative index near 1.3-1.5")
     return _out((1.0 + f) / (1.0 - f))
+
+
+def fresnel_moments(eta: float) -> tuple[float, float]:
+    """Fresnel moments ``(C1, C2) = (int_0^1 F_r mu dmu, int_0^1 F_r mu^2 dmu)`` of light inside a
+    medium of relative index ``eta`` reaching its boundary (``F_r(1/eta, mu)``, 1 beyond the
+    critical angle); ``2 C1`` is the internal diffuse reflectance :func:`fdr_integral`."""
+    e = float(finite_values(eta, "eta"))
+    require(np.asarray(e), np.asarray(e) <= 0.0, "eta", "> 0", "a relative refractive index is positive")
+    mu_c = math.sqrt(max(0.0, 1.0 - 1.0 / (e * e))) if e > 1.0 else 0.0     # TIR below mu_c
+    x, w = np.polynomial.legendre.leggauss(64)
+    u = 0.5 * (x + 1.0)                      # mu = mu_c + (1 - mu_c) u^2: smooth at the critical angle
+    mu = mu_c + (1.0 - mu_c) * u * u
+    wt = (1.0 - mu_c) * u * w
+    F = np.asarray(_fresnel_r(np.float64(1.0 / e), mu))
+    return (float(np.sum(wt * F * mu)) + mu_c ** 2 / 2.0, float(np.sum(wt * F * mu * mu)) + mu_c ** 3 / 3.0)
+
+
+def moment_boundary_constant(eta: float) -> float:
+    """``A = (1 + 3 C2) / (1 - 2 C1)`` of the P1 Marshak boundary condition with the exact
+    Fresnel moments (:func:`fresnel_moments`; d'Eon 2012, "A Better Dipole"): 2.340 for eta
+    1.3, 2.948 for 1.4, 1 for eta = 1 (the classic ``(1 + F_dr) / (1 - F_dr)``: 2.602, 3.251).
+    The renderer's first-collision (``volume``) source solves with it: against transport
+    through a 5 mm slab (:mod:`glsldiff.oracle.slab_transport`) its transmitted radiance goes
+    from 1.06-1.08x to 0.99-1.01x at eta 1.3-1.4."""
+    c1, c2 = fresnel_moments(eta)
+    return (1.0 + 3.0 * c2) / (1.0 - 2.0 * c1)
 
 
 def eta_for_boundary_constant(C: ArrayLike) -> NDArray[np.float64] | np.float64:

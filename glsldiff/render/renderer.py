@@ -62,7 +62,7 @@ from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import regime
-from glsldiff.physics.optics import boundary_constant
+from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
 from glsldiff.render.camera import scene_camera
 from glsldiff.render.collision import first_collision_load
@@ -87,7 +87,7 @@ from glsldiff.system.report import CURRENT, SolveReport
 #: sweeps multiply sources by stencil weights (mm^-2) before they are divided back.
 Q_MAX = 1e30
 #: Part of every cached pass-2 solution's key: bump it when the discrete system changes.
-SOLUTION_CACHE_VERSION = 1
+SOLUTION_CACHE_VERSION = 2   # 2: the volume source solves with the Fresnel-moment boundary constant
 
 
 # ---------------------------------------------------------------- the renderer
@@ -299,8 +299,18 @@ class Renderer:
                                    eta=scene.material.eta, stencil=scene.polygrid.discretisation)
         return MultilevelDiffusion(self._geo["hier"], problem, opts.scheme, ctx=self.ctx, precision=opts.precision)
 
+    @staticmethod
+    def _boundary_C(scene: Scene) -> float:
+        """The Robin constant: the exact Fresnel-moment one with the first-collision source
+        (:func:`glsldiff.physics.optics.moment_boundary_constant`), the classic ``(1 + F_dr) /
+        (1 - F_dr)`` with the Marshak surface source (the calibration of its ``p1`` exitance)."""
+        eta = scene.material.eta
+        return (moment_boundary_constant(eta) if scene.options.source == "volume"
+                else float(boundary_constant(eta)))
+
     def _fem_problem(self, scene: Scene) -> TetProblem:
-        return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta)
+        return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
+                          C=self._boundary_C(scene))
 
     def _fem_rhs(self, scene: Scene, problem: TetProblem | None = None) -> NDArray[np.float64]:
         """``(n_active, 3)`` right-hand side of the P1 system for the current source (boundary
@@ -338,7 +348,7 @@ class Renderer:
         geo, opts = self._geo, scene.options
         v, f, nrm = geo["vertices"], geo["faces"], geo["normals"]
         eta = scene.material.eta
-        B = exitant_bracket(self._phi_b, self._bracket_source(scene), eta, opts.exitant)
+        B = exitant_bracket(self._phi_b, self._bracket_source(scene), eta, opts.exitant, self._boundary_C(scene))
         ms = geo["interp"] @ B
         neg = ms < 0.0
         self._clamped = int(np.any(neg, axis=1).sum())
@@ -380,7 +390,7 @@ class Renderer:
             full[self._fem_active] = self._phi_active
             grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
             flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
-            self._flux_q = self._phi_b - 2.0 * float(boundary_constant(scene.material.eta)) * flux
+            self._flux_q = self._phi_b - 2.0 * self._boundary_C(scene) * flux
         return self._flux_q
 
     def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:
