@@ -38,7 +38,7 @@ from glsldiff.physics.procedural import marble_volume
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.report import CURRENT
-from glsldiff.core.plotting import pyplot
+from glsldiff.core.plotting import pyplot, save_figure
 
 
 def figure15_error(phi_b: NDArray, ref_b: NDArray) -> float:
@@ -267,10 +267,7 @@ def plot(curves: list[dict[str, Any]], path: Path, target: float) -> None:
             ax.set_title(model, fontsize=9)
             ax.grid(True, which="both", alpha=0.3)
             ax.legend(fontsize=8)
-    fig.tight_layout()
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def hole_polygrid(n: int = 12, cubes: int = 36) -> Polygrid:

@@ -43,7 +43,7 @@ from glsldiff.solve.jacobi import GlslDiffusion
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.system.report import RELAX_TOL, SolveReport
-from glsldiff.core.plotting import pyplot
+from glsldiff.core.plotting import pyplot, save_figure
 
 logger = logging.getLogger(__name__)
 
@@ -268,7 +268,4 @@ def plot(curves: list[dict[str, object]], path: Path, device: str) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(f"glsldiff forward solvers, {device}", fontsize=9)
-    fig.tight_layout()
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -31,7 +31,7 @@ from glsldiff.grids.graph import BOUNDARY, INTERIOR
 from glsldiff.oracle.assembly import assemble
 from glsldiff.oracle.solvers import solve_reference
 from glsldiff.solve.jacobi import solve_glsl
-from glsldiff.core.plotting import pyplot
+from glsldiff.core.plotting import pyplot, save_figure
 
 def _errors(pg: Polygrid, phi: np.ndarray, exact: np.ndarray) -> tuple[float, float]:
     flat = phi.reshape(pg.size, 3)
@@ -137,7 +137,4 @@ def plot(rows: list[dict[str, object]], path: Path) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_title("polygrid sphere vs a sinh(s r)/r", fontsize=9)
-    fig.tight_layout()
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

@@ -10,7 +10,9 @@ is solved exactly (SuperLU / pyamg), so the table shows discretisation error onl
 
 * ``fem``: P1 finite elements on the pillowed polycube (:mod:`glsldiff.grids.fem_grid`);
 * ``paper`` / ``conservative``: the polygrid with the appendix-B weights and the paper's or
-  the conservative stencil (:mod:`glsldiff.system.problem`).
+  the conservative stencil (:mod:`glsldiff.system.problem`);
+* ``tetwild`` (on request; pytetwild): the same P1 elements on fTetWild meshes that follow the
+  sphere (:mod:`glsldiff.grids.tetwild`), series ``edge`` over the target edge lengths.
 
 Error of the exitant bracket ``B = a phi - b q`` (the view-independent factor of the exitant
 radiance, ``p1`` convention) at the surface / boundary nodes against the series at the same
@@ -31,10 +33,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core import io
-from glsldiff.core.plotting import pyplot
+from glsldiff.core.plotting import pyplot, save_figure
 from glsldiff.grids.fem_grid import build_fem_grid
 from glsldiff.grids.polycube import polycube_from_mesh
 from glsldiff.grids.polygrid import build_polygrid
+from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import solve_tet_direct
 from glsldiff.oracle.solvers import solve_reference
@@ -47,6 +50,8 @@ from glsldiff.system.tet_problem import TetProblem
 
 KAPPA, MU, ETA = 1.0 / 3.15, 0.05, 1.3
 DISCRETISATIONS = ("fem", "paper", "conservative")
+#: Every discretisation the study knows (``tetwild`` needs the optional pytetwild).
+ALL_DISCRETISATIONS = DISCRETISATIONS + ("tetwild",)
 
 
 def bench_lights(radius: float) -> dict[str, Any]:
@@ -102,6 +107,7 @@ def polygrid_case(pg: Any, build: float, stencil: str) -> Case:
 def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int] = (4, 6, 8),
                        cube_size: float = 5.0, cube_sizes: Sequence[float] = (5.0, 3.333, 2.5),
                        n_fixed: int = 2, polygrid_n_fixed: int = 4, radius: float = 10.0,
+                       tet_edges: Sequence[float] = (2.5, 1.67, 1.25),
                        discretisations: Sequence[str] = DISCRETISATIONS, lights: Sequence[str] | None = None,
                        out: Path | None = None, progress: Callable[[str], None] | None = None
                        ) -> list[dict[str, object]]:
@@ -116,20 +122,28 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
     finest: dict[str, tuple[int, Case, dict[str, NDArray[np.float64]]]] = {}   # disc -> n, case, B per light
     rows: list[dict[str, object]] = []
     for disc in discretisations:
-        runs = ([("n", n, cube_size) for n in (ns if disc == "fem" else polygrid_ns)]
-                + [("cubes", n_fixed if disc == "fem" else polygrid_n_fixed, c) for c in cube_sizes])
+        if disc == "tetwild":             # cs: the target edge length
+            runs = [("edge", 0, e) for e in tet_edges]
+        else:
+            runs = ([("n", n, cube_size) for n in (ns if disc == "fem" else polygrid_ns)]
+                    + [("cubes", n_fixed if disc == "fem" else polygrid_n_fixed, c) for c in cube_sizes])
         for ser, n, cs in runs:
             if (disc, n, cs) not in solved:   # the grid both series share is built and solved once
-                if cs not in polycubes:
-                    polycubes[cs] = polycube_from_mesh(mesh, cube_size=cs)
                 if progress:
-                    progress(f"sphere-lights: {disc}, n = {n}, cube {cs:g} mm")
-                kind = "fem" if disc == "fem" else "lattice"   # paper and conservative: one polygrid
+                    progress(f"sphere-lights: {disc}, " + (f"edge {cs:g} mm" if disc == "tetwild" else
+                                                           f"n = {n}, cube {cs:g} mm"))
+                kind = disc if disc in ("fem", "tetwild") else "lattice"   # paper and conservative: one polygrid
                 if (kind, n, cs) not in grids:
                     t0 = time.perf_counter()
-                    grid = (build_fem_grid if kind == "fem" else build_polygrid)(mesh, n=n, polycube=polycubes[cs])
+                    if kind == "tetwild":
+                        grid, _ = cached_tetrahedralize(mesh, cs, status=progress)
+                    else:
+                        if cs not in polycubes:
+                            polycubes[cs] = polycube_from_mesh(mesh, cube_size=cs)
+                        grid = (build_fem_grid if kind == "fem" else build_polygrid)(mesh, n=n, polycube=polycubes[cs])
                     grids[kind, n, cs] = (grid, time.perf_counter() - t0)
-                case = fem_case(*grids[kind, n, cs]) if disc == "fem" else polygrid_case(*grids[kind, n, cs], disc)
+                case = (fem_case(*grids[kind, n, cs]) if disc in ("fem", "tetwild")
+                        else polygrid_case(*grids[kind, n, cs], disc))
                 results = {}
                 for k in names:
                     t0 = time.perf_counter()
@@ -137,12 +151,14 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
                     results[k] = (B, time.perf_counter() - t0)
                 solved[disc, n, cs] = (case, results)
             case, results = solved[disc, n, cs]
-            if ser == "n" and disc != "paper":      # the last of series n goes into the error maps
+            if ser in ("n", "edge") and disc != "paper":      # the last of series n goes into the error maps
                 finest[disc] = (n, case, {k: B for k, (B, _) in results.items()})
             for k in names:
                 B, secs = results[k]
                 ref = series[k].exitant_bracket(case.points)
-                rows.append({"discretisation": disc, "series": ser, "n": n, "cube_mm": cs, **case.info, "light": k,
+                where = {"n": "", "cube_mm": "", "edge_mm": cs} if disc == "tetwild" else {"n": n, "cube_mm": cs,
+                                                                                          "edge_mm": ""}
+                rows.append({"discretisation": disc, "series": ser, **where, **case.info, "light": k,
                              "rel_rms": float(np.linalg.norm(B - ref) / np.linalg.norm(ref)),
                              "rel_max": float(np.abs(B - ref).max() / np.abs(ref).max()),
                              "solve_s": secs, "series_terms": series[k].n_terms})
@@ -152,7 +168,8 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
         plot(rows, out / "sphere_lights.png")
         weights: dict[str, Any] = {}
         for k in names:
-            error_maps({f"{d}, n = {n}": (case, Bs[k]) for d, (n, case, Bs) in finest.items()},
+            error_maps({(f"{d}, h = {case.info['h_mm']:g} mm" if d == "tetwild" else f"{d}, n = {n}"): (case, Bs[k])
+                        for d, (n, case, Bs) in finest.items()},
                        series[k], radius, out / f"sphere_error_{k}.png", weights=weights)
     return rows
 
@@ -187,10 +204,7 @@ def error_maps(cases: dict[str, tuple[Case, NDArray[np.float64]]], series: Any, 
         ax.set_xlabel("azimuth [deg]")
         ax.set_ylabel("polar angle from +z [deg]")
         fig.colorbar(im, ax=ax, fraction=0.03)
-    fig.tight_layout()
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=100, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return rms
 
 
@@ -199,20 +213,18 @@ def plot(rows: list[dict[str, object]], path: Path) -> None:
     plt = pyplot()
     lights = sorted({str(r["light"]) for r in rows})
     fig, axes = plt.subplots(1, len(lights), figsize=(3.3 * len(lights), 3.4), sharey=True, squeeze=False)
-    colours = {"fem": "C0", "paper": "C3", "conservative": "C1"}
+    colours = {"fem": "C0", "paper": "C3", "conservative": "C1", "tetwild": "C2"}
     for ax, light in zip(axes[0], lights):
-        for disc in DISCRETISATIONS:
-            for ser, style in (("n", "o-"), ("cubes", "s--")):
+        for disc in ALL_DISCRETISATIONS:
+            for ser, style in (("n", "o-"), ("cubes", "s--"), ("edge", "^-")):
                 sel = [r for r in rows if r["light"] == light and r["discretisation"] == disc and r["series"] == ser]
                 if sel:
                     ax.loglog([float(r["h_mm"]) for r in sel], [float(r["rel_rms"]) for r in sel], style,
-                              color=colours[disc], label=f"{disc}, {'n up' if ser == 'n' else 'cubes smaller'}")
+                              color=colours[disc], label=f"{disc}, " + {"n": "n up", "cubes": "cubes smaller",
+                                                                                  "edge": "edge shorter"}[ser])
         ax.set_title(light, fontsize=9)
         ax.set_xlabel("h [mm]")
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel("relative RMS of B vs series")
     axes[0][-1].legend(fontsize=6)
-    fig.tight_layout()
-    with io.atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)

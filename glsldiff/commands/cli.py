@@ -1,4 +1,4 @@
-"""The ``glsldiff`` command: ``render``, ``validate``, ``demo``, ``bench forward|sphere|convergence|fit``, ``polygrid``,
+"""The ``glsldiff`` command: ``render``, ``validate``, ``demo``, ``bench forward|sphere|convergence|fit``, ``polygrid``, ``tet``,
 ``synth``, ``fit``, ``info``.
 
 Errors a user can cause are printed as one line without a traceback (exit code 2).
@@ -21,13 +21,15 @@ from glsldiff.bench import polygrid as polygrid_study
 from glsldiff.bench.convergence import convergence_bench
 from glsldiff.bench.meshes import MESHES as BENCH_MESHES, mesh_bench
 from glsldiff.bench.sphere import sphere_study
-from glsldiff.bench.sphere_lights import DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study
+from glsldiff.bench.tet import tet_study
+from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
+                                          DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study)
 from glsldiff.commands.inverse import add_parsers
 from glsldiff.core import io
 from glsldiff.core.io import check_output_folder, created_folders_removed_on_failure
 from glsldiff.figures import polygrid_figure
 from glsldiff.grids.polygrid import build_polygrid
-from glsldiff.mesh import load_mesh
+from glsldiff.mesh import load_mesh, sphere_mesh
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
@@ -122,6 +124,22 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tet(args: argparse.Namespace) -> int:
+    out = check_output_folder(args.out)   # before the meshing
+    mesh = (sphere_mesh(args.size_mm / 2.0, subdivisions=5) if args.mesh == "sphere"
+            else load_mesh(args.mesh, size_mm=args.size_mm, component=args.component))
+    tm, rows, summary = tet_study(mesh, args.edge, args.sigma_a, args.sigma_s, args.eta, args.light, args.tol, out,
+                                  status=_status)
+    q = tm.quality.as_dict()
+    q.pop("seconds")
+    print_table(f"tetrahedral mesh of {args.mesh} ({mesh.extents.max():.3g} mm), fTetWild, edge {args.edge:g} mm",
+                [{"quantity": k, "value": v} for k, v in q.items()])
+    print_table("TransCut DE matrix (eqs. 10-14) solved: error = max boundary |phi - phi_ref| / max phi_ref",
+                [{"quantity": k, "value": v} for k, v in summary.items()])
+    print(f"wrote tet_{mesh.name}.csv and tet_{mesh.name}.png (error against time) to {out}/")
+    return 0
+
+
 def cmd_bench_sphere(args: argparse.Namespace) -> int:
     rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
                         out=check_output_folder(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed)
@@ -138,10 +156,10 @@ def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
     rows = sphere_light_study(ns=args.n, polygrid_ns=args.polygrid_n, cube_size=args.cube_size,
                               cube_sizes=args.cube_sizes, n_fixed=args.n_fixed, polygrid_n_fixed=args.polygrid_n_fixed,
-                              radius=args.radius, discretisations=args.discretisations, out=out,
-                              progress=_status)
-    cols = ("discretisation", "series", "n", "cube_mm", "h_mm", "nodes", "inverted", "light", "rel_rms", "rel_max",
-            "solve_s")
+                              radius=args.radius, discretisations=args.discretisations, tet_edges=args.tet_edges,
+                              out=out, progress=_status)
+    cols = ("discretisation", "series", "n", "cube_mm", "edge_mm", "h_mm", "nodes", "inverted", "light", "rel_rms",
+            "rel_max", "solve_s")
     print_table(f"sphere R = {args.radius} mm under lights: exitant bracket B vs the exact series",
                 [{k: r[k] for k in cols} for r in rows])
     print("rel_rms = ||B - B_series|| / ||B_series||, rel_max = max |B - B_series| / max |B_series| over the "
@@ -242,6 +260,22 @@ def build_parser() -> argparse.ArgumentParser:
     _add_gl(b)
     b.set_defaults(func=cmd_bench)
 
+    p = sub.add_parser("tet", help="TransCut: tetrahedral mesh of a closed mesh (fTetWild, pip install glsldiff[tet]), "
+                                   "its quality, and the DE matrix solved by CG and pyamg (error against time)")
+    p.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF), a built-in sample (bunny, cow, bone) or sphere")
+    p.add_argument("--edge", type=A.positive, default=2.5, help="target tetrahedron edge length, mm")
+    p.add_argument("--size-mm", type=A.number(MIN_SIZE_MM, MAX_SIZE_MM), default=100.0,
+                   help="scale the mesh to this longest extent, mm (default %(default)s)")
+    p.add_argument("--component", choices=("error", "largest"), default="error",
+                   help="meshes with several components: refuse, or keep the largest")
+    p.add_argument("--sigma-a", type=A.number(0.0, 1e4), default=0.0021, help="absorption, mm^-1 (marble)")
+    p.add_argument("--sigma-s", type=A.number(0.0, 1e4), default=2.19, help="reduced scattering, mm^-1 (marble)")
+    p.add_argument("--eta", type=A.number(1.0, 2.0), default=1.3, help="relative refractive index")
+    p.add_argument("--light", type=float, nargs=3, default=[0.0, 0.0, 1.0], help="direction towards the light")
+    p.add_argument("--tol", type=A.positive, default=1e-8, help="relative residual of the iterative solves")
+    p.add_argument("--out", default="tet-out")
+    p.set_defaults(func=cmd_tet)
+
     p = sub.add_parser("polygrid", help="build a polygrid from a closed mesh and print its statistics")
     p.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF) or a built-in sample: bunny, cow, bone")
     p.add_argument("--n", type=A.integer(2, 256), default=16, help="nodes per cube edge (paper: 16 for the bunny)")
@@ -286,7 +320,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--polygrid-n-fixed", type=A.integer(2, 64), default=4,
                    help="lattice-stencil nodes per cube edge of series cubes")
     b.add_argument("--radius", type=A.positive, default=10.0, help="sphere radius, mm")
-    b.add_argument("--discretisations", nargs="+", default=list(SPHERE_DISCRETISATIONS), choices=SPHERE_DISCRETISATIONS)
+    b.add_argument("--discretisations", nargs="+", default=list(SPHERE_DISCRETISATIONS),
+                   choices=SPHERE_ALL_DISCRETISATIONS,
+                   help="tetwild (fTetWild meshes, pip install glsldiff[tet]) runs only when named")
+    b.add_argument("--tet-edges", type=A.positive, nargs="+", default=[2.5, 1.67, 1.25],
+                   help="target edge lengths of the tetwild series, mm")
     b.add_argument("--out", default="bench-out")
     b.set_defaults(func=cmd_bench_sphere_lights)
 
