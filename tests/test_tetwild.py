@@ -121,3 +121,31 @@ def test_tet_command_solves_the_de_matrix_two_ways(tmp_path, monkeypatch, capsys
     assert (tmp_path / "o" / "tet_sphere.png").is_file()
     assert main(["tet", "sphere", "--edge", "-1"]) == 2                  # one line, exit 2
     assert "--edge" in capsys.readouterr().err
+
+
+def test_scene_discretisation_tetwild(tmp_path, monkeypatch):
+    """``[polygrid] discretisation = "tetwild"``: the renderer solves P1 on the fTetWild mesh and
+    shades it with pass 3 like the pillowed grid (its image agrees with the pillowed grid's)."""
+    from glsldiff.render.renderer import Renderer
+    from glsldiff.render.scene import parse_scene
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
+    base = {"mesh": {"source": "sphere", "size_mm": 20.0}, "material": {"preset": "marble"},
+            "lights": [{"type": "directional", "direction": [0.3, 0.2, 1.0]}],
+            "camera": {"position": [0, 0, 80], "target": [0, 0, 0], "fov_deg": 20.0},
+            "output": {"width": 48, "height": 48}}
+    tw = parse_scene({**base, "polygrid": {"discretisation": "tetwild", "edge_mm": 2.0}})
+    assert tw.polygrid.edge_mm == 2.0
+    assert parse_scene({**base, "polygrid": {"discretisation": "tetwild"}}).polygrid.edge_mm == 0.5   # 20 / 40
+    for bad, msg in (({"discretisation": "tetwild", "n": 4}, r"\[polygrid\]\.n: not used by .*edge_mm"),
+                     ({"discretisation": "fem", "edge_mm": 2.0}, r"\[polygrid\]\.edge_mm: only discretisation"),
+                     ({"discretisation": "tetwild", "edge_mm": 0.01}, r"\[polygrid\]\.edge_mm")):
+        with pytest.raises(InputError, match=msg):
+            parse_scene({**base, "polygrid": bad})
+    with Renderer() as r:
+        img, rep = r.render(tw)
+        ref, _ = r.render(parse_scene({**base, "polygrid": {"n": 2, "cubes": 400}}))
+    assert any("grid: tetrahedral (fTetWild)" in n for n in rep.notes)
+    assert np.all(np.isfinite(img)) and img.min() > -1e-9 * img.max()
+    inside = (img.sum(axis=2) > 0) & (ref.sum(axis=2) > 0)
+    assert inside.sum() > 300
+    assert abs(img[inside].mean() / ref[inside].mean() - 1.0) < 0.05

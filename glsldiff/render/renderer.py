@@ -15,7 +15,8 @@ Stages, in the one direction data flows (numpy arrays between them):
   ``"volume"`` the first-collision load of :mod:`glsldiff.render.collision` (light as reduced
   intensity below the surface, ``q = 0``; tetrahedral grids only).
 * **pass 2** (t2): the polygrid diffusion solve (:class:`glsldiff.solve.multilevel.MultilevelDiffusion`;
-  on tetrahedra, ``[polygrid] discretisation = "fem"``, GPU algebraic-multigrid-preconditioned
+  on tetrahedra, ``[polygrid] discretisation = "fem"`` (pillowed polycube) or ``"tetwild"`` (an
+  fTetWild mesh of the surface, :mod:`glsldiff.grids.tetwild`), GPU algebraic-multigrid-preconditioned
   CG, :class:`glsldiff.solve.gather_multigrid.GlslSparseMultigrid`),
   warm-started from the previous frame's solution when only the light changed, and on a
   first frame from the converged solution of the same system cached on disk
@@ -59,6 +60,7 @@ from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
+from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import regime
@@ -70,7 +72,7 @@ from glsldiff.render.unscattered import sees_through, unscattered
 from glsldiff.render.materials import node_material, surface_reflectance
 from glsldiff.render.pass1 import incident_light, visibility
 from glsldiff.render.report import RenderReport
-from glsldiff.render.scene import Scene
+from glsldiff.render.scene import TETRAHEDRAL, Scene
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import single_scattering_frame
 from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
@@ -167,12 +169,18 @@ class Renderer:
         else:
             src = m.source if m.source in SAMPLE_MESHES else str(scene.resolve(m.source))
             mesh = load_mesh(src, size_mm=m.size_mm)
-        fem = g.discretisation == "fem"
-        what = "tetrahedral polygrid" if fem else "polygrid"
-        self._say(f"setup: {what} of {m.source} (n = {g.n}, about {g.cubes} cubes): building it takes "
-                  "seconds to minutes the first time, then it is read from the cache")
+        fem = g.discretisation in TETRAHEDRAL
         t0 = time.perf_counter()
-        pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
+        if g.discretisation == "tetwild":
+            what = "fTetWild tetrahedral mesh"
+            self._say(f"setup: {what} of {m.source} (edge {g.edge_mm:g} mm): building it takes seconds to many "
+                      "minutes the first time, then it is read from the cache")
+            pg, cached = cached_tetrahedralize(mesh, float(g.edge_mm), status=self._say)
+        else:
+            what = "tetrahedral polygrid" if fem else "polygrid"
+            self._say(f"setup: {what} of {m.source} (n = {g.n}, about {g.cubes} cubes): building it takes "
+                      "seconds to minutes the first time, then it is read from the cache")
+            pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
         self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
                   f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
         hier = None if fem else Hierarchy.build(pg, g.levels)   # levels = 1: the polygrid alone
@@ -504,7 +512,12 @@ class Renderer:
         rep.nodes, rep.boundary_nodes = int(pg.n_active), int(len(pg.boundary_positions))
         rep.solver = self._solve_report
         rep.clamped_vertices = self._clamped
-        if self._geo["fem"]:
+        if scene.polygrid.discretisation == "tetwild":
+            q = pg.quality
+            rep.notes.append(f"grid: tetrahedral (fTetWild), edge {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, "
+                             f"{q.inverted} inverted, worst dihedral angle {q.min_dihedral_deg:.3g} deg, {q.slivers} "
+                             f"slivers; boundary within {q.surface_distance_max:.3g} mm of the surface")
+        elif self._geo["fem"]:
             q = pg.quality
             rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, {q.inverted} "
                              f"inverted, worst quality {q.worst_quality:.3g}; coverage: mesh vertices within "

@@ -14,7 +14,10 @@ silently ignored).
 
     [polygrid]
     discretisation = "fem"    # fem (P1 tetrahedra on the pillowed polycube; the default) |
+                              # tetwild (P1 tetrahedra on an fTetWild mesh of the surface; pytetwild) |
                               # conservative | paper (the 6-point lattice stencils, hierarchical)
+    edge_mm = 2.5             # tetwild only: target tetrahedron edge (default size_mm / 40); tetwild
+                              # takes no n, cubes or levels
     n = 2                     # nodes per cube edge (default 2 for fem, 8 for the lattice)
     cubes = 15000             # polycube target cube count (default 120000 / n^3 for fem, 253 for
                               # the lattice)
@@ -119,8 +122,13 @@ from glsldiff.physics.lights import (KINDS, AreaLight, DirectionalLight, Environ
 from glsldiff.physics.material import preset as lookup_preset
 from glsldiff.physics.procedural import POINT_KINDS
 
-#: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem).
-DISCRETISATIONS = ("conservative", "paper", "fem")
+#: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem)
+#: on the pillowed polycube (fem) or on an fTetWild mesh of the surface (tetwild, grids.tetwild).
+DISCRETISATIONS = ("conservative", "paper", "fem", "tetwild")
+#: The discretisations on tetrahedra (the P1 system, the volume source, the gradient flux).
+TETRAHEDRAL = ("fem", "tetwild")
+#: tetwild's default target edge length: the mesh's longest extent over this.
+TETWILD_EDGES_PER_SIZE = 40
 #: The fem discretisation's default node budget: [polygrid].cubes defaults to this / n^3 (many
 #: small cubes reach thin parts; the lattice's default, 253 cubes of n = 8, is about as many nodes).
 FEM_NODES = 120_000
@@ -155,6 +163,7 @@ class PolygridSpec:
     cubes: int = default_cubes("fem", FEM_N)
     levels: int = 1
     discretisation: str = "fem"
+    edge_mm: float | None = None     # tetwild: target tetrahedron edge, mm (default size_mm / 40)
 
 
 @dataclass(frozen=True)
@@ -471,23 +480,38 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
 
     g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
     disc = g.string("discretisation", "fem", DISCRETISATIONS)
-    n = g.integer("n", 8 if disc != "fem" else FEM_N, 2)
-    levels = g.integer("levels", 3 if disc != "fem" else 1, 1)
-    if disc == "fem" and levels != 1:
-        g.fail("levels", "the fem discretisation (the default) solves on one level with its own algebraic "
-                         "multigrid; leave levels out, or set discretisation = \"conservative\" for the "
-                         "lattice hierarchy")
-    if n % 2 and disc != "fem":
-        g.fail("n", f"must be even (the hierarchy halves it), got {n}")
-    poly = PolygridSpec(n, g.integer("cubes", default_cubes(disc, n), 1), levels, disc)
-    problem = (node_budget_problem(poly.cubes, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE) if disc == "fem"
-               else node_budget_problem(poly.cubes, n))
-    if problem:
-        g.fail("n", problem)
-    if poly.levels > 1 and n >> (poly.levels - 1) < 2:
-        g.fail("levels", f"{poly.levels} levels need n >= {2 ** poly.levels}, got n = {n}")
+    if disc == "tetwild":
+        for key in ("n", "cubes", "levels"):
+            if g.has(key):
+                g.fail(key, "not used by discretisation = \"tetwild\" (an fTetWild mesh of the surface); give "
+                            "edge_mm, the target tetrahedron edge in mm")
+        lo = mesh.size_mm / 200.0
+        poly = PolygridSpec(FEM_N, 1, 1, disc, g.number("edge_mm", mesh.size_mm / TETWILD_EDGES_PER_SIZE, lo,
+                                                        hi=mesh.size_mm / 4.0))
+    else:
+        if g.has("edge_mm"):
+            g.fail("edge_mm", f"only discretisation = \"tetwild\" takes an edge length (this one: {disc!r})")
+        n = g.integer("n", 8 if disc != "fem" else FEM_N, 2)
+        levels = g.integer("levels", 3 if disc != "fem" else 1, 1)
+        if disc == "fem" and levels != 1:
+            g.fail("levels", "the fem discretisation (the default) solves on one level with its own algebraic "
+                             "multigrid; leave levels out, or set discretisation = \"conservative\" for the "
+                             "lattice hierarchy")
+        if n % 2 and disc != "fem":
+            g.fail("n", f"must be even (the hierarchy halves it), got {n}")
+        poly = PolygridSpec(n, g.integer("cubes", default_cubes(disc, n), 1), levels, disc)
+        problem = (node_budget_problem(poly.cubes, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE) if disc == "fem"
+                   else node_budget_problem(poly.cubes, n))
+        if problem:
+            g.fail("n", problem)
+    if poly.levels > 1 and poly.n >> (poly.levels - 1) < 2:
+        g.fail("levels", f"{poly.levels} levels need n >= {2 ** poly.levels}, got n = {poly.n}")
 
     material = _material(_Table(src, "material", data.get("material", {}), _keys(MaterialSpec)), base_dir)
+    if material.volume and poly.discretisation == "tetwild":
+        raise InputError(f"{src}: [material].volume: a shell-mapped volume needs the polycube's shell (discretisation "
+                         "\"fem\" or a lattice one), not \"tetwild\"; use a procedural material or another "
+                         "discretisation")
     raw = data.get("lights", [])
     if not isinstance(raw, list):
         raise InputError(f"{src}: [[lights]]: must be an array of tables ([[lights]]), got {type(raw).__name__}")
@@ -515,10 +539,10 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                           t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False),
                           t.string("source", "surface", SOURCES), t.boolean("unscattered", True),
                           t.string("flux", "boundary", FLUXES))
-    if options.flux == "gradient" and poly.discretisation != "fem":
+    if options.flux == "gradient" and poly.discretisation not in TETRAHEDRAL:
         t.fail("flux", "\"gradient\" (the flux of the solution's gradient) needs the tetrahedral grid; set "
                        "[polygrid] discretisation = \"fem\" (the default) or flux = \"boundary\"")
-    if options.source == "volume" and poly.discretisation != "fem":
+    if options.source == "volume" and poly.discretisation not in TETRAHEDRAL:
         t.fail("source", "\"volume\" (the first-collision source) is solved on tetrahedra only; set [polygrid] "
                          "discretisation = \"fem\" (the default) or source = \"surface\"")
     if options.scheme != "single" and poly.levels == 1:
