@@ -99,6 +99,8 @@ class Case:
     spp_factor: int = 1             # Monte Carlo samples per pixel: this times the command's spp
     source: str = "surface"         # [options].source of the diffusion renderer
     volume_mm: float | None = None  # voxel size of Mitsuba's copy of a procedural material (default 48 cells)
+    discretisation: str = "fem"     # [polygrid].discretisation of the diffusion renderer (fem, tetwild, ...)
+    edge_mm: float | None = None    # tetwild's target edge length, mm
 
     def __post_init__(self) -> None:
         if isinstance(self.light, str) and self.light not in ENVIRONMENTS + LOCALIZED:
@@ -124,6 +126,8 @@ CASES = {c.name: c for c in (
     replace(_SPHERE, name="sphere-veins", procedural="veins"),
     Case("bunny-veins", "bunny", 60.0, 0.005, 1.0, (-0.4, 0.7, 0.6), (0.0, 0.2, 1.0), procedural="veins", n=4,
          cubes=120),
+    Case("bunny-veins-tetwild", "bunny", 60.0, 0.005, 1.0, (-0.4, 0.7, 0.6), (0.0, 0.2, 1.0), procedural="veins",
+         discretisation="tetwild", edge_mm=1.5),
     *(replace(_SPHERE, name=f"sphere{'-eta1.3' if eta != 1.0 else ''}-{env}", light=env, eta=eta,
               camera_dir=_ENV_VIEW[env]) for eta in (1.0, 1.3) for env in ENVIRONMENTS),
     _PATCH,
@@ -180,8 +184,10 @@ def _light(case: Case) -> Light:
 
 
 def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
+    poly = (PolygridSpec(discretisation="tetwild", edge_mm=case.edge_mm) if case.discretisation == "tetwild" else
+            PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1), case.discretisation))
     return Scene(mesh=MeshSpec(mesh_path or case.mesh, case.size_mm),
-                 polygrid=PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1)),
+                 polygrid=poly,
                  material=MaterialSpec(preset=None, sigma_a=(case.sigma_a,) * 3, sigma_s_prime=(case.sigma_s,) * 3,
                                        eta=case.eta, procedural=case.procedural),
                  lights=(_light(case),),
