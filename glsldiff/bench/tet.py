@@ -28,6 +28,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.core.plotting import pyplot, save_figure
 from glsldiff.grids.tetwild import TetMesh, cached_tetrahedralize
 from glsldiff.mesh import Mesh
+from glsldiff.oracle.fem import positive_couplings, solve_matrix_reference
 from glsldiff.physics.optics import transmitted_cosine
 from glsldiff.system.transcut import de_matrix, de_rhs
 
@@ -35,15 +36,6 @@ __all__ = ["tet_study", "DIRECT_MAX_NODES"]
 
 #: Above this many unknowns the reference is pyamg (SuperLU fill-in grows too fast).
 DIRECT_MAX_NODES = 60_000
-
-
-def _reference(M: sp.csr_matrix, b: NDArray[np.float64]) -> tuple[NDArray[np.float64], str, float]:
-    t0 = time.perf_counter()
-    if M.shape[0] <= DIRECT_MAX_NODES:
-        return spla.spsolve(M.tocsc(), b), "direct (SuperLU)", time.perf_counter() - t0
-    ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")
-    x = ml.solve(b, tol=1e-12, accel="cg", maxiter=500)
-    return x, "pyamg to 1e-12", time.perf_counter() - t0
 
 
 def _trace(name: str, run: Callable[[Callable[[NDArray], None]], NDArray], err: Callable[[NDArray], float],
@@ -82,7 +74,9 @@ def tet_study(mesh: Mesh, edge_mm: float, sigma_a: float, sigma_s: float, eta: f
     t_matrix = time.perf_counter() - t0
     if status:
         status(f"tet: {M.shape[0]:,} unknowns, {len(tm.tets):,} tetrahedra: reference solve")
-    x_ref, ref_name, t_ref = _reference(M, b)
+    t0 = time.perf_counter()
+    x_ref, ref_name = solve_matrix_reference(M, b, DIRECT_MAX_NODES, maxiter=500)
+    t_ref = time.perf_counter() - t0
     nodes = tm.surface_nodes
     scale = float(np.abs(x_ref[nodes]).max())
 
@@ -102,10 +96,11 @@ def tet_study(mesh: Mesh, edge_mm: float, sigma_a: float, sigma_s: float, eta: f
         r["seconds"] += t_setup
     rows = cg_rows + amg_rows
     q_rep = tm.quality
-    summary = {"tets": q_rep.tets, "nodes": q_rep.nodes, "from_cache": cached, "tetwild_s": q_rep.seconds.get("tetwild"),
+    summary = {"tets": q_rep.tets, "nodes": q_rep.nodes, "from_cache": cached,
+               "tetwild_s": q_rep.seconds.get("tetwild"),
                "min_dihedral_deg": q_rep.min_dihedral_deg, "slivers": q_rep.slivers, "matrix_s": t_matrix,
                "reference": ref_name, "reference_s": t_ref, "pyamg_setup_s": t_setup,
-               "positive_offdiagonals": int((sp.triu(M, 1).data > 0).sum())}
+               "positive_offdiagonals": positive_couplings(M)}
     for name in ("cg (jacobi)", "pyamg (SA + cg)"):
         sel = [r for r in rows if r["solver"] == name]
         if sel:

@@ -51,7 +51,7 @@ from scipy.spatial import cKDTree
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
-from glsldiff.grids.pillow import PillowComplex, signed_volumes
+from glsldiff.grids.pillow import TET_EDGES, PillowComplex, signed_volumes
 from glsldiff.grids.polycube import Polycube, polycube_from_mesh
 from glsldiff.grids.polygrid import check_node_budget
 from glsldiff.mesh import Mesh, closest_points, surface_samples
@@ -160,7 +160,7 @@ def _surface_smoother(surface: NDArray[np.int64], offset: int, n: int) -> sp.csr
 def _quality(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
     """Volume over the regular tetrahedron's of the same mean edge length (1 regular, <= 0 inverted)."""
     P = X[tets]
-    edges = [P[:, j] - P[:, i] for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))]
+    edges = [P[:, j] - P[:, i] for i, j in TET_EDGES]
     mean = np.mean([np.linalg.norm(e, axis=1) for e in edges], axis=0)
     return signed_volumes(X, tets) * 6.0 * np.sqrt(2.0) / np.maximum(mean, 1e-300) ** 3
 

@@ -34,7 +34,10 @@ from numpy.typing import NDArray
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
 
-__all__ = ["PillowComplex", "KUHN", "prism_tets", "signed_volumes"]
+__all__ = ["PillowComplex", "KUHN", "TET_EDGES", "prism_tets", "signed_volumes"]
+
+#: The six edges of a tetrahedron (local corner pairs); edge ``5 - e`` is the one opposite edge ``e``.
+TET_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 
 #: Cell corners in bit order (bit 0: +x, bit 1: +y, bit 2: +z).
 CORNERS = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=np.int64)

@@ -30,15 +30,17 @@ from numpy.typing import NDArray
 
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError
+from glsldiff.grids.pillow import TET_EDGES, signed_volumes
 from glsldiff.mesh import Mesh, closest_points
+from glsldiff.mesh.types import unique_edges
 
-__all__ = ["TetMesh", "TetQuality", "tetrahedralize", "cached_tetrahedralize", "tet_quality", "SLIVER_DEG"]
+__all__ = ["TetMesh", "TetQuality", "tetrahedralize", "cached_tetrahedralize", "tet_quality", "dihedral_cos_sin",
+           "SLIVER_DEG"]
 
 #: A tetrahedron with a dihedral angle below this (degrees) counts as a sliver.
 SLIVER_DEG = 5.0
 #: Part of every cache key: bump it when the construction changes.
 CACHE_VERSION = 1
-_PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 _FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])     # outward for a positive tetrahedron
 
 
@@ -108,9 +110,7 @@ class TetMesh:
 
 
 def _check_closed(mesh: Mesh) -> None:
-    f = np.asarray(mesh.faces, dtype=np.int64)
-    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
-    _, counts = np.unique(e, axis=0, return_counts=True)
+    _, counts = unique_edges(mesh.faces)
     if np.any(counts != 2):
         open_edges, multi = int(np.sum(counts == 1)), int(np.sum(counts > 2))
         raise InputError(f"mesh {mesh.name!r} is not a closed manifold surface ({open_edges} boundary edges, {multi} "
@@ -131,18 +131,21 @@ def _scratch_directory() -> Iterator[None]:
             os.chdir(old)
 
 
-def _dihedral_angles(P: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``(T, 6)`` interior dihedral angles (radians) at the edges of :data:`_PAIRS` of
-    tetrahedra ``P`` ``(T, 4, 3)``: at edge (a, b) between the two faces through it."""
-    out = np.empty((len(P), 6))
-    for k, (a, b) in enumerate(_PAIRS):
-        c, d = [i for i in range(4) if i not in (a, b)]
+def dihedral_cos_sin(P: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(T, 6)`` each of tetrahedra ``P`` ``(T, 4, 3)``: the interior dihedral angle at the
+    edges of :data:`glsldiff.grids.pillow.TET_EDGES` as ``(c, s)``, cosine and sine times one
+    common positive factor per entry (``|n1| |n2|``, the two faces' edge-normal lengths), so
+    ``c / s`` is its cotangent and ``arctan2(s, c)`` the angle."""
+    c = np.empty((len(P), 6))
+    s = np.empty((len(P), 6))
+    for k, (a, b) in enumerate(TET_EDGES):
+        o, d = [i for i in range(4) if i not in (a, b)]
         e = P[:, b] - P[:, a]
-        n1 = np.cross(e, P[:, c] - P[:, a])
+        n1 = np.cross(e, P[:, o] - P[:, a])                 # normals of faces {a, b, o} and {a, b, d}
         n2 = np.cross(e, P[:, d] - P[:, a])
-        cos = np.einsum("ij,ij->i", n1, n2) / np.maximum(np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1), 1e-300)
-        out[:, k] = np.arccos(np.clip(cos, -1.0, 1.0))
-    return out
+        c[:, k] = np.einsum("ij,ij->i", n1, n2)
+        s[:, k] = np.linalg.norm(np.cross(n1, n2), axis=1)
+    return c, s
 
 
 def _radius_ratio(P: NDArray[np.float64], vol: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -157,31 +160,19 @@ def _radius_ratio(P: NDArray[np.float64], vol: NDArray[np.float64]) -> NDArray[n
     return 3.0 * r_in / np.maximum(r_circ, 1e-300)
 
 
-def _volumes(P: NDArray[np.float64]) -> NDArray[np.float64]:
-    return np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0]) / 6.0
-
-
-def _mesh_volume(mesh: Mesh) -> float:
-    v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)
-    return abs(float(np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum()) / 6.0)
-
-
 def tet_quality(positions: NDArray[np.float64], tets: NDArray[np.int64], surface: NDArray[np.int64],
-                mesh: Mesh | None = None, seconds: dict[str, float] | None = None) -> TetQuality:
-    """The :class:`TetQuality` of a tetrahedral mesh (``mesh``: the input surface it should
-    fill, for the volume and distance figures)."""
+                mesh_volume: float = math.nan, surface_distance: float = math.nan,
+                seconds: dict[str, float] | None = None) -> TetQuality:
+    """The :class:`TetQuality` of a tetrahedral mesh; ``mesh_volume`` (mm^3) and
+    ``surface_distance`` (mm) of the input surface it should fill are the caller's figures."""
     P = positions[tets]
-    vol = _volumes(P)
-    dih = np.degrees(_dihedral_angles(P))
+    vol = signed_volumes(positions, tets)
+    dih = np.degrees(np.arctan2(*dihedral_cos_sin(P)[::-1]))
     rr = _radius_ratio(P, vol)
-    dist = math.nan
-    if mesh is not None and len(surface):
-        _, d, _, _ = closest_points(mesh, positions[np.unique(surface)])
-        dist = float(np.max(d))
     return TetQuality(len(tets), int(len(np.unique(tets))), len(surface), float(dih.min()),
                       float(np.percentile(dih.min(axis=1), 1)), float(dih.max()), float(rr.min()), float(rr.mean()),
                       int(np.sum(dih.min(axis=1) < SLIVER_DEG)), int(np.sum(vol <= 0.0)), float(np.abs(vol).sum()),
-                      _mesh_volume(mesh) if mesh is not None else math.nan, dist, dict(seconds or {}))
+                      float(mesh_volume), float(surface_distance), dict(seconds or {}))
 
 
 def _boundary(tets: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -192,12 +183,11 @@ def _boundary(tets: NDArray[np.int64]) -> NDArray[np.int64]:
     return faces[first[counts == 1]]
 
 
-def _surface_normals(mesh: Mesh, points: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Outward unit normals of the input surface at its closest points to ``points``."""
-    _, _, tri, _ = closest_points(mesh, points)
-    v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int64)[tri]
-    n = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
-    return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+def _closest_surface(mesh: Mesh, points: NDArray[np.float64]) -> tuple[NDArray[np.float64], float]:
+    """Outward unit normals of the input surface at its closest points to ``points``, and the
+    largest distance to it (mm)."""
+    _, d, tri, _ = closest_points(mesh, points)
+    return mesh.face_normals[tri], float(np.max(d, initial=0.0))
 
 
 def tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, threads: int = 0,
@@ -237,13 +227,14 @@ def tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, threads: i
     remap = np.full(len(X), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     X, T = X[used], remap[T]
-    neg = _volumes(X[T]) < 0.0
+    neg = signed_volumes(X, T) < 0.0
     T[neg] = T[neg][:, [0, 2, 1, 3]]
     surface = _boundary(T)
     t1 = time.perf_counter()
     nodes = np.unique(surface)
-    normals = _surface_normals(mesh, X[nodes])
-    quality = tet_quality(X, T, surface, mesh, {"tetwild": t_mesh, "report": time.perf_counter() - t1})
+    normals, distance = _closest_surface(mesh, X[nodes])
+    quality = tet_quality(X, T, surface, abs(mesh.volume), distance,
+                          {"tetwild": t_mesh, "report": time.perf_counter() - t1})
     if quality.volume_mm3 < 0.5 * quality.mesh_volume_mm3:
         raise InputError(f"the tetrahedral mesh of {mesh.name!r} holds {quality.volume_mm3:.4g} mm^3 of the surface's "
                          f"{quality.mesh_volume_mm3:.4g} mm^3: parts thinner than the edge length {edge_mm:g} mm were "

@@ -27,7 +27,7 @@ from glsldiff.mesh.load import (COMPONENT_MODES, MAX_HOLE_EDGES, SAMPLE_MESHES, 
                                 mesh_from_arrays, sample_mesh_path)
 from glsldiff.mesh.ops import subdivide, surface_samples
 from glsldiff.mesh.primitives import box_mesh, sphere_mesh, torus_mesh
-from glsldiff.mesh.types import Mesh
+from glsldiff.mesh.types import Mesh, vertex_areas
 
 __all__ = [
     "Mesh",
@@ -46,4 +46,5 @@ __all__ = [
     "closest_points",
     "subdivide",
     "surface_samples",
+    "vertex_areas",
 ]

@@ -193,6 +193,14 @@ def normalize(x: NDArray[np.float64]) -> NDArray[np.float64]:
     return np.divide(x, n, out=np.zeros_like(x), where=n > 0)
 
 
+def vertex_areas(v: NDArray[np.float64], f: NDArray[np.int64]) -> NDArray[np.float64]:
+    """``(V,)`` lumped surface area per vertex, mm^2: a third of the area of every face ``f``
+    around it (0 for vertices of no face)."""
+    v, f = np.asarray(v, dtype=np.float64), np.asarray(f, dtype=np.int64)
+    area = 0.5 * np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    return np.bincount(f.ravel(), np.repeat(area / 3.0, 3), minlength=len(v))
+
+
 def signed_volume(v: NDArray[np.float64], f: NDArray[np.int64]) -> float:
     """Volume enclosed by faces ``f`` over vertices ``v``, mm^3 (positive if outward)."""
     if len(f) == 0:

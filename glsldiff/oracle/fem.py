@@ -28,12 +28,14 @@ import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
+from glsldiff.grids.pillow import TET_EDGES
+from glsldiff.mesh import vertex_areas
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.system.report import REFERENCE_TOL, SolveReport
 from glsldiff.system.tet_problem import TetProblem
 
-__all__ = ["TetGeometry", "assemble_p1", "assemble_tet", "positive_couplings", "solve_system_direct",
-           "solve_tet_direct", "tet_geometry", "tet_rhs", "DIRECT_MAX_NODES"]
+__all__ = ["TetGeometry", "assemble_p1", "assemble_tet", "positive_couplings", "solve_matrix_reference",
+           "solve_system_direct", "solve_tet_direct", "tet_geometry", "tet_rhs", "DIRECT_MAX_NODES"]
 
 logger = logging.getLogger(__name__)
 
@@ -106,9 +108,7 @@ class TetGeometry:
     @cached_property
     def node_areas(self) -> NDArray[np.float64]:
         """``(n,)`` lumped surface areas ``sum A_f / 3``, mm^2."""
-        X, f = self.positions, self.surface
-        A = 0.5 * np.linalg.norm(np.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]]), axis=1)
-        return np.bincount(f.ravel(), np.repeat(A / 3.0, 3), minlength=len(X))
+        return vertex_areas(self.positions, self.surface)
 
     @cached_property
     def surface_mass(self) -> sp.csr_matrix:
@@ -125,12 +125,12 @@ class TetGeometry:
     @cached_property
     def _edges(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """The mesh's unique edges ``(E, 2)`` (``i < j``) and each tetrahedron's six edges
-        ``(T, 6)`` as indices into them, in the order of :data:`_PAIRS`. (Sorting the ``6 T``
-        edge keys once is 2-3x cheaper than summing the ``16 T`` local entries into a CSR
-        pattern: 1.2 s against 5 s at 790k tetrahedra, measured.)"""
+        ``(T, 6)`` as indices into them, in the order of :data:`glsldiff.grids.pillow.TET_EDGES`.
+        (Sorting the ``6 T`` edge keys once is 2-3x cheaper than summing the ``16 T`` local
+        entries into a CSR pattern: 1.2 s against 5 s at 790k tetrahedra, measured.)"""
         n = len(self.positions)
-        a = self.tets[:, _PAIRS[:, 0]].astype(np.int64)
-        b = self.tets[:, _PAIRS[:, 1]].astype(np.int64)
+        a = self.tets[:, TET_EDGES[:, 0]].astype(np.int64)
+        b = self.tets[:, TET_EDGES[:, 1]].astype(np.int64)
         keys, tet_edges = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
         return np.stack([keys // n, keys % n], axis=1), tet_edges.reshape(len(self.tets), 6)
 
@@ -142,7 +142,7 @@ class TetGeometry:
         kt = k[self.tets].mean(axis=1)
         Kl = self.local_stiffness
         edges, tet_edges = self._edges
-        off = np.bincount(tet_edges.ravel(), (kt[:, None] * Kl[:, _PAIRS[:, 0], _PAIRS[:, 1]]).ravel(),
+        off = np.bincount(tet_edges.ravel(), (kt[:, None] * Kl[:, TET_EDGES[:, 0], TET_EDGES[:, 1]]).ravel(),
                           minlength=len(edges))
         diag = np.bincount(self.tets.ravel(), (kt[:, None] * np.diagonal(Kl, axis1=1, axis2=2)).ravel(), minlength=n)
         i, j, d = edges[:, 0], edges[:, 1], np.arange(n)
@@ -150,10 +150,6 @@ class TetGeometry:
                           shape=(n, n)).tocsr()
         K.sort_indices()
         return K
-
-
-#: The six edges of a tetrahedron (local corner pairs).
-_PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
 
 
 def assemble_p1(geo: TetGeometry, kappa: ArrayLike, mu: ArrayLike, q: ArrayLike, C: float,
@@ -221,17 +217,23 @@ def assemble_tet(problem: TetProblem, geo: TetGeometry | None = None) -> LinearS
     return LinearSystem(A, np.concatenate(rhs), diag, active)
 
 
+def solve_matrix_reference(A: sp.spmatrix, b: NDArray[np.float64], max_direct: int = DIRECT_MAX_NODES,
+                    maxiter: int = 200) -> tuple[NDArray[np.float64], str]:
+    """``(x, method)`` of one symmetric positive definite system: SuperLU up to ``max_direct``
+    unknowns, above it pyamg (smoothed aggregation + CG) to a relative residual of
+    :data:`~glsldiff.system.report.REFERENCE_TOL` within ``maxiter`` cycles."""
+    if A.shape[0] <= max_direct:
+        return spla.splu(sp.csc_matrix(A)).solve(b), "direct (SuperLU)"
+    ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric")
+    return ml.solve(b, tol=REFERENCE_TOL, maxiter=maxiter, accel="cg"), f"pyamg to {REFERENCE_TOL:g}"
+
+
 def solve_system_direct(s: LinearSystem) -> NDArray[np.float64]:
-    """``x`` ``(3n,)`` (channel-major) of an assembled P1 system: SuperLU per channel, pyamg
-    to a 1e-12 residual above :data:`DIRECT_MAX_NODES` unknowns."""
+    """``x`` ``(3n,)`` (channel-major) of an assembled P1 system: :func:`solve_matrix_reference` per
+    channel."""
     x = np.zeros(3 * s.n)
     for c in range(3):
-        A, b = s.block(c)
-        if s.n <= DIRECT_MAX_NODES:
-            x[c * s.n:(c + 1) * s.n] = spla.splu(A.tocsc()).solve(b)
-        else:
-            ml = pyamg.smoothed_aggregation_solver(A, symmetry="symmetric")
-            x[c * s.n:(c + 1) * s.n] = ml.solve(b, tol=REFERENCE_TOL, maxiter=200, accel="cg")
+        x[c * s.n:(c + 1) * s.n] = solve_matrix_reference(*s.block(c))[0]
     return x
 
 

@@ -67,7 +67,7 @@ from glsldiff.physics.material import regime
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
 from glsldiff.render.camera import scene_camera
-from glsldiff.render.collision import first_collision_load
+from glsldiff.render.collision import first_collision_load, surface_columns
 from glsldiff.render.unscattered import sees_through, unscattered
 from glsldiff.render.materials import node_material, surface_reflectance
 from glsldiff.render.pass1 import incident_light, visibility
@@ -225,8 +225,10 @@ class Renderer:
         self._load = None
         if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
             t0 = time.perf_counter()
+            if "columns" not in self._geo:      # geometry only: once per grid, not per light
+                self._geo["columns"] = surface_columns(pg)
             self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams,
-                                              self._geo["tetgeo"].node_volumes)
+                                              self._geo["tetgeo"].node_volumes, self._geo["columns"])
             info.append({"light": "first-collision source", "beams": len(beams or ()),
                          "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         self._light_info = info

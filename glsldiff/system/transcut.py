@@ -24,13 +24,12 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
+from glsldiff.grids.pillow import TET_EDGES, signed_volumes
+from glsldiff.grids.tetwild import dihedral_cos_sin
+from glsldiff.mesh import vertex_areas
 from glsldiff.physics.optics import boundary_constant, fdr
 
 __all__ = ["cotangent_weights", "de_matrix", "de_rhs"]
-
-_PAIRS = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
-_OPPOSITE = np.array([(2, 3), (1, 3), (1, 2), (0, 3), (0, 2), (0, 1)])   # the edge {k, l} facing each pair
-
 
 def _check(positions: ArrayLike, tets: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     X = np.asarray(positions, dtype=np.float64)
@@ -43,28 +42,21 @@ def _check(positions: ArrayLike, tets: ArrayLike) -> tuple[NDArray[np.float64], 
 
 
 def cotangent_weights(positions: ArrayLike, tets: ArrayLike, kappa_t: ArrayLike) -> NDArray[np.float64]:
-    """``(T, 6)`` ``w_ijt = -(1/6) kappa_t |kl| cot(theta_kl)`` for the edges of ``_PAIRS``
-    (eq. 10); positive where the opposite dihedral angle is obtuse."""
+    """``(T, 6)`` ``w_ijt = -(1/6) kappa_t |kl| cot(theta_kl)`` for the edges ``{i, j}`` of
+    :data:`glsldiff.grids.pillow.TET_EDGES` (eq. 10), ``{k, l}`` the opposite edge (``5 - e``) and
+    ``theta_kl`` the dihedral angle there; positive where it is obtuse."""
     X, T = _check(positions, tets)
     P = X[T]
     k = np.broadcast_to(np.asarray(kappa_t, dtype=np.float64), (len(T),))
-    out = np.empty((len(T), 6))
-    for e, ((a, b), (c, d)) in enumerate(zip(_PAIRS, _OPPOSITE)):
-        kl = P[:, d] - P[:, c]                                  # the opposite edge
-        n1 = np.cross(kl, P[:, a] - P[:, c])                    # normals of faces {k, l, i} and {k, l, j}
-        n2 = np.cross(kl, P[:, b] - P[:, c])
-        cos = np.einsum("ij,ij->i", n1, n2)                     # interior dihedral angle at {k, l}
-        sin = np.linalg.norm(np.cross(n1, n2), axis=1)          # |n1||n2| sin(theta)
-        length = np.linalg.norm(kl, axis=1)
-        # cot(theta) = cos / sin; |n1 x n2| = |n1||n2| sin = |kl| * (...), so the ratio is exact
-        out[:, e] = -k * length * cos / np.maximum(sin, 1e-300) / 6.0
-    return out
+    c, s = dihedral_cos_sin(P)
+    length = np.stack([np.linalg.norm(P[:, j] - P[:, i], axis=1) for i, j in TET_EDGES], axis=1)
+    cot_len = length * c / np.maximum(s, 1e-300)                 # |kl| cot(theta_kl) at each edge
+    return -k[:, None] * cot_len[:, ::-1] / 6.0                  # the opposite edge's, for each edge
 
 
-def _boundary_areas(X: NDArray[np.float64], surface: NDArray[np.int64]) -> NDArray[np.float64]:
-    """``(n,)`` ``S_i / 3``: a third of the boundary triangles' area around each node."""
-    A = 0.5 * np.linalg.norm(np.cross(X[surface[:, 1]] - X[surface[:, 0]], X[surface[:, 2]] - X[surface[:, 0]]), axis=1)
-    return np.bincount(surface.ravel(), np.repeat(A / 3.0, 3), minlength=len(X))
+def _S(X: NDArray[np.float64], surface: NDArray[np.int64]) -> NDArray[np.float64]:
+    """``(n,)`` ``S_i``: the summed area of the boundary triangles around each node, mm^2."""
+    return 3.0 * vertex_areas(X, surface)
 
 
 def de_matrix(positions: ArrayLike, tets: ArrayLike, surface: ArrayLike, kappa_t: ArrayLike, mu_t: ArrayLike,
@@ -77,14 +69,13 @@ def de_matrix(positions: ArrayLike, tets: ArrayLike, surface: ArrayLike, kappa_t
     A = float(boundary_constant(eta)) if A is None else float(A)
     w = cotangent_weights(X, T, kappa_t)
     n = len(X)
-    i, j = T[:, _PAIRS[:, 0]].ravel(), T[:, _PAIRS[:, 1]].ravel()
+    i, j = T[:, TET_EDGES[:, 0]].ravel(), T[:, TET_EDGES[:, 1]].ravel()
     off = 4.0 * w.ravel()
     diag = -np.bincount(i, off, minlength=n) - np.bincount(j, off, minlength=n)
-    vol = np.abs(np.einsum("ij,ij->i", np.cross(X[T[:, 1]] - X[T[:, 0]], X[T[:, 2]] - X[T[:, 0]]),
-                           X[T[:, 3]] - X[T[:, 0]])) / 6.0
+    vol = np.abs(signed_volumes(X, T))
     mu = np.broadcast_to(np.asarray(mu_t, dtype=np.float64), (len(T),))
     diag += np.bincount(T.ravel(), np.repeat(mu * vol, 4), minlength=n)          # sum_t mu_t V_t
-    diag += 2.0 * _boundary_areas(X, S) * 3.0 / (3.0 * A)                        # 2 S_i / (3A)
+    diag += 2.0 * _S(X, S) / (3.0 * A)                                           # 2 S_i / (3A)
     M = sp.coo_matrix((np.concatenate([off, off, diag]), (np.concatenate([i, j, np.arange(n)]),
                                                           np.concatenate([j, i, np.arange(n)]))), shape=(n, n))
     return M.tocsr()
@@ -98,4 +89,4 @@ def de_rhs(positions: ArrayLike, surface: ArrayLike, q: ArrayLike, eta: float, A
     S = np.asarray(surface, dtype=np.int64)
     A = float(boundary_constant(eta)) if A is None else float(A)
     qn = np.broadcast_to(np.asarray(q, dtype=np.float64), (len(X),))
-    return 8.0 * (3.0 * _boundary_areas(X, S)) * qn / (3.0 * A * (1.0 - float(fdr(eta))))
+    return 8.0 * _S(X, S) * qn / (3.0 * A * (1.0 - float(fdr(eta))))
