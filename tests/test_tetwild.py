@@ -57,7 +57,11 @@ def test_runs_outside_the_working_directory_and_caches(tmp_path, monkeypatch):
     b, again = cached_tetrahedralize(box, 2.0, threads=1)
     assert not cached and again and np.array_equal(a.tets, b.tets)
     assert os.listdir(tmp_path) == ["cache"]                            # no __tracked_surface.stl here
-    assert a.quality.volume_mm3 == pytest.approx(1600.0, rel=1e-6)
+    # fTetWild keeps the boundary within its envelope, 1e-3 of the box's diagonal (it is not
+    # deterministic even on one thread: usually exact, once in a while 2e-5 short in volume)
+    envelope = 1e-3 * float(np.linalg.norm([20.0, 20.0, 4.0]))
+    assert a.quality.surface_distance_max <= envelope
+    assert abs(a.quality.volume_mm3 - 1600.0) <= 2 * (400.0 + 80.0 + 80.0) * envelope
 
 
 def test_bad_meshes_are_one_line_errors():
