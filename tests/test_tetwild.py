@@ -111,15 +111,18 @@ def test_cotangent_weight_of_a_right_corner():
 
 
 def test_tet_command_solves_the_de_matrix_two_ways(tmp_path, monkeypatch, capsys):
-    """``glsldiff tet``: mesh, quality table, and CG and pyamg both reaching the reference."""
+    """``glsldiff tet``: mesh, quality table, and CG, TransCut's hierarchy (both coarse operators)
+    and pyamg all reaching the reference; ``--render`` writes the image."""
     import csv
     from glsldiff.commands.cli import main
     monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
-    assert main(["tet", "sphere", "--size-mm", "20", "--edge", "3", "--out", str(tmp_path / "o")]) == 0
+    assert main(["tet", "sphere", "--size-mm", "20", "--edge", "3", "--out", str(tmp_path / "o"),
+                 "--render", str(tmp_path / "r.exr")]) == 0
     out = capsys.readouterr().out
-    assert "min_dihedral_deg" in out and "TransCut DE matrix" in out
+    assert "min_dihedral_deg" in out and "TransCut DE matrix" in out and "solve-only seconds to 1 %" in out
+    assert (tmp_path / "r.exr").is_file() and (tmp_path / "r.png").is_file()
     rows = list(csv.DictReader(open(tmp_path / "o" / "tet_sphere.csv")))
-    for solver in ("cg (jacobi)", "pyamg (SA + cg)"):
+    for solver in ("cg (jacobi)", "pyamg (SA + cg)", "transcut hierarchy (paper)", "transcut hierarchy (galerkin)"):
         last = [r for r in rows if r["solver"] == solver][-1]
         assert float(last["error"]) < 1e-6 and float(last["residual"]) < 1e-7
     assert (tmp_path / "o" / "tet_sphere.png").is_file()

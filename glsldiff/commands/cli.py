@@ -1,4 +1,4 @@
-"""The ``glsldiff`` command: ``render``, ``validate``, ``demo``, ``bench forward|sphere|convergence|fit``, ``polygrid``, ``tet``,
+"""The ``glsldiff`` command: ``render``, ``validate``, ``demo``, ``bench forward|sphere|convergence|fit``, ``polygrid``, ``tet``, ``cut``,
 ``synth``, ``fit``, ``info``.
 
 Errors a user can cause are printed as one line without a traceback (exit code 2).
@@ -9,7 +9,10 @@ import argparse
 import logging
 import os
 import sys
+from dataclasses import replace
 from typing import Sequence
+
+import numpy as np
 
 from glsldiff.core import arguments as A
 from glsldiff.core.errors import GlsldiffError, InputError
@@ -22,6 +25,7 @@ from glsldiff.bench.convergence import convergence_bench
 from glsldiff.bench.meshes import MESHES as BENCH_MESHES, mesh_bench
 from glsldiff.bench.sphere import sphere_study
 from glsldiff.bench.tet import tet_study
+from glsldiff.bench.cut import update_seconds
 from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
                                           DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study)
 from glsldiff.commands.inverse import add_parsers
@@ -33,7 +37,8 @@ from glsldiff.mesh import load_mesh, sphere_mesh
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
-from glsldiff.render.scene import default_scene, example_names, example_scene, load_scene
+from glsldiff.render.scene import (TETWILD_EDGES_PER_SIZE, CutSpec, MeshSpec, PolygridSpec, default_scene,
+                                   example_names, example_scene, load_scene)
 from glsldiff.physics.collision import SOURCES
 from glsldiff.validation.validate import validate
 
@@ -77,6 +82,51 @@ def cmd_render(args: argparse.Namespace) -> int:
     exr, png, exposure = save(img, out, scene, rep)
     print(f"wrote {exr} (linear radiance) and {png} (exposure {exposure:.3g}, gamma 2.2)")
     return 0
+
+
+def cmd_cut(args: argparse.Namespace) -> int:
+    out = check_output(args.out)   # before any work
+    if (args.plane is None) == (args.stroke is None):
+        raise InputError("give exactly one of --plane NX NY NZ D or --stroke U,V U,V ...")
+    scene = load_scene(args.scene) if args.scene else default_scene()
+    if scene.polygrid.discretisation != "tetwild":
+        edge = args.edge or scene.mesh.size_mm / TETWILD_EDGES_PER_SIZE
+        print(f"cut: the scene's {scene.polygrid.discretisation!r} grid cannot be cut; using an fTetWild mesh "
+              f"(discretisation \"tetwild\", edge {edge:g} mm)", file=sys.stderr)
+        scene = replace(scene, polygrid=PolygridSpec(discretisation="tetwild", edge_mm=edge))
+    elif args.edge:
+        scene = replace(scene, polygrid=replace(scene.polygrid, edge_mm=args.edge))
+    if args.stroke is not None and scene.camera.position is None:
+        raise InputError("--stroke is drawn in the camera's image: the scene needs [camera] position (and target)")
+    if args.plane is not None and not any(args.plane[:3]):
+        raise InputError("--plane: the normal (the first three numbers) must not be zero")
+    scene = replace(scene, cut=CutSpec(tuple(args.plane) if args.plane else None,
+                                       tuple(args.stroke) if args.stroke else None, args.iterations))
+    with Renderer(allow_unconverged=args.allow_unconverged, status=_status) as r:
+        img, rep = r.render(scene)
+        print(f"scene: {scene.source}, cut")
+        print("\n".join(rep.lines()))
+        if not args.no_timing:
+            kappa, mu = r.node_material
+            pg = r.polygrid
+            q = np.zeros(len(pg.positions))
+            q[pg.surface_nodes] = r.boundary_source[:, 1]
+            rows = update_seconds(pg, r.cut_report, kappa[:, 1], mu[:, 1], q, scene.material.eta, scene.options.tol)
+            print_table("TransCut update after the cut on the CPU (green channel; the renderer's own pass 2 "
+                        "solves on the GPU, above)", rows)
+    exr, png, exposure = save(img, out, scene, rep)
+    print(f"wrote {exr} (linear radiance) and {png} (exposure {exposure:.3g}, gamma 2.2)")
+    return 0
+
+
+def _stroke_point(text: str) -> tuple[float, float]:
+    try:
+        u, v = (float(x) for x in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a U,V pixel point (two numbers and a comma)") from None
+    if not all(np.isfinite([u, v])):
+        raise argparse.ArgumentTypeError(f"{text!r}: pixel coordinates must be finite")
+    return u, v
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -126,17 +176,27 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
 
 def cmd_tet(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)   # before the meshing
+    render_out = check_output(args.render) if args.render else None
     mesh = (sphere_mesh(args.size_mm / 2.0, subdivisions=5) if args.mesh == "sphere"
             else load_mesh(args.mesh, size_mm=args.size_mm, component=args.component))
     tm, rows, summary = tet_study(mesh, args.edge, args.sigma_a, args.sigma_s, args.eta, args.light, args.tol, out,
-                                  status=_status)
+                                  status=_status, refine=args.refine, levels=args.levels, coarse_tol=args.coarse_tol)
     q = tm.quality.as_dict()
     q.pop("seconds")
-    print_table(f"tetrahedral mesh of {args.mesh} ({mesh.extents.max():.3g} mm), fTetWild, edge {args.edge:g} mm",
+    refined = f", 1:8-refined {args.refine}x" if args.refine else ""
+    print_table(f"tetrahedral mesh of {args.mesh} ({mesh.extents.max():.3g} mm), fTetWild, edge {args.edge:g} mm{refined}",
                 [{"quantity": k, "value": v} for k, v in q.items()])
     print_table("TransCut DE matrix (eqs. 10-14) solved: error = max boundary |phi - phi_ref| / max phi_ref",
                 [{"quantity": k, "value": v} for k, v in summary.items()])
     print(f"wrote tet_{mesh.name}.csv and tet_{mesh.name}.png (error against time) to {out}/")
+    if args.render:
+        scene = replace(default_scene(), mesh=MeshSpec(args.mesh, args.size_mm),
+                        polygrid=PolygridSpec(discretisation="tetwild", edge_mm=args.edge))
+        with Renderer(status=_status) as r:
+            img, rep = r.render(scene)
+            print("\n".join(rep.lines()))
+        exr, png, exposure = save(img, render_out, scene, rep)
+        print(f"wrote {exr} (the default scene's light and veined marble on this mesh) and {png}")
     return 0
 
 
@@ -261,7 +321,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("tet", help="TransCut: tetrahedral mesh of a closed mesh (fTetWild, pip install glsldiff[tet]), "
-                                   "its quality, and the DE matrix solved by CG and pyamg (error against time)")
+                                   "its quality, and the DE matrix solved by CG, TransCut's hierarchy and pyamg "
+                                   "(error against time)")
     p.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF), a built-in sample (bunny, cow, bone) or sphere")
     p.add_argument("--edge", type=A.positive, default=2.5, help="target tetrahedron edge length, mm")
     p.add_argument("--size-mm", type=A.number(MIN_SIZE_MM, MAX_SIZE_MM), default=100.0,
@@ -273,8 +334,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eta", type=A.number(1.0, 2.0), default=1.3, help="relative refractive index")
     p.add_argument("--light", type=float, nargs=3, default=[0.0, 0.0, 1.0], help="direction towards the light")
     p.add_argument("--tol", type=A.positive, default=1e-8, help="relative residual of the iterative solves")
+    p.add_argument("--refine", type=A.integer(0, 2), default=0,
+                   help="1:8-subdivide the mesh this many times (8x the tetrahedra each; for timing at scale)")
+    p.add_argument("--levels", type=A.integer(1, 8), default=4, help="levels of TransCut's hierarchy, the fine one "
+                   "included (default %(default)s)")
+    p.add_argument("--coarse-tol", type=A.positive, default=0.1,
+                   help="relative residual of the coarse levels' BiCG (default %(default)s)")
+    p.add_argument("--render", metavar="OUT.exr", help="also render the mesh (unrefined) with the default scene's "
+                   "light and veined marble through pass 3 (a .png goes beside it)")
     p.add_argument("--out", default="tet-out")
     p.set_defaults(func=cmd_tet)
+
+    p = sub.add_parser("cut", help="TransCut: cut a scene's fTetWild mesh by a plane or a screen stroke, render "
+                                   "it and time the update (cut, matrix, hierarchy, re-solve)")
+    p.add_argument("scene", nargs="?", help="scene TOML (default: the built-in scene)")
+    p.add_argument("--plane", type=float, nargs=4, metavar=("NX", "NY", "NZ", "D"),
+                   help="remove the side n . x > D (mm, the scaled mesh's coordinates)")
+    p.add_argument("--stroke", type=_stroke_point, nargs="+", metavar="U,V",
+                   help="a stroke in output pixels (u right, v down) extruded along the view; removes its left")
+    p.add_argument("--iterations", type=A.integer(0, 10_000), default=40,
+                   help="relaxation iterations towards the cut (default %(default)s)")
+    p.add_argument("--edge", type=A.positive, help="target tetrahedron edge, mm (default: the scene's, or size / 40)")
+    p.add_argument("-o", "--out", required=True, help="output .exr (a tone-mapped .png is written beside it)")
+    p.add_argument("--no-timing", action="store_true", help="skip the CPU timing of the update")
+    p.add_argument("--allow-unconverged", action="store_true", help="write the image even if pass 2 did not converge")
+    _add_gl(p)
+    p.set_defaults(func=cmd_cut)
 
     p = sub.add_parser("polygrid", help="build a polygrid from a closed mesh and print its statistics")
     p.add_argument("mesh", help="mesh file (OBJ/PLY/STL/OFF) or a built-in sample: bunny, cow, bone")

@@ -35,10 +35,16 @@ from glsldiff.mesh import Mesh, closest_points
 from glsldiff.mesh.types import unique_edges
 
 __all__ = ["TetMesh", "TetQuality", "tetrahedralize", "cached_tetrahedralize", "tet_quality", "dihedral_cos_sin",
-           "SLIVER_DEG"]
+           "refine", "boundary_faces", "SLIVER_DEG", "INERT_DIHEDRAL_DEG"]
 
 #: A tetrahedron with a dihedral angle below this (degrees) counts as a sliver.
 SLIVER_DEG = 5.0
+#: Below this dihedral angle (degrees; TransCut's bound for cut relaxation, section 7) a
+#: tetrahedron is inert: it carries no stiffness (:attr:`TetMesh.inert`; its lumped absorption
+#: stays). fTetWild can leave such slivers (a 54 mm torus at 1.5 mm: 574 below 5 deg, the worst
+#: 4e-14 deg, with cotangents up to 1e10 that made the GPU multigrid diverge); their vertices stay
+#: coupled through their other tetrahedra (a Delaunay test ball: fluence within 2.8 % of the maximum of keeping them).
+INERT_DIHEDRAL_DEG = 0.5
 #: Part of every cache key: bump it when the construction changes.
 CACHE_VERSION = 1
 _FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])     # outward for a positive tetrahedron
@@ -78,6 +84,15 @@ class TetMesh:
     normals: NDArray[np.float64]       # (S, 3) outward unit normals at the surface nodes
     quality: TetQuality
     edge_mm: float
+    origin: NDArray[np.int64] | None = None     # (T,) index of each tetrahedron in the uncut mesh (after a cut)
+    cut_faces: NDArray[np.bool_] | None = None  # (F,) boundary triangles made by a cut (after a cut)
+
+    @property
+    def inert(self) -> NDArray[np.bool_]:
+        """``(T,)`` tetrahedra with a dihedral angle below :data:`INERT_DIHEDRAL_DEG`: no stiffness
+        in the P1 and TransCut systems (a documented repair of fTetWild's slivers)."""
+        c, s = dihedral_cos_sin(self.positions[self.tets])
+        return np.degrees(np.arctan2(s, c)).min(axis=1) < INERT_DIHEDRAL_DEG
 
     @property
     def surface_nodes(self) -> NDArray[np.int64]:
@@ -175,7 +190,7 @@ def tet_quality(positions: NDArray[np.float64], tets: NDArray[np.int64], surface
                       float(mesh_volume), float(surface_distance), dict(seconds or {}))
 
 
-def _boundary(tets: NDArray[np.int64]) -> NDArray[np.int64]:
+def boundary_faces(tets: NDArray[np.int64]) -> NDArray[np.int64]:
     """``(F, 3)`` faces that belong to one tetrahedron only, outward."""
     faces = tets[:, _FACES].reshape(-1, 3)
     key = np.sort(faces, axis=1)
@@ -229,7 +244,7 @@ def tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, threads: i
     X, T = X[used], remap[T]
     neg = signed_volumes(X, T) < 0.0
     T[neg] = T[neg][:, [0, 2, 1, 3]]
-    surface = _boundary(T)
+    surface = boundary_faces(T)
     t1 = time.perf_counter()
     nodes = np.unique(surface)
     normals, distance = _closest_surface(mesh, X[nodes])
@@ -254,3 +269,34 @@ def cached_tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, thr
     tm = tetrahedralize(mesh, edge_mm, epsilon, threads, status)
     cache.store("tetwild", key, tm)
     return tm, False
+
+
+# 1:8 subdivision: the four corner tetrahedra and the inner octahedron split along m02-m13;
+# indices 0-3 the corners, 4-9 the midpoints of edges 01, 02, 03, 12, 13, 23 (TET_EDGES order)
+_EIGHT = np.array([(0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3),
+                   (5, 8, 4, 7), (5, 8, 7, 9), (5, 8, 9, 6), (5, 8, 6, 4)])
+
+
+def refine(tm: TetMesh) -> TetMesh:
+    """Regular 1:8 subdivision of every tetrahedron (a node at each edge midpoint): 8x the
+    tetrahedra at half the edge length, for timing solvers at scale. The new boundary nodes lie on
+    the old boundary triangles (not on the input surface); their normals are the normalised
+    mean of the edge ends'."""
+    T = tm.tets
+    pairs = np.sort(T[:, TET_EDGES].reshape(-1, 2), axis=1)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    n = len(tm.positions)
+    X = np.concatenate([tm.positions, 0.5 * (tm.positions[edges[:, 0]] + tm.positions[edges[:, 1]])])
+    local = np.concatenate([T, n + inverse.reshape(-1, 6)], axis=1)           # (T, 10)
+    T8 = local[:, _EIGHT].reshape(-1, 4)
+    neg = signed_volumes(X, T8) < 0.0
+    T8[neg] = T8[neg][:, [0, 2, 1, 3]]
+    surface = boundary_faces(T8)
+    nodes = np.unique(surface)
+    normal = np.zeros((len(X), 3))
+    normal[tm.surface_nodes] = tm.normals
+    mid = normal[edges[:, 0]] + normal[edges[:, 1]]
+    normal[n:] = mid / np.maximum(np.linalg.norm(mid, axis=1, keepdims=True), 1e-300)
+    q = tm.quality
+    quality = tet_quality(X, T8, surface, q.mesh_volume_mm3, q.surface_distance_max, dict(q.seconds))
+    return TetMesh(X, T8, surface, normal[nodes], quality, tm.edge_mm / 2.0)

@@ -53,6 +53,7 @@ class TetGeometry:
     positions: NDArray[np.float64]
     tets: NDArray[np.int64]
     surface: NDArray[np.int64]
+    inert: NDArray[np.bool_] | None = None     # (T,) tetrahedra to treat as degenerate (the grid's slivers)
 
     @cached_property
     def volumes(self) -> NDArray[np.float64]:
@@ -62,10 +63,13 @@ class TetGeometry:
 
     @cached_property
     def degenerate(self) -> NDArray[np.bool_]:
-        """``(T,)`` tetrahedra of (numerically) zero volume: they carry no stiffness or mass
-        (their gradients are undefined; a flat tetrahedron of a collapsed mapping)."""
+        """``(T,)`` tetrahedra of (numerically) zero volume, and the grid's :attr:`inert` ones:
+        they carry no stiffness (their gradients are undefined or their cotangents huge: a flat
+        tetrahedron of a collapsed mapping, a sliver fTetWild left); the lumped masses keep
+        their (tiny) volume."""
         v = np.abs(self.volumes)
-        return v <= 1e-12 * float(v.max(initial=0.0))
+        flat = v <= 1e-12 * float(v.max(initial=0.0))
+        return flat if self.inert is None else flat | self.inert
 
     @cached_property
     def gradients(self) -> NDArray[np.float64]:
@@ -182,8 +186,9 @@ def _block_diagonal(blocks: list[sp.csr_matrix]) -> sp.csr_matrix:
 
 def tet_geometry(grid: object) -> TetGeometry:
     """The :class:`TetGeometry` of a tetrahedral grid (see :mod:`glsldiff.system.tet_problem`)."""
+    inert = getattr(grid, "inert", None)
     return TetGeometry(np.asarray(grid.positions, dtype=np.float64), np.asarray(grid.tets),  # type: ignore[attr-defined]
-                       np.asarray(grid.surface))  # type: ignore[attr-defined]
+                       np.asarray(grid.surface), None if inert is None else np.asarray(inert, dtype=bool))  # type: ignore[attr-defined]
 
 
 def tet_rhs(problem: TetProblem, geo: TetGeometry | None = None) -> NDArray[np.float64]:

@@ -60,8 +60,9 @@ from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
+from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
 from glsldiff.grids.tetwild import cached_tetrahedralize
-from glsldiff.mesh import SAMPLE_MESHES, load_mesh, sphere_mesh, subdivide
+from glsldiff.mesh import SAMPLE_MESHES, Mesh, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import regime
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
@@ -82,6 +83,7 @@ from glsldiff.oracle.fem import assemble_tet, tet_geometry, tet_rhs
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
+from glsldiff.system.transcut import paint_blend, paint_weights
 from glsldiff.system.report import CURRENT, SolveReport
 
 
@@ -155,6 +157,23 @@ class Renderer:
         return full[pg.surface_nodes]
 
     @property
+    def node_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The last frame's ``(kappa, mu)`` per node (mm, mm^-1), ``(n, 3)`` each on a tetrahedral grid."""
+        return self._mat["kappa"], self._mat["mu"]
+
+    @property
+    def boundary_source(self) -> NDArray[np.float64]:
+        """``(n_boundary, 3)`` the last frame's boundary source ``q`` (0 with the volume source)."""
+        if self._q is None:
+            raise RuntimeError("no frame rendered yet")
+        return self._q
+
+    @property
+    def cut_report(self) -> Any:
+        """The :class:`~glsldiff.grids.tetcut.CutReport` of a scene's ``[cut]`` (None without one)."""
+        return getattr(self, "_cut_report", None)
+
+    @property
     def surface_fluence(self) -> NDArray[np.float64]:
         """``(n_boundary, 3)`` the last frame's pass-2 fluence at the boundary nodes."""
         if self._phi_b is None:
@@ -183,19 +202,68 @@ class Renderer:
             pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
         self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
                   f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
+        frame = np.asarray(mesh.vertices)           # the uncut surface frames the camera
+        crease, self._cut_report = None, None
+        if scene.cut is not None:
+            pg, mesh, crease = self._cut(scene, pg, frame)
         hier = None if fem else Hierarchy.build(pg, g.levels)   # levels = 1: the polygrid alone
         h = pg.h if fem else pg.lattice.h
-        render_mesh = subdivide(mesh, h)
+        render_mesh = subdivide(mesh if crease is None else crease, h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
         interp = (surface_interpolation(v, pg.boundary_positions, pg.surface_triangles) if fem
                   else vertex_interpolation(v, pg.boundary_positions))
         self._geo = {"mesh": mesh, "render_mesh": render_mesh, "pg": pg, "hier": hier, "vertices": v, "faces": f,
                      "normals": render_mesh.vertex_normals, "interp": interp, "fem": fem,
-                     "tetgeo": tet_geometry(pg) if fem else None}
+                     "tetgeo": tet_geometry(pg) if fem else None, "frame": frame}
+
+    def _cut(self, scene: Scene, tm: Any, frame: NDArray) -> tuple[Any, Mesh, Mesh]:
+        """TransCut's cut of the fTetWild mesh ``tm`` (``[cut]``), its report kept in
+        ``self._cut_report``: the cut mesh, its boundary as a triangle mesh (shadows, ray casts)
+        and as a render mesh whose cut faces have their own vertices (a crease: the cut face and
+        the old surface are shaded with their own normals)."""
+        c = scene.cut
+        assert c is not None
+        if c.plane is not None:
+            side = plane_side(c.plane[:3], c.plane[3] / float(np.linalg.norm(c.plane[:3])))   # n . x > d
+            what = f"plane {list(c.plane)}"
+        else:
+            _, mvp = scene_camera(scene, frame)
+            W, H = scene.output.width, scene.output.height
+
+            def project(X: NDArray) -> NDArray:
+                clip = np.concatenate([X, np.ones((len(X), 1))], axis=1) @ mvp.T
+                ndc = clip[:, :2] / clip[:, 3:4]
+                return np.stack([(ndc[:, 0] + 1.0) * 0.5 * W, (1.0 - ndc[:, 1]) * 0.5 * H], axis=1)
+            side = stroke_side(project, c.stroke)
+            what = f"stroke of {len(c.stroke or ())} points"
+        self._say(f"setup: cutting {len(tm.tets):,} tetrahedra by the {what}")
+        t0 = time.perf_counter()
+        cm, rep = cut_tets(tm, side, iterations=c.iterations)
+        self._cut_report = rep
+        self._cut_seconds = time.perf_counter() - t0
+        V, F = cm.boundary_positions, cm.surface_triangles
+        flat = Mesh(V, F, name=f"{scene.mesh.source} (cut)")
+        cf = F[cm.cut_faces]
+        used = np.unique(cf)
+        F2 = np.concatenate([F[~cm.cut_faces], len(V) + np.searchsorted(used, cf)])
+        keep, F2 = np.unique(F2, return_inverse=True)             # drop the copies no face uses
+        return cm, flat, Mesh(np.concatenate([V, V[used]])[keep], F2.reshape(-1, 3), name=flat.name)
 
     def _material(self, scene: Scene) -> None:
         pg = self._geo["pg"]
         kappa, mu, info = node_material(scene, pg.positions, pg)
+        for p in scene.paint:      # TransCut's paint, at the nodes (the P1 system's material lives there)
+            w = paint_weights(pg.positions, p.points, p.radius_mm)
+            sa, ss = mu, 1.0 / (3.0 * kappa) - mu
+            if p.sigma_a is not None:
+                sa = paint_blend(sa, p.sigma_a, w, p.strength)
+            if p.sigma_s_prime is not None:
+                ss = paint_blend(ss, p.sigma_s_prime, w, p.strength)
+            if np.any(sa + ss <= 0):
+                raise InputError(f"{scene.source}: [[paint]]: the paint leaves sigma_a + sigma_s_prime = 0 at some "
+                                 "nodes; paint positive values")
+            kappa, mu = 1.0 / (3.0 * (sa + ss)), sa
+            info = {**info, "material": f"{info.get('material')} + {len(scene.paint)} paint stroke(s)"}
         shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
         self._fem_system = None
@@ -364,7 +432,7 @@ class Renderer:
         self._clamped = int(np.any(neg, axis=1).sum())
         ms = np.maximum(ms, 0.0)
         shader_lights = self._shader_lights(scene)
-        vis_key = _key(scene.mesh, scene.polygrid, scene.lights)
+        vis_key = _key(self._keys.get("geometry"), scene.lights)     # the geometry key holds the cut too
         if self._keys.get("vis") != vis_key:
             # per shader light: shadow visibility (V,) and RGB image factor (V, 3), 1 but for projectors
             vis, tint = np.ones((len(v), 4)), np.ones((len(v), 4, 3))
@@ -374,7 +442,7 @@ class Renderer:
                 if isinstance(light, ProjectorLight):
                     tint[:, i] = projector_factor(light, v)
             self._vis, self._tint, self._keys["vis"] = vis, tint, vis_key
-        eye, mvp = scene_camera(scene, v)
+        eye, mvp = scene_camera(scene, geo["frame"])
         ss = np.zeros_like(v)
         if opts.single_scattering:
             ss = self._single(scene, eye)
@@ -469,8 +537,9 @@ class Renderer:
     def render(self, scene: Scene) -> tuple[NDArray[np.float32], RenderReport]:
         """One frame: ``(h, w, 3)`` linear radiance (row 0 = top) and the report."""
         rep = RenderReport(renderer=gl.describe(self.ctx), image_size=(scene.output.width, scene.output.height))
-        geo_key = _key(scene.mesh, scene.polygrid, str(scene.base_dir))
-        mat_key = _key(geo_key, replace(scene.material, reflectance=None),  # pass 3 alone uses the reflectance
+        geo_key = _key(scene.mesh, scene.polygrid, str(scene.base_dir), scene.cut,
+                       (scene.camera, scene.output) if scene.cut is not None and scene.cut.stroke else None)
+        mat_key = _key(geo_key, replace(scene.material, reflectance=None), scene.paint,  # pass 3 alone: reflectance
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
         light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
                          scene.options.source, mat_key if scene.options.source == "volume" else None)
@@ -514,11 +583,18 @@ class Renderer:
         rep.nodes, rep.boundary_nodes = int(pg.n_active), int(len(pg.boundary_positions))
         rep.solver = self._solve_report
         rep.clamped_vertices = self._clamped
+        if scene.cut is not None:
+            cr = self._cut_report
+            rep.notes.append(f"cut: {cr.tets_removed:,} of {cr.tets_before:,} tetrahedra removed, {cr.nodes_on_cut} of "
+                             f"{cr.nodes_to_relax} vertices relaxed onto the cut ({cr.iterations} iterations, "
+                             f"{cr.moves_refused} moves refused), at most {cr.max_past_cut:.3g} past it, "
+                             f"{self._cut_seconds:.2f} s")
         if scene.polygrid.discretisation == "tetwild":
             q = pg.quality
             rep.notes.append(f"grid: tetrahedral (fTetWild), edge {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, "
                              f"{q.inverted} inverted, worst dihedral angle {q.min_dihedral_deg:.3g} deg, {q.slivers} "
-                             f"slivers; boundary within {q.surface_distance_max:.3g} mm of the surface")
+                             f"slivers; boundary within {q.surface_distance_max:.3g} mm of the surface"
+                             f"{' (before the cut)' if scene.cut is not None else ''}")
         elif self._geo["fem"]:
             q = pg.quality
             rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, {q.inverted} "

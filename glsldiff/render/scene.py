@@ -87,6 +87,19 @@ silently ignored).
     unscattered = true        # area/environment light seen straight through the object (thin parts)
     flux = "boundary"         # exitant flux: boundary (the Robin condition) | gradient (the solution's, fem only)
 
+    [cut]                     # tetwild only: TransCut's cut (glsldiff.grids.tetcut); one of plane / stroke
+    plane = [1, 0, 0, 50]     # n_x, n_y, n_z, d: removes n . x > d (mm, the scaled mesh's coordinates)
+    stroke = [[100, 50], [300, 480]]  # or a stroke in [output] pixels (u right, v down), extruded along the
+                              # camera's view: removes the stroke's left; needs [camera] position
+    iterations = 40           # relaxation of the remaining vertices towards the cut (rho 0.1)
+
+    [[paint]]                 # tetwild only: a Gaussian-falloff material edit (TransCut section 5.2)
+    points = [[50, 40, 30]]   # stroke points, mm
+    radius_mm = 5.0           # the Gaussian's sigma
+    sigma_a = [0.5, 0.5, 0.5] # target absorption and/or reduced scattering, mm^-1
+    sigma_s_prime = [1, 1, 1]
+    strength = 1.0            # new = old + strength exp(-d^2 / 2 r^2) (target - old), at the nodes
+
 ``[[lights]]`` tables parse straight into the light types of :mod:`glsldiff.physics.lights`
 (``Scene.lights``); the other keys of a light table: ``cone_deg`` (in (0, 90], default 30) and
 ``falloff_deg`` (default min(25, cone_deg)) of a spot, ``intensity`` (default 1e4) of point,
@@ -215,6 +228,22 @@ class OptionsSpec:
 
 
 @dataclass(frozen=True)
+class CutSpec:
+    plane: tuple[float, float, float, float] | None = None
+    stroke: tuple[tuple[float, float], ...] | None = None
+    iterations: int = 40
+
+
+@dataclass(frozen=True)
+class PaintSpec:
+    points: tuple[tuple[float, float, float], ...]
+    radius_mm: float
+    sigma_a: tuple[float, float, float] | None = None
+    sigma_s_prime: tuple[float, float, float] | None = None
+    strength: float = 1.0
+
+
+@dataclass(frozen=True)
 class Scene:
     """A validated scene (module docstring); ``source`` names the file for messages."""
 
@@ -228,6 +257,8 @@ class Scene:
     options: OptionsSpec = OptionsSpec()
     source: str = "<built-in>"
     base_dir: Path = field(default=Path("."), compare=False)
+    cut: CutSpec | None = None
+    paint: tuple[PaintSpec, ...] = ()
 
     def resolve(self, path: str) -> Path:
         """A path from the scene file, relative to the file's directory."""
@@ -453,7 +484,50 @@ def _light(t: _Table, scene_dir: Path) -> Light:
         raise   # not reached: fail raises
 
 
-_TABLES = ("mesh", "polygrid", "material", "lights", "camera", "output", "specular", "options")
+_TABLES = ("mesh", "polygrid", "material", "lights", "camera", "output", "specular", "options", "cut", "paint")
+
+
+def _points(t: _Table, key: str, dim: int) -> tuple[tuple[float, ...], ...]:
+    v = t.data[key]
+    ok = (isinstance(v, list) and len(v) >= 1 and all(
+        isinstance(p, list) and len(p) == dim and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                      and math.isfinite(x) for x in p) for p in v))
+    if not ok:
+        t.fail(key, f"must be a list of [{', '.join('xyz'[:dim] if dim == 3 else 'uv')}] points of finite numbers, "
+                    f"got {v!r}")
+    return tuple(tuple(float(x) for x in p) for p in v)
+
+
+def _cut(t: _Table, camera: CameraSpec) -> CutSpec:
+    if t.has("plane") == t.has("stroke"):
+        t.fail("plane", "give exactly one of plane = [n_x, n_y, n_z, d] or stroke = [[u, v], ...]")
+    plane, stroke = None, None
+    if t.has("plane"):
+        v = t.data["plane"]
+        if (not isinstance(v, list) or len(v) != 4 or not all(
+                isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)
+                or not any(v[:3])):
+            t.fail("plane", f"must be [n_x, n_y, n_z, d] (finite, normal not zero), got {v!r}")
+        plane = tuple(float(x) for x in v)
+    else:
+        stroke = _points(t, "stroke", 2)
+        if len(stroke) < 2:
+            t.fail("stroke", "needs at least two [u, v] points")
+        if camera.position is None:
+            t.fail("stroke", "a stroke is drawn in the camera's image: give [camera] position (and target) so the "
+                             "view does not move with the cut")
+    return CutSpec(plane, stroke, t.integer("iterations", 40, 0))
+
+
+def _paint(t: _Table) -> PaintSpec:
+    if not t.has("points") or not t.has("radius_mm"):
+        t.fail("points" if not t.has("points") else "radius_mm", "missing; a paint stroke needs points and radius_mm")
+    if not (t.has("sigma_a") or t.has("sigma_s_prime")):
+        t.fail("sigma_a", "give the target sigma_a and/or sigma_s_prime (mm^-1)")
+    spec = PaintSpec(_points(t, "points", 3), t.number("radius_mm", 1.0, 0.0, lo_open=True),  # type: ignore[arg-type]
+                     t.vec3("sigma_a", None, nonneg=True), t.vec3("sigma_s_prime", None, nonneg=True),
+                     t.number("strength", 1.0, 0.0, hi=1.0))
+    return spec
 
 
 def _keys(cls: type) -> set[str]:
@@ -547,7 +621,20 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                          "discretisation = \"fem\" (the default) or source = \"surface\"")
     if options.scheme != "single" and poly.levels == 1:
         options = replace(options, scheme="single")
-    return Scene(mesh, poly, material, lights, camera, output, specular, options, src, base_dir)
+    cut = None
+    if "cut" in data:
+        ct = _Table(src, "cut", data["cut"], _keys(CutSpec))
+        if poly.discretisation != "tetwild":
+            ct.fail("", "cutting needs the fTetWild mesh: set [polygrid] discretisation = \"tetwild\"")
+        cut = _cut(ct, camera)
+    raw_paint = data.get("paint", [])
+    if not isinstance(raw_paint, list):
+        raise InputError(f"{src}: [[paint]]: must be an array of tables ([[paint]]), got {type(raw_paint).__name__}")
+    paint = tuple(_paint(_Table(src, f"paint.{i}", d, _keys(PaintSpec))) for i, d in enumerate(raw_paint))
+    if paint and poly.discretisation != "tetwild":
+        raise InputError(f"{src}: [[paint]]: painting needs the fTetWild mesh: set [polygrid] discretisation = "
+                         "\"tetwild\"")
+    return Scene(mesh, poly, material, lights, camera, output, specular, options, src, base_dir, cut, paint)
 
 
 def load_scene(path: str | Path) -> Scene:
