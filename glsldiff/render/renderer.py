@@ -430,6 +430,9 @@ class Renderer:
         ms = geo["interp"] @ B
         neg = ms < 0.0
         self._clamped = int(np.any(neg, axis=1).sum())
+        top = max(float(ms.max()), 1e-300)
+        self._clamped_depth = float(max(-ms.min(), 0.0) / top)
+        self._clamped_deep = int(np.any(ms < -0.01 * top, axis=1).sum())
         ms = np.maximum(ms, 0.0)
         shader_lights = self._shader_lights(scene)
         vis_key = _key(self._keys.get("geometry"), scene.lights)     # the geometry key holds the cut too
@@ -582,7 +585,7 @@ class Renderer:
         pg = self._geo["pg"]
         rep.nodes, rep.boundary_nodes = int(pg.n_active), int(len(pg.boundary_positions))
         rep.solver = self._solve_report
-        rep.clamped_vertices = self._clamped
+        rep.clamped_vertices, rep.clamped_depth, rep.clamped_deep = self._clamped, self._clamped_depth, self._clamped_deep
         if scene.cut is not None:
             cr = self._cut_report
             rep.notes.append(f"cut: {cr.tets_removed:,} of {cr.tets_before:,} tetrahedra removed, {cr.nodes_on_cut} of "

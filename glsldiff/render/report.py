@@ -18,6 +18,8 @@ class RenderReport:
     nodes: int = 0
     boundary_nodes: int = 0
     clamped_vertices: int = 0
+    clamped_depth: float = 0.0      # the most negative exitance before clamping / the largest exitance
+    clamped_deep: int = 0           # vertices clamped from below -1 % of the largest exitance
     image_size: tuple[int, int] = (0, 0)
     notes: list[str] = field(default_factory=list)
 
@@ -44,6 +46,9 @@ class RenderReport:
         if self.solver is not None:
             out.append("solver: " + self.solver.summary())
         if self.clamped_vertices:
-            out.append(f"exitant radiance clamped to 0 at {self.clamped_vertices} lit vertices (diffusion undershoot)")
+            out.append(f"exitant radiance clamped to 0 at {self.clamped_vertices} vertices: {self.clamped_deep} "
+                       f"from below -1 % of the largest (down to -{self.clamped_depth:.2g}: diffusion undershoot), "
+                       f"{self.clamped_vertices - self.clamped_deep} within 1 % (undershoot or the solve's tolerance; a "
+                       "tighter [options].tol tells them apart)")
         out.extend(self.notes)
         return out
