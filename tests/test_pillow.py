@@ -192,3 +192,24 @@ def test_surface_mass_rows_sum_to_the_lumped_areas_and_lower_the_sphere_error():
             B = p.exitant_bracket(solve_tet_direct(p)[0])[:, 0]
             err[mass] = np.linalg.norm(B - ref) / np.linalg.norm(ref)
         assert err["consistent"] < 0.99 * err["lumped"], (name, err)
+
+
+def test_untangle_keeps_tangent_nodes_in_their_planes():
+    """An inverted tetrahedron whose apex may slide only in a tilted plane through it (the
+    tangent penalty of untangle): the apex moves within the plane and the tetrahedron turns
+    positive; without the penalty the apex moves straight along the volume gradient, off the
+    plane."""
+    from glsldiff.grids.fem_grid import untangle
+    X = np.array([[0, 0, 0], [0, 1, 0], [0, 0, 1], [-0.5, 0.2, 0.2]])   # 6V = apex x: inverted
+    T = np.array([[0, 1, 2, 3]])
+    ref = np.array([1.0])                                                 # 6V of the apex at x = 1
+    free = np.array([False, False, False, True])
+    n = np.array([1.0, 0.0, 1.0]) / np.sqrt(2.0)
+    tangent = np.zeros_like(X)
+    tangent[3] = n
+    Y, Z = X.copy(), X.copy()
+    assert untangle(Y, T, free, ref, tangent=tangent) == 1
+    untangle(Z, T, free, ref)
+    assert signed_volumes(Y, T)[0] > 0 and signed_volumes(Z, T)[0] > 0
+    off_y, off_z = abs((Y[3] - X[3]) @ n), abs((Z[3] - X[3]) @ n)
+    assert off_y < 0.1 * np.linalg.norm(Y[3] - X[3]) and off_z > 0.5 * np.linalg.norm(Z[3] - X[3])
