@@ -29,6 +29,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from glsldiff.core import io
+from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.core.plotting import pyplot, save_figure
 from glsldiff.grids.tetwild import TetMesh, cached_tetrahedralize, refine as refine_mesh
@@ -97,7 +98,8 @@ def tet_study(mesh: Mesh, edge_mm: float, sigma_a: float, sigma_s: float, eta: f
     cg_rows, _ = _trace("cg (jacobi)", lambda cb: spla.cg(M, b, rtol=tol, maxiter=20_000, M=jacobi, callback=cb)[0],
                         err, M, b)
     t0 = time.perf_counter()
-    ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")
+    with pinned_global_rng():
+        ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")
     t_setup = time.perf_counter() - t0
     amg_rows, _ = _trace("pyamg (SA + cg)", lambda cb: ml.solve(b, tol=tol, accel="cg", maxiter=500, callback=cb),
                          err, M, b)

@@ -8,6 +8,8 @@ from typing import Any
 import numpy as np
 import pyamg
 import scipy.sparse as sp
+
+from glsldiff.core.rng import pinned_global_rng
 import scipy.sparse.linalg as spla
 
 __all__ = ["jacobi_lambda_max", "build_prolongations", "galerkin", "AMG_DEFAULTS"]
@@ -46,13 +48,9 @@ def build_prolongations(A: sp.spmatrix | sp.sparray, max_coarse: int = 300, max_
     :data:`AMG_DEFAULTS`; reproducible: numpy's global random state is seeded for the call and
     restored)."""
     opts = {**AMG_DEFAULTS, **(amg or {})}
-    state = np.random.get_state()    # pyamg's spectral-radius estimates start from np.random vectors:
-    np.random.seed(0)                # seeded, the hierarchy is reproducible (the caller's state kept)
-    try:
+    with pinned_global_rng():        # pyamg's spectral-radius estimates start from np.random vectors
         ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric", max_coarse=max_coarse,
                                                max_levels=max_levels, keep=False, **opts)
-    finally:
-        np.random.set_state(state)
     return [sp.csr_matrix(lv.P, dtype=np.float64) for lv in ml.levels[:-1]]
 
 

@@ -27,6 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.pillow import TET_EDGES
 from glsldiff.mesh import vertex_areas
@@ -229,7 +230,8 @@ def solve_matrix_reference(A: sp.spmatrix, b: NDArray[np.float64], max_direct: i
     :data:`~glsldiff.system.report.REFERENCE_TOL` within ``maxiter`` cycles."""
     if A.shape[0] <= max_direct:
         return spla.splu(sp.csc_matrix(A)).solve(b), "direct (SuperLU)"
-    ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric")
+    with pinned_global_rng():
+        ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric")
     return ml.solve(b, tol=REFERENCE_TOL, maxiter=maxiter, accel="cg"), f"pyamg to {REFERENCE_TOL:g}"
 
 

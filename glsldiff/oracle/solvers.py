@@ -21,6 +21,7 @@ import pyamg
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.assembly import LinearSystem, assemble, assemble_rhs, diverged_message
 from glsldiff.system.problem import DiffusionProblem
@@ -113,7 +114,8 @@ def solve_amg(problem: DiffusionProblem, tol: float = REFERENCE_TOL, maxiter: in
         if not b.any():
             xs.append(np.zeros(n))
             continue
-        ml = pyamg.smoothed_aggregation_solver(A, symmetry="nonsymmetric", max_coarse=500)
+        with pinned_global_rng():
+            ml = pyamg.smoothed_aggregation_solver(A, symmetry="nonsymmetric", max_coarse=500)
         res: list[float] = []
         guess = None if start is None else start[c * n:(c + 1) * n]
         xs.append(ml.solve(b, x0=guess, tol=tol, accel="gmres", maxiter=maxiter, residuals=res))
