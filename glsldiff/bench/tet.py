@@ -25,7 +25,6 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import pyamg
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
 from glsldiff.core import io
@@ -35,8 +34,9 @@ from glsldiff.core.plotting import pyplot, save_figure
 from glsldiff.grids.tetwild import TetMesh, cached_tetrahedralize, refine as refine_mesh
 from glsldiff.mesh import Mesh
 from glsldiff.oracle.fem import positive_couplings, solve_matrix_reference
+from glsldiff.physics.material import coefficients
 from glsldiff.physics.optics import transmitted_cosine
-from glsldiff.solve.graph_hierarchy import COARSE_OPERATORS, GraphHierarchy
+from glsldiff.solve.graph_hierarchy import COARSE_OPERATORS, GraphHierarchy, jacobi_cg
 from glsldiff.system.transcut import de_matrix, de_rhs
 
 __all__ = ["tet_study", "DIRECT_MAX_NODES"]
@@ -73,7 +73,7 @@ def tet_study(mesh: Mesh, edge_mm: float, sigma_a: float, sigma_s: float, eta: f
     tm, cached = cached_tetrahedralize(mesh, edge_mm, status=status)
     for _ in range(refine):
         tm = refine_mesh(tm)
-    kappa, mu = 1.0 / (3.0 * (sigma_a + sigma_s)), sigma_a
+    kappa, mu = coefficients(sigma_a, sigma_s)
     l = np.asarray(light, dtype=np.float64)
     l = l / np.linalg.norm(l)
     q = np.zeros(len(tm.positions))
@@ -93,10 +93,7 @@ def tet_study(mesh: Mesh, edge_mm: float, sigma_a: float, sigma_s: float, eta: f
     def err(x: NDArray) -> float:
         return float(np.abs(x[nodes] - x_ref[nodes]).max() / scale)
 
-    d = M.diagonal()
-    jacobi = sp.diags(1.0 / d)
-    cg_rows, _ = _trace("cg (jacobi)", lambda cb: spla.cg(M, b, rtol=tol, maxiter=20_000, M=jacobi, callback=cb)[0],
-                        err, M, b)
+    cg_rows, _ = _trace("cg (jacobi)", lambda cb: jacobi_cg(M, b, tol, callback=cb), err, M, b)
     t0 = time.perf_counter()
     with pinned_global_rng():
         ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")

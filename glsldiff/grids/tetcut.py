@@ -33,7 +33,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.pillow import TET_EDGES, signed_volumes
-from glsldiff.grids.tetwild import INERT_DIHEDRAL_DEG, TetMesh, boundary_faces, dihedral_cos_sin, tet_quality
+from glsldiff.grids.tetwild import INERT_DIHEDRAL_DEG, TetMesh, boundary_faces, tet_quality
+from glsldiff.grids.tetwild import min_dihedral_deg as smallest_dihedral
+from glsldiff.mesh import Mesh
 
 __all__ = ["CutReport", "cut", "plane_side", "stroke_side", "RHO", "MIN_DIHEDRAL_DEG"]
 
@@ -109,11 +111,6 @@ class CutReport:
         return d
 
 
-def _min_dihedral(X: NDArray[np.float64], T: NDArray[np.int64]) -> NDArray[np.float64]:
-    c, s = dihedral_cos_sin(X[T])
-    return np.degrees(np.arctan2(s, c)).min(axis=1)
-
-
 def _adjacency(T: NDArray[np.int64], n: int) -> sp.csr_matrix:
     i, j = T[:, TET_EDGES[:, 0]].ravel(), T[:, TET_EDGES[:, 1]].ravel()
     A = sp.csr_matrix((np.ones(2 * len(i)), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
@@ -132,14 +129,18 @@ def _to_cut(side: Side, x: NDArray[np.float64], y: NDArray[np.float64], steps: i
     return x + hi[:, None] * (y - x)
 
 
-def _normals(X: NDArray[np.float64], surface: NDArray[np.int64], nodes: NDArray[np.int64]) -> NDArray[np.float64]:
-    """Area-weighted outward vertex normals of the boundary triangles at ``nodes``."""
-    fn = np.cross(X[surface[:, 1]] - X[surface[:, 0]], X[surface[:, 2]] - X[surface[:, 0]])
-    acc = np.zeros((len(X), 3))
-    for c in range(3):
-        np.add.at(acc, surface[:, c], fn)
-    acc = acc[nodes]
-    return acc / np.maximum(np.linalg.norm(acc, axis=1, keepdims=True), 1e-300)
+def _rows_in(rows: NDArray[np.int64], table: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """``(k,)`` which triangles ``rows`` ``(k, 3)`` appear in ``table`` ``(m, 3)``, in any vertex order."""
+    both = np.sort(np.concatenate([table, rows]), axis=1)
+    _, inverse = np.unique(both, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    return np.isin(inverse[len(table):], inverse[:len(table)])
+
+
+def _kept(faces: NDArray[np.int64], remap: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The triangles ``faces`` of the uncut mesh whose three nodes remain, renumbered."""
+    f = remap[faces]
+    return f[np.all(f >= 0, axis=1)]
 
 
 def cut(tm: TetMesh, side: Side, iterations: int = 20, rho: float = RHO,
@@ -176,7 +177,7 @@ def cut(tm: TetMesh, side: Side, iterations: int = 20, rho: float = RHO,
     movable = f > 0.0
     to_relax = int(movable.sum())
     tets_of = sp.csr_matrix((np.ones(T.size), (T.ravel(), np.repeat(np.arange(len(T)), 4))), shape=(len(X), len(T)))
-    mind = _min_dihedral(X, T)
+    mind = smallest_dihedral(X, T)
     refused, done, on_cut = 0, 0, 0
     for done in range(1, iterations + 1):
         idx = np.flatnonzero(movable)
@@ -194,7 +195,7 @@ def cut(tm: TetMesh, side: Side, iterations: int = 20, rho: float = RHO,
         while True:                                         # refuse moves that spoil a tetrahedron
             touched = np.flatnonzero(tets_of[idx[moved]].sum(axis=0).A1 > 0)
             vol = signed_volumes(X, T[touched])
-            md = _min_dihedral(X, T[touched])
+            md = smallest_dihedral(X, T[touched])
             bad = (vol <= 0.0) | ((md < min_dihedral_deg) & (md < mind[touched]))
             if not bad.any():
                 mind[touched] = md
@@ -216,9 +217,8 @@ def cut(tm: TetMesh, side: Side, iterations: int = 20, rho: float = RHO,
     t0 = time.perf_counter()
     surface = boundary_faces(T)
     nodes = np.unique(surface)
-    normals = _normals(X, surface, nodes)
-    old_faces = {tuple(r) for r in np.sort(remap[tm.surface], axis=1)[np.all(remap[tm.surface] >= 0, axis=1)].tolist()}
-    new_face = np.array([tuple(r) not in old_faces for r in np.sort(surface, axis=1).tolist()], dtype=bool)
+    normals = Mesh(X[nodes], np.searchsorted(nodes, surface)).vertex_normals.copy()   # area-weighted
+    new_face = ~_rows_in(surface, _kept(tm.surface, remap))
     on_new = np.zeros(len(X), dtype=bool)
     on_new[surface[new_face].ravel()] = True
     keep_old = was_surface[nodes] & ~on_new[nodes]                 # untouched surface: the input's normals
@@ -230,12 +230,5 @@ def cut(tm: TetMesh, side: Side, iterations: int = 20, rho: float = RHO,
     report = CutReport(len(tm.tets), int((~keep_tet).sum()), len(tm.positions) - len(X), to_relax, on_cut,
                        refused, done, quality.min_dihedral_deg, float(max(f_after.max(), 0.0)),
                        {"remove": t_remove, "relax": t_relax, "rebuild": t_rebuild})
-    made = new_face if tm.cut_faces is None else new_face | _was_cut(tm, remap, surface)
+    made = new_face if tm.cut_faces is None else new_face | _rows_in(surface, _kept(tm.surface[tm.cut_faces], remap))
     return TetMesh(X, T, surface, normals, quality, tm.edge_mm, origin, made), report
-
-
-def _was_cut(tm: TetMesh, remap: NDArray[np.int64], surface: NDArray[np.int64]) -> NDArray[np.bool_]:
-    """Which of the new ``surface`` triangles were cut faces of ``tm`` already (a second cut)."""
-    old = remap[tm.surface[tm.cut_faces]]
-    keys = {tuple(r) for r in np.sort(old[np.all(old >= 0, axis=1)], axis=1).tolist()}
-    return np.array([tuple(r) in keys for r in np.sort(surface, axis=1).tolist()], dtype=bool)

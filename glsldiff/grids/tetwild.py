@@ -35,7 +35,7 @@ from glsldiff.mesh import Mesh, closest_points
 from glsldiff.mesh.types import unique_edges
 
 __all__ = ["TetMesh", "TetQuality", "tetrahedralize", "cached_tetrahedralize", "tet_quality", "dihedral_cos_sin",
-           "refine", "boundary_faces", "SLIVER_DEG", "INERT_DIHEDRAL_DEG"]
+           "refine", "boundary_faces", "min_dihedral_deg", "SLIVER_DEG", "INERT_DIHEDRAL_DEG"]
 
 #: A tetrahedron with a dihedral angle below this (degrees) counts as a sliver.
 SLIVER_DEG = 5.0
@@ -91,8 +91,7 @@ class TetMesh:
     def inert(self) -> NDArray[np.bool_]:
         """``(T,)`` tetrahedra with a dihedral angle below :data:`INERT_DIHEDRAL_DEG`: no stiffness
         in the P1 and TransCut systems (a documented repair of fTetWild's slivers)."""
-        c, s = dihedral_cos_sin(self.positions[self.tets])
-        return np.degrees(np.arctan2(s, c)).min(axis=1) < INERT_DIHEDRAL_DEG
+        return min_dihedral_deg(self.positions, self.tets) < INERT_DIHEDRAL_DEG
 
     @property
     def surface_nodes(self) -> NDArray[np.int64]:
@@ -163,6 +162,17 @@ def dihedral_cos_sin(P: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArr
     return c, s
 
 
+def dihedral_deg(P: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(T, 6)`` the dihedral angles of tetrahedra ``P`` ``(T, 4, 3)`` in degrees."""
+    c, s = dihedral_cos_sin(P)
+    return np.degrees(np.arctan2(s, c))
+
+
+def min_dihedral_deg(positions: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+    """``(T,)`` each tetrahedron's smallest dihedral angle, degrees."""
+    return dihedral_deg(positions[tets]).min(axis=1)
+
+
 def _radius_ratio(P: NDArray[np.float64], vol: NDArray[np.float64]) -> NDArray[np.float64]:
     """``3 r_in / r_circ`` per tetrahedron."""
     areas = np.stack([0.5 * np.linalg.norm(np.cross(P[:, j] - P[:, i], P[:, k] - P[:, i]), axis=1)
@@ -182,7 +192,7 @@ def tet_quality(positions: NDArray[np.float64], tets: NDArray[np.int64], surface
     ``surface_distance`` (mm) of the input surface it should fill are the caller's figures."""
     P = positions[tets]
     vol = signed_volumes(positions, tets)
-    dih = np.degrees(np.arctan2(*dihedral_cos_sin(P)[::-1]))
+    dih = dihedral_deg(P)
     rr = _radius_ratio(P, vol)
     return TetQuality(len(tets), int(len(np.unique(tets))), len(surface), float(dih.min()),
                       float(np.percentile(dih.min(axis=1), 1)), float(dih.max()), float(rr.min()), float(rr.mean()),

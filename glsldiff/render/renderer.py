@@ -64,7 +64,7 @@ from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
 from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import SAMPLE_MESHES, Mesh, load_mesh, sphere_mesh, subdivide
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
-from glsldiff.physics.material import regime
+from glsldiff.physics.material import coefficients, optical_properties, regime
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
 from glsldiff.render.camera import scene_camera
@@ -254,7 +254,7 @@ class Renderer:
         kappa, mu, info = node_material(scene, pg.positions, pg)
         for p in scene.paint:      # TransCut's paint, at the nodes (the P1 system's material lives there)
             w = paint_weights(pg.positions, p.points, p.radius_mm)
-            sa, ss = mu, 1.0 / (3.0 * kappa) - mu
+            sa, ss = optical_properties(kappa, mu)
             if p.sigma_a is not None:
                 sa = paint_blend(sa, p.sigma_a, w, p.strength)
             if p.sigma_s_prime is not None:
@@ -262,7 +262,7 @@ class Renderer:
             if np.any(sa + ss <= 0):
                 raise InputError(f"{scene.source}: [[paint]]: the paint leaves sigma_a + sigma_s_prime = 0 at some "
                                  "nodes; paint positive values")
-            kappa, mu = 1.0 / (3.0 * (sa + ss)), sa
+            kappa, mu = coefficients(sa, ss)
             info = {**info, "material": f"{info.get('material')} + {len(scene.paint)} paint stroke(s)"}
         shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}

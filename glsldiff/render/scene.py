@@ -524,10 +524,9 @@ def _paint(t: _Table) -> PaintSpec:
         t.fail("points" if not t.has("points") else "radius_mm", "missing; a paint stroke needs points and radius_mm")
     if not (t.has("sigma_a") or t.has("sigma_s_prime")):
         t.fail("sigma_a", "give the target sigma_a and/or sigma_s_prime (mm^-1)")
-    spec = PaintSpec(_points(t, "points", 3), t.number("radius_mm", 1.0, 0.0, lo_open=True),  # type: ignore[arg-type]
+    return PaintSpec(_points(t, "points", 3), t.number("radius_mm", 1.0, 0.0, lo_open=True),  # type: ignore[arg-type]
                      t.vec3("sigma_a", None, nonneg=True), t.vec3("sigma_s_prime", None, nonneg=True),
                      t.number("strength", 1.0, 0.0, hi=1.0))
-    return spec
 
 
 def _keys(cls: type) -> set[str]:

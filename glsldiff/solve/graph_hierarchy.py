@@ -49,12 +49,20 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
 
-__all__ = ["GraphLevel", "GraphHierarchy", "independent_set", "coarsen_graph", "COARSE_OPERATORS"]
+__all__ = ["GraphLevel", "GraphHierarchy", "independent_set", "coarsen_graph", "jacobi_cg", "COARSE_OPERATORS"]
 
 #: The coarse operators: TransCut's eq. 17 (injection) and the Galerkin product (module docstring).
 COARSE_OPERATORS = ("galerkin", "paper")
 
 _BIG = np.iinfo(np.int64).max
+
+
+def jacobi_cg(M: sp.spmatrix, b: NDArray[np.float64], tol: float, x0: NDArray[np.float64] | None = None,
+              maxiter: int = 20_000, callback: Callable[[NDArray[np.float64]], None] | None = None
+              ) -> NDArray[np.float64]:
+    """Jacobi-preconditioned conjugate gradients (scipy) on ``M x = b`` to a relative residual
+    ``tol``: the fine level of the hierarchy and its plain peer."""
+    return spla.cg(M, b, x0=x0, rtol=tol, maxiter=maxiter, M=sp.diags(1.0 / M.diagonal()), callback=callback)[0]
 
 
 def _graph(M: sp.spmatrix) -> sp.csr_matrix:
@@ -252,8 +260,7 @@ class GraphHierarchy:
             if callback is not None:
                 callback(xk)
 
-        jacobi = sp.diags(1.0 / M.diagonal())
-        x, _ = spla.cg(M, b, x0=start, rtol=tol, maxiter=maxiter, M=jacobi, callback=step)
+        x = jacobi_cg(M, b, tol, x0=start, maxiter=maxiter, callback=step)
         bn = float(np.linalg.norm(b)) or 1.0
         res = float(np.linalg.norm(b - M @ x) / bn)
         return x, {"cascade": records, "cg_iterations": count[0], "residual": res, "converged": res <= tol * 1.01,

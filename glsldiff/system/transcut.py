@@ -31,6 +31,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.pillow import TET_EDGES, signed_volumes
 from glsldiff.grids.tetwild import dihedral_cos_sin
 from glsldiff.mesh import vertex_areas
+from glsldiff.physics.material import coefficients
 from glsldiff.physics.optics import boundary_constant, fdr
 from scipy.spatial import cKDTree
 
@@ -157,7 +158,7 @@ class TransCutSystem:
     @property
     def kappa(self) -> NDArray[np.float64]:
         """``(T,)`` diffusion coefficient ``1 / (3 (sigma_a + sigma_s'))``, mm."""
-        return 1.0 / (3.0 * (self.sigma_a + self.sigma_s))
+        return coefficients(self.sigma_a, self.sigma_s)[0]
 
     def _entries(self, idx: NDArray[np.int64]) -> NDArray[np.float64]:
         """``(len(idx), 16)`` the tetrahedra's contributions at :attr:`_slots`: off-diagonal
