@@ -160,6 +160,24 @@ def read_image(path: str | os.PathLike, exr_only: bool = False) -> NDArray[np.fl
     return srgb_to_linear(bgr[..., ::-1] / 255.0)
 
 
+def read_mask(path: str | os.PathLike) -> NDArray[np.float32]:
+    """``(h, w)`` weights in [0, 1] of a mask image (row 0 = top): an 8- or 16-bit PNG/JPEG's
+    grey value over its maximum, not sRGB-decoded (a mask is data, not colour), or an OpenEXR
+    file's channel mean, clipped. InputError naming the file when it cannot be read."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p}: no such mask image")
+    if p.suffix.lower() == ".exr":
+        return np.clip(read_image(p).mean(axis=2), 0.0, 1.0).astype(np.float32)
+    import cv2
+
+    img = cv2.imread(str(p), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_GRAYSCALE)
+    if img is None:
+        raise InputError(f"{p}: OpenCV cannot read it as a PNG or JPEG mask (or give an .exr)")
+    top = 65535.0 if img.dtype == np.uint16 else 255.0
+    return (img.astype(np.float32) / np.float32(top)).clip(0.0, 1.0)
+
+
 def tonemap(image: ArrayLike, exposure: float, gamma: float = 2.2) -> NDArray[np.uint8]:
     """``clip(exposure * L, 0, 1) ** (1 / gamma)`` as 8-bit sRGB-like values."""
     img = np.clip(np.asarray(image, dtype=np.float64) * exposure, 0.0, 1.0) ** (1.0 / gamma)

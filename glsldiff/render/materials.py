@@ -7,7 +7,10 @@
   along +y bent by smooth noise, seeded spheres filling 5 % of the volume, or ``sphere``: one
   ball at the box centre, radius 0.3 of its smallest extent);
 * a block volume file (``.npz`` with ``kappa``, ``mu`` of shape ``(nz, ny, nx, 3)`` and
-  ``h_mm``), mapped through a shell layer (:func:`glsldiff.render.shellmap.map_shell`).
+  ``h_mm``), mapped through a shell layer (:func:`glsldiff.render.shellmap.map_shell`);
+* a node material file (``[material].nodes``: the editor's saved material, ``kappa``, ``mu``,
+  ``positions_mm`` of shape ``(N, 3)``): each node takes the nearest saved node's values
+  (exact on the grid it was saved from).
 
 Blending happens on the optical coefficients (sigma_a, sigma_s'), then kappa and mu are
 derived, so every node stays physical.
@@ -24,11 +27,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import map_coordinates
+from scipy.spatial import cKDTree
 
 from glsldiff.core.io import read_image
 from glsldiff.physics.material import Preset, coefficients, preset
 from glsldiff.physics.procedural import blend, default_vein, marble_volume, point_weight, unit_box
-from glsldiff.render.scene import MaterialSpec, Scene, block_volume
+from glsldiff.render.scene import MaterialSpec, Scene, block_volume, node_volume
 from glsldiff.render.shellmap import map_shell, map_surface
 
 
@@ -89,6 +93,12 @@ def node_material(scene: Scene, positions: NDArray, polygrid: Any = None) -> tup
         core: Any = spec.core if spec.core == "mean" else preset(spec.core)
         kappa, mu, info = map_shell(polygrid, kb, mb, h, core=core, thickness_mm=spec.shell_mm)
         return kappa.reshape(-1, 3), mu.reshape(-1, 3), {"material": f"volume {path.name} via shell", **info}
+    if spec.nodes is not None:
+        path = scene.resolve(spec.nodes)
+        ks, ms, ps = node_volume(path, f"{scene.source}: [material].nodes: file")
+        dist, idx = cKDTree(ps).query(np.asarray(positions, dtype=np.float64))
+        return ks[idx], ms[idx], {"material": f"nodes {path.name} ({len(ps):,} saved nodes, nearest within "
+                                              f"{float(dist.max()):.3g} mm)"}
     if spec.procedural is None:
         kappa, mu = coefficients(base[0], base[1])
         return (np.broadcast_to(kappa, (n, 3)).copy(), np.broadcast_to(mu, (n, 3)).copy(),

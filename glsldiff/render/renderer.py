@@ -58,11 +58,13 @@ from numpy.typing import NDArray
 from glsldiff import gl
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
+from glsldiff.core.io import write_npz
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
 from glsldiff.grids.tetwild import cached_tetrahedralize
-from glsldiff.mesh import SAMPLE_MESHES, Mesh, load_mesh, sphere_mesh, subdivide
+from glsldiff.mesh import SAMPLE_MESHES, Mesh, load_mesh, sphere_mesh, subdivide, torus_mesh
+from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, apply_edit
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import coefficients, optical_properties, regime
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
@@ -70,6 +72,7 @@ from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, Pr
 from glsldiff.render.camera import scene_camera
 from glsldiff.render.collision import first_collision_load, surface_columns
 from glsldiff.render.unscattered import sees_through, unscattered
+from glsldiff.render.editing import GpuMaterialEditor, MaterialHistory
 from glsldiff.render.materials import node_material, surface_reflectance
 from glsldiff.render.pass1 import incident_light, visibility
 from glsldiff.render.report import RenderReport
@@ -113,12 +116,23 @@ class Renderer:
     """
 
     def __init__(self, ctx: moderngl.Context | None = None, allow_unconverged: bool = False,
-                 status: Callable[[str], None] | None = None) -> None:
+                 status: Callable[[str], None] | None = None, frame_sweeps: int | None = None,
+                 cache_solutions: bool = True) -> None:
         """``allow_unconverged``: keep a pass-2 solve that ran out of iterations (the image is
         then not the converged answer) instead of raising :class:`SolverError`. ``status``
-        receives a line before each step that can take seconds (the command prints them)."""
+        receives a line before each step that can take seconds (the command prints them).
+        ``frame_sweeps``: interactive frame coherence on the lattice (the viewer): a warm-started
+        pass 2 runs at most this many sweeps per frame and the next frames go on from there
+        until ``tol`` is met (:attr:`converged`); cold starts still solve to ``tol``.
+        ``cache_solutions=False``: pass 2 neither reads nor writes converged solutions on disk
+        (benchmarks that time cold solves; built grids are still cached)."""
         self.ctx = ctx if ctx is not None else gl.get_context()
         self.allow_unconverged = allow_unconverged
+        if frame_sweeps is not None and frame_sweeps < 1:
+            raise InputError(f"frame_sweeps={frame_sweeps!r} must be >= 1 (or None: solve every frame to tol)")
+        self.frame_sweeps = frame_sweeps
+        self.cache_solutions = cache_solutions
+        self._partial = False
         self._status = status
         self._keys: dict[str, str] = {}
         self._geo: dict[str, Any] = {}
@@ -132,11 +146,32 @@ class Renderer:
         self._fem_system: LinearSystem | None = None
         self._load: NDArray | None = None
         self._flux_q: NDArray | None = None
+        self._editor: GpuMaterialEditor | None = None
+        self._history = MaterialHistory()
+        self._edit_version = 0
+        self._surface: tuple[Any, NDArray] | None = None
 
     @property
     def mesh(self) -> Any:
         """The render mesh (subdivided to the node spacing), after the first frame."""
         return self._geo["render_mesh"]
+
+    @property
+    def pass2_solver(self) -> Any:
+        """The pass-2 solver of the last frame (lattice: :class:`MultilevelDiffusion`; tetrahedra:
+        :class:`GlslSparseMultigrid`; None before a solve or when a cached answer served it)."""
+        return self._solver
+
+    @property
+    def converged(self) -> bool:
+        """Whether the last frame's pass 2 met ``tol`` (False while ``frame_sweeps`` frames
+        are still converging)."""
+        return not self._partial
+
+    @property
+    def frame_vertices(self) -> NDArray[np.float64]:
+        """The vertices the camera frames (the uncut mesh, mm), after the first frame."""
+        return self._geo["frame"]
 
     @property
     def polygrid(self) -> Any:
@@ -185,6 +220,8 @@ class Renderer:
         m, g = scene.mesh, scene.polygrid
         if m.source == "sphere":
             mesh = sphere_mesh(m.size_mm / 2.0)
+        elif m.source == "torus":
+            mesh = torus_mesh(0.35 * m.size_mm, 0.15 * m.size_mm)
         else:
             src = m.source if m.source in SAMPLE_MESHES else str(scene.resolve(m.source))
             mesh = load_mesh(src, size_mm=m.size_mm)
@@ -267,6 +304,13 @@ class Renderer:
         shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
         self._fem_system = None
+        self._drop_solver()
+        self._history = MaterialHistory()     # a new material starts a new edit history
+
+    def _drop_solver(self) -> None:
+        if self._editor is not None:
+            self._editor.release()
+            self._editor = None
         if self._solver is not None:
             self._solver.release()
             self._solver = None
@@ -305,8 +349,24 @@ class Renderer:
         if self._status is not None:
             self._status(line)
 
-    def _pass2(self, scene: Scene, warm: bool) -> None:
+    def _paint_sweeps(self, pg: Any) -> None:
+        """Pass 2 of a frame with a new edit while painting (``frame_sweeps``): the sweeps alone,
+        from the previous frame's solution, and no residual check (it needs the CPU system of the
+        new material); frames without a new edit check it again."""
+        t0 = time.perf_counter()
+        fine = self._solver.finest
+        fine.sweep(self.frame_sweeps)
+        phi = fine.fluence()
+        self._partial = True
+        self._finish_pass2(pg, phi, SolveReport(f"glsl-frame-coherent-{fine.precision} (painting: no residual check)",
+                                                nodes=int(pg.n_active), sweeps=int(self.frame_sweeps),
+                                                seconds=time.perf_counter() - t0, status="budget"), False)
+
+    def _pass2(self, scene: Scene, warm: bool, painting: bool = False) -> None:
         pg, opts, fem = self._geo["pg"], scene.options, self._geo["fem"]
+        if painting and not fem and self.frame_sweeps is not None and self._solver is not None:
+            self._paint_sweeps(pg)
+            return
         scheme = "multigrid-preconditioned CG (tetrahedra)" if fem else opts.scheme
         self._say(f"pass 2: {scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
         gl.make_current(self.ctx)
@@ -315,7 +375,8 @@ class Renderer:
                            pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q, self._load,
                            scene.material.eta, opts.scheme, opts.precision, opts.tol)
         warm_from_disk = opts.scheme != "adaptive" and (x0 is None or self._solver is None)   # (adaptive: below)
-        stored = cache.load("pass2", key, np.ndarray) if warm_from_disk or (fem and self._solver is None) else None
+        stored = (cache.load("pass2", key, np.ndarray) if self.cache_solutions
+                  and (warm_from_disk or (fem and self._solver is None)) else None)
         if fem and self._solver is None and (verified := self._cached_fem_solution(scene, stored)) is not None:
             phi, rep = verified    # the cached answer meets tol: no GPU hierarchy needed for this frame
             self._from_cache = True
@@ -332,18 +393,22 @@ class Renderer:
         if x0 is None and opts.scheme != "adaptive":   # adaptive needs its coarse-to-fine start
             x0 = stored
             self._from_cache = x0 is not None
-        budget = {"maxiter": FEM_MAXITER} if fem else {}
+        budget: dict[str, Any] = {"maxiter": FEM_MAXITER} if fem else {}
+        partial = not fem and self.frame_sweeps is not None and isinstance(x0, str)   # x0 = CURRENT
+        if partial:      # frame coherence: a few sweeps now, more next frame
+            budget = {"maxiter": self.frame_sweeps, "check_every": self.frame_sweeps}
         hint = ("the object may be optically too small or thin for its material (size_mm, sigma), or "
                 "[options].tol too tight")
         try:
             phi, rep = self._solver.solve(tol=opts.tol, x0=x0, **budget)
         except SolverError as exc:   # diverged: no image to keep, whatever allow_unconverged says
             raise SolverError(f"pass 2 did not converge: {exc}; {hint}") from exc
-        if rep.status not in ("converged", "stalled") and not self.allow_unconverged:
+        self._partial = partial and rep.status not in ("converged", "stalled")
+        if rep.status not in ("converged", "stalled") and not self.allow_unconverged and not self._partial:
             raise SolverError(f"pass 2 did not converge: residual {rep.residual:.3g} > tol {opts.tol:g} after "
                               f"{rep.sweeps} iterations ({rep.status}); {hint}; "
                               "--allow-unconverged writes the unconverged image")
-        if rep.status == "converged" and not self._from_cache:
+        if rep.status == "converged" and not self._from_cache and self.cache_solutions:
             cache.store("pass2", key, np.asarray(phi))
         self._finish_pass2(pg, phi, rep, fem)
 
@@ -502,7 +567,7 @@ class Renderer:
             kappa, mu = kappa[2:], mu[2:]
             return mu, np.maximum(1.0 / (3.0 * kappa) - mu, 0.0)
 
-        if scene.material.procedural or scene.material.volume:
+        if scene.material.procedural or scene.material.volume or scene.material.nodes:
             return material
         sa, ss = material(self._geo["vertices"][:1])
         return sa[0], ss[0]
@@ -546,7 +611,11 @@ class Renderer:
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
         light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
                          scene.options.source, mat_key if scene.options.source == "volume" else None)
-        solve_key = _key(mat_key, light_key, scene.options.tol)
+        solve_key = _key(mat_key, light_key, scene.options.tol, self._edit_version)
+        edited = self._keys.get("edits", 0) != self._edit_version and "solve" in self._keys
+        going_on = self._partial       # the last frame's pass 2 stopped at its sweep budget
+        if going_on:
+            self._keys.pop("solve", None)
 
         def stage(name: str, key_name: str, key: str, fn: Any, why_skip: str, timer: str | None) -> bool:
             if self._keys.get(key_name) == key:
@@ -571,13 +640,20 @@ class Renderer:
         new_mat = stage("material", "material", mat_key, lambda: self._material(scene), "material unchanged", None)
         new_light = stage("pass1", "light", light_key, lambda: self._pass1(scene),
                           "lights unchanged: incident light kept", "t1")
-        warm = not (new_geo or new_mat) and new_light
-        stage("pass2", "solve", solve_key, lambda: self._pass2(scene, warm),
+        warm = not (new_geo or new_mat) and (new_light or edited or going_on)
+        if new_geo or new_mat:
+            self._partial = False
+        self._keys["edits"] = self._edit_version
+        painting = warm and edited and not new_light
+        stage("pass2", "solve", solve_key, lambda: self._pass2(scene, warm, painting),
               "material and incident light unchanged: solution kept", "t2")
         if rep.ran("pass2") and self._from_cache:
             rep.passes[-1]["why"] += ": warm start from the cached solution of this system (residual checked)"
         elif rep.ran("pass2") and warm:
-            rep.passes[-1]["why"] = "light changed: warm start from the previous frame (frame coherence)"
+            what = "light changed" if new_light else "material edited" if edited else "converging"
+            rep.passes[-1]["why"] = f"{what}: warm start from the previous frame (frame coherence)"
+            if self._partial:
+                rep.passes[-1]["why"] += f"; {self.frame_sweeps} sweeps this frame, not yet at tol"
         t0 = time.perf_counter()
         img = self._pass3(scene)
         rep.seconds["t3"] = time.perf_counter() - t0
@@ -616,10 +692,103 @@ class Renderer:
                                                    for k, v in info.items()))
         return img, rep
 
+    # -- editing (Wang et al. 2008, section 5.4) --------------------------------------
+    def edit_view(self, scene: Scene) -> EditView:
+        """The scene camera as an edit plane (``[output]`` pixels), with the distance of the
+        visible surface per pixel (a depth render, kept while the camera and geometry stay)."""
+        if not self._geo:
+            raise RuntimeError("render a frame before editing")
+        eye, mvp = scene_camera(scene, self._geo["frame"])
+        size = (scene.output.width, scene.output.height)
+        key = _key(self._keys.get("geometry"), tuple(np.round(mvp.ravel(), 9)), size)
+        if self._surface is None or self._surface[0] != key:
+            with DepthRenderer(self.ctx, self._geo["mesh"]) as depth:
+                self._surface = (key, depth.camera_distance(mvp, eye, size))
+        return EditView(mvp, size, eye, surface=self._surface[1])
+
+    @property
+    def edit_counts(self) -> tuple[int, int]:
+        """(undo steps, redo steps) available."""
+        return self._history.counts
+
+    def edit(self, edit: Edit, view: EditView | None = None, history: bool = True) -> EditResult:
+        """Apply ``edit`` (seen in ``view``, e.g. :meth:`edit_view`) to the node material of
+        the last frame; the next :meth:`render` re-solves pass 2 from that frame's solution
+        (frame coherence). On a lattice polygrid in fp32/fp16 the edit is a GPU pass over the
+        solver's material textures (:class:`GpuMaterialEditor`); on tetrahedra (and with 8-bit
+        material) it is the numpy twin, and the P1 system is re-assembled next frame.
+        ``history=False`` joins the previous undo step (the dabs of one brush stroke)."""
+        if not self._mat:
+            raise RuntimeError("render a frame before editing")
+        t0 = time.perf_counter()
+        pg = self._geo["pg"]
+        before = (self._mat["kappa"], self._mat["mu"])
+        gpu = (not self._geo["fem"] and self._solver is not None
+               and self._solver.finest.material_bits == 32)
+        if gpu:
+            if self._editor is None:
+                self._editor = GpuMaterialEditor(self._solver.finest, pg.positions)
+            self._editor.apply(edit, view)
+            kappa, mu = self._editor.read()
+            self._solver.set_material(kappa, mu, finest_uploaded=True)
+            x, x0 = (kappa, before[0]) if edit.prop == "kappa" else (mu, before[1])
+            act = np.asarray(pg.active)
+            changed = np.any(x != x0, axis=-1) & act
+            floor = KAPPA_MIN if edit.prop == "kappa" else 0.0
+            result = EditResult(int(changed.sum()), int((np.any(x <= floor, axis=-1) & changed).sum()),
+                                int((np.any(3.0 * kappa * mu > 1.0 + 1e-6, axis=-1) & changed).sum()))
+        else:
+            active = None if self._geo["fem"] else np.asarray(pg.active).reshape(-1)
+            kappa, mu, result = apply_edit(edit, before[0], before[1], pg.positions, view, active)
+            self._set_edited_material(kappa, mu)
+        if history or self._history.counts[0] == 0:
+            self._history.push(*before)
+        self._mat = {**self._mat, "kappa": kappa, "mu": mu}
+        self._edit_version += 1
+        return replace(result, seconds=time.perf_counter() - t0)
+
+    def _set_edited_material(self, kappa: NDArray, mu: NDArray) -> None:
+        """Hand a CPU-side material to pass 2: the lattice solver's textures (every level), or
+        a re-assembly of the P1 system next frame."""
+        self._mat = {**self._mat, "kappa": kappa, "mu": mu}
+        if self._geo["fem"]:
+            self._fem_system = None
+            self._drop_solver()
+        elif self._solver is not None:
+            self._solver.set_material(kappa, mu)
+
+    def undo(self) -> bool:
+        """Return to the material before the last edit; False when there is none."""
+        return self._step(self._history.undo)
+
+    def redo(self) -> bool:
+        """Re-apply the last undone edit; False when there is none."""
+        return self._step(self._history.redo)
+
+    def _step(self, fn: Callable[[tuple[NDArray, NDArray]], tuple[NDArray, NDArray] | None]) -> bool:
+        if not self._mat:
+            return False
+        got = fn((self._mat["kappa"], self._mat["mu"]))
+        if got is None:
+            return False
+        self._set_edited_material(*got)
+        self._edit_version += 1
+        return True
+
+    def save_material(self, path: str | Any) -> Any:
+        """Write the current (edited) node material to ``path`` (``.npz``: ``kappa`` mm, ``mu``
+        mm^-1, ``positions_mm``, ``(N, 3)`` over the active nodes), the ``[material].nodes``
+        file a scene renders (``glsldiff render``) and ``glsldiff edit`` edits."""
+        if not self._mat:
+            raise RuntimeError("render a frame before saving its material")
+        pg = self._geo["pg"]
+        act = np.ones(len(pg.positions), bool) if self._geo["fem"] else np.asarray(pg.active).reshape(-1)
+        k, m = (self._mat[n].reshape(-1, 3)[act] for n in ("kappa", "mu"))
+        return write_npz(path, kappa=k, mu=m, positions_mm=np.asarray(pg.positions)[act],
+                         source=str(self._mat["info"].get("material")))
+
     def release(self) -> None:
-        if self._solver is not None:
-            self._solver.release()
-            self._solver = None
+        self._drop_solver()
 
     def __enter__(self) -> "Renderer":
         return self

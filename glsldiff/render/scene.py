@@ -9,7 +9,8 @@ silently ignored).
 .. code-block:: toml
 
     [mesh]
-    source = "bunny"          # a sample name (bunny, cow, bone, airplane), "sphere", or a mesh file
+    source = "bunny"          # a sample name (bunny, cow, bone, airplane), "sphere", "torus" (genus 1, tube
+                              # radius 0.15 size_mm, ring 0.35 size_mm, around z), or a mesh file
     size_mm = 100.0           # longest bounding-box extent after scaling
 
     [polygrid]
@@ -30,7 +31,10 @@ silently ignored).
     procedural = "veins"      # veins | layers | inclusions | sphere (base = preset, second = "vein")
     vein = "skin1"            # the second material of a procedural volume (default: darker base)
     seed = 0
-    volume = "block.npz"      # kappa, mu (nz, ny, nx, 3) and h_mm; mapped through a shell layer
+    volume = "block.npz"      # kappa, mu (nz, ny, nx, 3) and h_mm (or h, as glsldiff fit writes it); mapped
+                              # through a shell layer
+    nodes = "edited.npz"      # a per-node material saved by the editor (glsldiff view, Renderer.save_material):
+                              # kappa, mu, positions_mm (N, 3); each node takes the nearest saved node's
     core = "mean"             # inner core below the shell: a preset name or "mean"
     shell_mm = 4.0            # shell thickness (default: the block's depth)
     reflectance = 0.03        # optional diffuse surface albedo added in pass 3 (scalar or RGB), or
@@ -138,6 +142,8 @@ from glsldiff.physics.procedural import POINT_KINDS
 #: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem)
 #: on the pillowed polycube (fem) or on an fTetWild mesh of the surface (tetwild, grids.tetwild).
 DISCRETISATIONS = ("conservative", "paper", "fem", "tetwild")
+#: Mesh sources generated from ``size_mm`` (no file): a sphere of that diameter, a torus that wide.
+GENERATED_MESHES = ("sphere", "torus")
 #: The discretisations on tetrahedra (the P1 system, the volume source, the gradient flux).
 TETRAHEDRAL = ("fem", "tetwild")
 #: tetwild's default target edge length: the mesh's longest extent over this.
@@ -179,6 +185,12 @@ class PolygridSpec:
     edge_mm: float | None = None     # tetwild: target tetrahedron edge, mm (default size_mm / 40)
 
 
+#: The lattice polygrid of interactive editing (glsldiff view's bunny, glsldiff bench edit): many small
+#: cubes (n = 4, about 2000 of them, 2 levels; 125 k nodes on the bunny) put nodes into thin parts the
+#: default lattice (n = 8, 253 cubes) leaves empty, e.g. the bunny's far ear, at the same node count.
+EDIT_LATTICE = PolygridSpec(4, 2000, 2, "conservative")
+
+
 @dataclass(frozen=True)
 class MaterialSpec:
     preset: str | None = "marble"
@@ -189,6 +201,7 @@ class MaterialSpec:
     vein: str | None = None
     seed: int = 0
     volume: str | None = None
+    nodes: str | None = None
     core: str = "mean"
     shell_mm: float | None = None
     reflectance: tuple[float, float, float] | str | None = None   # diffuse surface albedo, or a map (EXR)
@@ -364,9 +377,11 @@ class _Table:
 
 
 def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
-    kinds = [k for k in ("sigma_a", "volume") if t.has(k)]
-    if t.has("procedural") and "volume" in kinds:
-        t.fail("procedural", "give either a procedural volume or a volume file, not both")
+    kinds = [k for k in ("sigma_a", "volume", "nodes") if t.has(k)]
+    if t.has("procedural") and kinds and kinds != ["sigma_a"]:
+        t.fail("procedural", f"give either a procedural volume or a {kinds[-1]} file, not both")
+    if len(set(kinds) - {"sigma_a"}) > 1:
+        t.fail("nodes", "give either a block volume or a node material file, not both")
     if t.has("sigma_a") != t.has("sigma_s_prime"):
         t.fail("sigma_a" if not t.has("sigma_a") else "sigma_s_prime", "sigma_a and sigma_s_prime go together")
     if t.has("preset") and t.has("sigma_a"):
@@ -384,6 +399,11 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
     volume = t.string("volume", None)
     if volume is not None:  # read now: a bad file fails before the polygrid is built
         block_volume(_resolve(scene_dir, volume), f"{t.src}: [material].volume: file")
+    nodes = t.string("nodes", None)
+    if nodes is not None:
+        if t.has("preset") or t.has("sigma_a"):
+            t.fail("nodes", "a node material file holds the whole material: leave out preset and sigma_a")
+        node_volume(_resolve(scene_dir, nodes), f"{t.src}: [material].nodes: file")
     reflectance: Any = None
     if isinstance(t.data.get("reflectance"), str):
         if volume is None:
@@ -397,7 +417,7 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
             t.fail("reflectance", f"a diffuse albedo must be in [0, 1], got {list(reflectance)}")
     return MaterialSpec(preset=name, sigma_a=sa, sigma_s_prime=ss, eta=t.number("eta", 1.3, 0.0, lo_open=True),
                         procedural=t.string("procedural", None, PROCEDURAL), vein=vein,
-                        seed=t.integer("seed", 0, 0), volume=volume, core=core,
+                        seed=t.integer("seed", 0, 0), volume=volume, nodes=nodes, core=core,
                         shell_mm=t.number("shell_mm", None, 0.0, lo_open=True), reflectance=reflectance)
 
 
@@ -542,13 +562,13 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
         raise InputError(f"{src}: [mesh]: missing; a scene needs [mesh] source = \"bunny\" or a mesh file path")
     m = _Table(src, "mesh", data["mesh"], _keys(MeshSpec))
     if not m.has("source"):
-        m.fail("source", "missing; give a sample name (bunny, cow, bone, airplane, sphere) or a mesh file path")
+        m.fail("source", "missing; give a sample name (bunny, cow, bone, airplane, sphere, torus) or a mesh file path")
     source = m.string("source", "bunny")
-    if source not in SAMPLE_MESHES and source != "sphere":
+    if source not in SAMPLE_MESHES and source not in GENERATED_MESHES:
         p = _resolve(base_dir, source)
         if not p.is_file():
             m.fail("source", f"mesh file {str(p)!r} does not exist (sample names: "
-                             f"{', '.join(SAMPLE_MESHES)}, sphere)")
+                             f"{', '.join((*SAMPLE_MESHES, *GENERATED_MESHES))})")
     mesh = MeshSpec(source, m.number("size_mm", 100.0, MIN_SIZE_MM, hi=MAX_SIZE_MM))
 
     g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
@@ -656,7 +676,11 @@ def vec(a: Any) -> NDArray[np.float64]:
 def block_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """kappa (mm), mu (mm^-1) as ``(nz, ny, nx, 3)`` and the voxel size h_mm of a block volume
     ``.npz`` (the ``[material].volume`` of a scene), checked."""
-    z = read_npz(path, what, ("kappa", "mu", "h_mm"))
+    z = read_npz(path, what, ("kappa", "mu"))
+    if "h_mm" not in z and "h" in z:        # glsldiff fit / synth write the voxel size as "h"
+        z["h_mm"] = z["h"]
+    if "h_mm" not in z:
+        raise InputError(f"{what} {str(path)!r} lacks h_mm, the voxel size in mm (has {', '.join(z)})")
     kappa, mu = np.asarray(z["kappa"], dtype=np.float64), np.asarray(z["mu"], dtype=np.float64)
     if kappa.ndim != 4 or kappa.shape[3] != 3 or mu.shape != kappa.shape or min(kappa.shape[:3]) < 1:
         raise InputError(f"{what} {str(path)!r}: kappa and mu must both have shape (nz, ny, nx, 3), got "
@@ -670,6 +694,21 @@ def block_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDAr
         raise InputError(f"{what} {str(path)!r}: kappa must be finite and > 0 (mm), mu finite and >= 0 "
                          "(mm^-1) everywhere")
     return kappa, mu, h
+
+
+def node_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """kappa (mm), mu (mm^-1) and positions (mm), ``(N, 3)`` each, of a per-node material
+    ``.npz`` (``[material].nodes``, written by :meth:`glsldiff.render.renderer.Renderer.save_material`), checked."""
+    z = read_npz(path, what, ("kappa", "mu", "positions_mm"))
+    kappa, mu, pos = (np.asarray(z[k], dtype=np.float64) for k in ("kappa", "mu", "positions_mm"))
+    if pos.ndim != 2 or pos.shape[1] != 3 or len(pos) < 1 or kappa.shape != pos.shape or mu.shape != pos.shape:
+        raise InputError(f"{what} {str(path)!r}: kappa, mu and positions_mm must all have shape (N, 3), got "
+                         f"{kappa.shape}, {mu.shape} and {pos.shape}")
+    if not (np.isfinite(kappa).all() and np.isfinite(mu).all() and np.isfinite(pos).all()
+            and (kappa > 0).all() and (mu >= 0).all()):
+        raise InputError(f"{what} {str(path)!r}: kappa must be finite and > 0 (mm), mu finite and >= 0 "
+                         "(mm^-1), positions finite")
+    return kappa, mu, pos
 
 
 def example_names() -> tuple[str, ...]:

@@ -309,6 +309,33 @@ class DepthRenderer:
         mid = 0.5 * (depth[..., 0].astype(np.float64) + depth[..., 1])
         return ShadowMap(views, size, mid, depth[..., 0])
 
+    def camera_distance(self, mvp: NDArray[np.float64], eye: NDArray[np.float64],
+                        size: tuple[int, int]) -> NDArray[np.float32]:
+        """``(H, W)`` Euclidean distance (mm) from ``eye`` to the nearest front-facing surface
+        in each pixel of a camera with world -> clip matrix ``mvp``, row 0 at the top; 1e30
+        where no surface is seen (the material editor's depth-below-surface reference)."""
+        W, H = (int(s) for s in size)
+        T = np.eye(4)
+        T[:3, 3] = self.centre                  # the vertex buffer is relative to the centre
+        gl.make_current(self.ctx)
+        tex, fbo = self._framebuffer((W, H))
+        scope = self.ctx.scope(fbo, enable_only=moderngl.BLEND)
+        try:
+            with gl.keep_framebuffer(self.ctx), scope:
+                fbo.use()
+                fbo.clear(_FAR, _FAR, 0.0, 0.0)
+                self.ctx.blend_equation = moderngl.MIN
+                self.ctx.viewport = (0, 0, W, H)
+                gl.set_uniforms(self.prog, {"u_mvp": np.asarray(mvp, dtype=np.float64) @ T,
+                                            "u_origin": tuple(float(x) for x in np.asarray(eye) - self.centre),
+                                            "u_axis": (0.0, 0.0, 1.0), "u_mode": 1})
+                self.vao.render(moderngl.TRIANGLES)
+                raw = tex.read(alignment=1)
+        finally:
+            self.ctx.blend_equation = moderngl.FUNC_ADD
+            scope.release()
+        return np.frombuffer(raw, dtype=np.float32).reshape(H, W, 2)[::-1, :, 0].copy()
+
     def shadow_map(self, light: Light, size: int, direction: NDArray[np.float64] | None = None
                    ) -> ShadowMap:
         """The shadow map of ``light`` (``direction``: an orthographic view towards it instead,

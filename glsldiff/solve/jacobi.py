@@ -232,12 +232,15 @@ class GlslDiffusion:
         self._textures["u_q"].write(np.ascontiguousarray(self.problem.grid.pack(self.problem.q)).tobytes(),
                                     alignment=1)
 
-    def set_material(self, kappa: ArrayLike, mu: ArrayLike) -> None:
+    def set_material(self, kappa: ArrayLike, mu: ArrayLike, upload: bool = True) -> None:
         """Replace kappa (mm) and mu (mm^-1) in place (same grid, source and options): an
-        edit or an optimiser step re-uses the textures, programs and vertex buffers."""
+        edit or an optimiser step re-uses the textures, programs and vertex buffers.
+        ``upload=False``: the textures already hold them (a GPU edit wrote them); only the
+        CPU side (residual checks) is updated."""
         gl.make_current(self.ctx)
         self.problem = replace(self.problem, kappa=kappa, mu=mu)
-        self._write_material()
+        if upload:
+            self._write_material()
         self.__dict__.pop("full_system", None)
         self._pinned = None
 

@@ -6,6 +6,7 @@ interface of :mod:`glsldiff.system.report`.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Sequence
 
 import moderngl
@@ -92,6 +93,14 @@ class MultilevelDiffusion:
     def set_q(self, q: ArrayLike) -> None:
         """New boundary source on every level (e.g. a moved light), material kept."""
         self.stack.set_q(q)
+
+    def set_material(self, kappa: ArrayLike, mu: ArrayLike, finest_uploaded: bool = False) -> None:
+        """New kappa (mm) and mu (mm^-1) on the finest level and, restricted as at set-up, on
+        the coarser ones. ``finest_uploaded``: the finest level's textures already hold them
+        (a GPU edit, :mod:`glsldiff.render.editing`)."""
+        problems, _ = self.schedule.levels(self.hierarchy, replace(self.problem, kappa=kappa, mu=mu))
+        for lev, p in zip(self.levels, problems):
+            lev.set_material(p.kappa, p.mu, upload=not (finest_uploaded and lev is self.finest))
 
     def texture_rows(self) -> list[dict[str, object]]:
         """Per level: texture blocks held / in the grid and texels per texture."""
