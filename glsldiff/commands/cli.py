@@ -26,8 +26,10 @@ from glsldiff.bench.meshes import MESHES as BENCH_MESHES, mesh_bench
 from glsldiff.bench.sphere import sphere_study
 from glsldiff.bench.tet import tet_study
 from glsldiff.bench.cut import update_seconds
+from glsldiff.bench.edit import edit_study, save_edit_study
 from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
                                           DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study)
+from glsldiff.commands.edit import add_parser as add_edit_parser, add_view_parser
 from glsldiff.commands.inverse import add_parsers
 from glsldiff.core import io
 from glsldiff.core.io import check_output_folder, created_folders_removed_on_failure
@@ -197,6 +199,20 @@ def cmd_tet(args: argparse.Namespace) -> int:
             print("\n".join(rep.lines()))
         exr, png, exposure = save(img, render_out, scene, rep)
         print(f"wrote {exr} (the default scene's light and veined marble on this mesh) and {png}")
+    return 0
+
+
+def cmd_bench_edit(args: argparse.Namespace) -> int:
+    out = check_output_folder(args.out)
+    summary, frames = edit_study(args.models, dabs=args.dabs, frame_sweeps=args.frame_sweeps, size=args.size,
+                                 status=_status)
+    print_table(f"editing: {args.dabs}-dab stroke, {args.frame_sweeps} sweeps per frame, {args.size}^2 pixels "
+                f"({gl.describe(gl.get_context())})", summary)
+    print("fps editing: 1 / (edit + frame) per dab; to 0.5 %: seconds from the last dab's edit to the first frame "
+          "within 0.5 % (rel. L2) of the converged image; cold solve: the same solver from zero (no frame "
+          "coherence); paper: Wang et al. 2008 Table III on a GeForce 8800 GTX (its bunny has 8x our nodes).")
+    paths = save_edit_study(summary, frames, out)
+    print("wrote " + ", ".join(str(p) for p in paths))
     return 0
 
 
@@ -381,6 +397,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_gl(p)
     p.set_defaults(func=cmd_polygrid)
 
+    b = bsub.add_parser("edit", help="interactive editing (section 5.4): frame rate while painting, time from an "
+                                     "edit to a converged (0.5 %%) image, cold re-solve as the peer; Table III beside")
+    b.add_argument("--models", nargs="+", default=["hole", "bunny", "bunny-n8", "bunny-tetrahedral"],
+                   choices=("hole", "bunny", "bunny-n8", "bunny-tetrahedral"))
+    b.add_argument("--dabs", type=A.integer(1, 1000), default=8, help="brush dabs in the stroke (one frame each)")
+    b.add_argument("--frame-sweeps", type=A.integer(1, 100000), default=10, help="pass-2 sweeps per frame")
+    b.add_argument("--size", type=A.integer(16, 8192), default=512, help="image width = height, pixels")
+    b.add_argument("--out", default="bench-out")
+    _add_gl(b)
+    b.set_defaults(func=cmd_bench_edit)
+
     b = bsub.add_parser("sphere", help="polygrid sphere vs the closed form, grid refinement")
     b.add_argument("--n", type=A.integer(2, 64), nargs="+", default=[4, 6, 8, 12], help="nodes per cube edge")
     b.add_argument("--radius", type=A.positive, default=10.0, help="sphere radius, mm")
@@ -437,6 +464,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=cmd_bench_convergence)
 
     add_parsers(sub, bsub)
+    add_edit_parser(sub)
+    add_view_parser(sub)
 
     p = sub.add_parser("info", help="report the available GL backends and renderers")
     p.set_defaults(func=cmd_info)
