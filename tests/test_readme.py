@@ -16,7 +16,8 @@ def test_readme_has_examples():
 
 
 @pytest.mark.parametrize("index", range(len(BLOCKS)))
-def test_readme_example_runs(ctx, index, capsys):
+def test_readme_example_runs(ctx, index, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)          # files an example writes (edited.npz) land here
     namespace: dict = {"__name__": f"readme_example_{index}"}
     exec(compile(BLOCKS[index], f"README.md python block {index + 1}", "exec"), namespace)
     out = capsys.readouterr().out
