@@ -27,6 +27,7 @@ from glsldiff.bench.sphere import sphere_study
 from glsldiff.bench.tet import tet_study
 from glsldiff.bench.cut import update_seconds
 from glsldiff.bench.edit import edit_study, save_edit_study
+from glsldiff.bench.throughput import sweep_throughput
 from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
                                           DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study)
 from glsldiff.commands.edit import add_parser as add_edit_parser, add_view_parser
@@ -143,11 +144,22 @@ def cmd_validate(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    rows = forward_bench.forward(sizes=args.sizes, out=check_output_folder(args.out), max_direct_nodes=args.max_direct_nodes,
-                         seconds=args.seconds, precisions=args.precision, schemes=args.schemes,
-                         levels=args.levels, tol=args.tol)
-    print_table("glsldiff bench forward", rows)
-    print(f"wrote forward.csv, forward_curves.csv and forward.png to {args.out}/")
+    out = check_output_folder(args.out)
+    if not args.sizes and not args.throughput:
+        raise InputError("give grid --sizes, --throughput, or both")
+    if args.sizes:
+        rows = forward_bench.forward(sizes=args.sizes, out=out, max_direct_nodes=args.max_direct_nodes,
+                                     seconds=args.seconds, precisions=args.precision, schemes=args.schemes,
+                                     levels=args.levels, tol=args.tol)
+        print_table("glsldiff bench forward", rows)
+        print(f"wrote forward.csv, forward_curves.csv and forward.png to {args.out}/")
+    if args.throughput:
+        rows = sweep_throughput()
+        print_table(f"sweep throughput, fp32, conservative stencil ({gl.describe(gl.get_context())})", rows)
+        print("packing primitives: the paper's quads/lines/points with per-primitive offsets (2 passes); texels: "
+              "per-texel offset textures, one quad per sweep. Cost per node vs regular: the polygrid's time per "
+              "node update over the regular grid's, same packing.")
+        print(f"wrote {io.write_csv(out / 'throughput.csv', rows)}")
     return 0
 
 
@@ -319,8 +331,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="benchmarks")
     bsub = p.add_subparsers(dest="bench", required=True)
     b = bsub.add_parser("forward", help="GLSL Jacobi vs numpy Jacobi vs scipy direct / pyamg, 1e4..1e6 nodes")
-    b.add_argument("--sizes", nargs="+", default=["32x32x10", "80x80x16", "200x200x25"],
-                   help="grids as NXxNYxNZ")
+    b.add_argument("--sizes", nargs="*", default=["32x32x10", "80x80x16", "200x200x25"],
+                   help="grids as NXxNYxNZ (none: skip the slabs, e.g. with --throughput)")
+    b.add_argument("--throughput", action="store_true",
+                   help="also: sweep throughput of the bunny polygrids against a regular grid of the same node "
+                        "count, with both packings (primitives, texels), to throughput.csv")
     b.add_argument("--seconds", type=A.positive, default=20.0, help="time budget per iterative run")
     b.add_argument("--max-direct-nodes", type=A.integer(0), default=200_000,
                    help="largest grid for the scipy direct (SuperLU) solve; above it the "

@@ -11,7 +11,10 @@ weights and the row scale at interior nodes, the partner distance d at boundary 
 
 A sweep draws the interior pass and then the boundary pass of ``shaders/stencil.frag``, each
 as the quads, lines and points of :func:`glsldiff.solve.stencil.pass_primitives`, whose vertex
-attributes hold the texel offsets to the nodes a row reads; :meth:`GlslDiffusion.residual`
+attributes hold the texel offsets to the nodes a row reads (packing ``"primitives"``, the
+paper's); or, packing ``"texels"``, one quad whose texels read their row kind and offsets from
+two integer textures (:func:`glsldiff.solve.stencil.offset_textures`), bit-identical results,
+the default on polygrids (:func:`default_packing`); :meth:`GlslDiffusion.residual`
 draws the same primitives with the residual variant of the shader (multigrid). The rows are
 those of ``shaders/diffusion.glsl``, the CPU oracle's (:mod:`glsldiff.oracle.assembly`).
 
@@ -22,6 +25,7 @@ frozen by fp16/fp32 rounding reports its true residual and is labelled "stalled"
 """
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import replace
 from functools import cached_property
@@ -38,7 +42,8 @@ from glsldiff.oracle.assembly import LinearSystem, assemble, assemble_rhs
 from glsldiff.oracle.solvers import Callback, relax
 from glsldiff.packing import primitive_vertices
 from glsldiff.solve import quantize
-from glsldiff.solve.stencil import PASSES, pass_primitives, uniform_weights, weight_textures
+from glsldiff.solve.stencil import (PACKINGS, PASSES, offset_textures, pass_primitives, uniform_weights,
+                                    weight_textures)
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
@@ -48,6 +53,25 @@ Start = ArrayLike | str | None  # x0 of a GLSL solve: a fluence node array, CURR
 _MODES = {"triangles": moderngl.TRIANGLES, "lines": moderngl.LINES, "points": moderngl.POINTS}
 _FORMAT = ("2f", "2i", "2i", "2i", "2i", "2i", "2i")
 _ATTRS = ("in_pos", "in_off0", "in_off1", "in_off2", "in_off3", "in_off4", "in_off5")
+
+
+#: Primitives per updated node above which the "texels" packing is the default: measured with
+#: ``glsldiff bench forward --throughput`` (llvmpipe, 2 cores), one quad reading per-texel
+#: offsets costs ~7 ms per 125 k-node sweep whatever the layout, the paper's primitives 3.2 ms on
+#: a regular grid (0.002 per node), 9.3 ms at 8^3 per cube (0.11) and 25 ms at 4^3 (0.49).
+TEXELS_ABOVE = 0.01
+
+
+def default_packing(draws_per_node: float) -> str:
+    """The sweeps' packing when none is given: ``$GLSLDIFF_PACKING``, else ``"texels"`` when the
+    paper's primitives would draw more than :data:`TEXELS_ABOVE` primitives per node (polygrids),
+    ``"primitives"`` otherwise (regular grids: a few quads per slice). Not measured on a discrete GPU."""
+    name = os.environ.get("GLSLDIFF_PACKING", "").strip().lower()
+    if not name:
+        return "texels" if draws_per_node > TEXELS_ABOVE else "primitives"
+    if name not in PACKINGS:
+        raise InputError(f"GLSLDIFF_PACKING={name!r}; choose one of {PACKINGS}")
+    return name
 
 
 def buffer_precision(precision: str) -> str:
@@ -74,6 +98,8 @@ class GlslDiffusion:
         ``"fp32"`` (fp32 buffers and material), ``"fp16"`` (fp16 ping-pong buffers) or
         ``"paper"`` (the paper's rendering precision: fp16 buffers and 8-bit kappa/mu,
         :mod:`glsldiff.solve.quantize`).
+    packing
+        ``"primitives"`` or ``"texels"`` (module docstring); default :func:`default_packing`.
     update
         ``(N,)`` flat node mask of the nodes the sweeps update (default all; the adaptive
         schedule fixes the others). The residual checks are then those of the system with the
@@ -90,11 +116,14 @@ class GlslDiffusion:
 
     def __init__(self, problem: DiffusionProblem, ctx: moderngl.Context | None = None,
                  precision: str = "fp32", *, update: NDArray[np.bool_] | None = None,
-                 state: gl.PingPong | None = None, damping: float = 1.0, interior_rhs: bool = False) -> None:
+                 state: gl.PingPong | None = None, damping: float = 1.0, interior_rhs: bool = False,
+                 packing: str | None = None) -> None:
         self.buffers = buffer_precision(precision)
+        g = problem.grid
+        if packing is not None and packing not in PACKINGS:
+            raise InputError(f"packing={packing!r}; choose one of {PACKINGS}")
         if not 0.0 < damping <= 1.0:
             raise InputError(f"damping={damping!r} must be in (0, 1] (1 = plain Jacobi)")
-        g = problem.grid
         if update is not None:
             update = np.asarray(update, dtype=bool)
             if update.shape != (g.size,):
@@ -129,9 +158,19 @@ class GlslDiffusion:
             self.state = state if state is not None else self._gpu.add(
                 gl.PingPong.create(self.ctx, self.size, self.buffers))
             self.primitives = pass_primitives(g, update)
-            self._vbos = {name: [(self._gpu.add(self.ctx.buffer(np.ascontiguousarray(v).tobytes())), _MODES[mode])
-                                 for mode, v in primitive_vertices(prims).items() if len(v)]
-                          for name, prims in self.primitives.items()}
+            draws = sum(sum(p.kinds.values()) for p in self.primitives.values())
+            self.packing = packing or default_packing(draws / max(1, sum(p.texels for p in self.primitives.values())))
+            if self.packing == "texels":
+                for name, arr in zip(("u_offa", "u_offb"), offset_textures(g, update)):
+                    tex = self.ctx.texture(self.size, 4, np.ascontiguousarray(arr).tobytes(), dtype="u4", alignment=1)
+                    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+                    self._textures[name] = self._gpu.add(tex)
+                quad = np.array([[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]], "f4") * np.array(self.size, "f4")
+                self._vbos = {"texels": [(self._gpu.add(self.ctx.buffer(quad.tobytes())), moderngl.TRIANGLES)]}
+            else:
+                self._vbos = {name: [(self._gpu.add(self.ctx.buffer(np.ascontiguousarray(v).tobytes())),
+                                      _MODES[mode]) for mode, v in primitive_vertices(prims).items() if len(v)]
+                              for name, prims in self.primitives.items()}
             self._sweep_draws = self._pass_draws(residual=False)
         except Exception:
             self._gpu.release()
@@ -169,9 +208,10 @@ class GlslDiffusion:
         return list({id(vao.program): vao.program for vao, _ in draws}.values())
 
     def _program(self, row: str, residual: bool) -> moderngl.Program:
-        prog = self._gpu.add(gl.program(self.ctx, "stencil.vert", "stencil.frag",
+        texels = row == "texels"
+        prog = self._gpu.add(gl.program(self.ctx, "quad.vert" if texels else "stencil.vert", "stencil.frag",
                                         {**self.defines, "ROW_BOUNDARY": int(row == "boundary"),
-                                         "RESIDUAL": int(residual)}))
+                                         "RESIDUAL": int(residual), "TEXEL_OFFSETS": int(texels)}))
         units = {name: unit for unit, name in enumerate(self._textures, start=1)}
         gl.set_uniforms(prog, {"u_size": tuple(float(s) for s in self.size), "u_C": float(self.problem.C),
                                "u_omega": self.damping, "u_state": 0, **units, **self.stencil_uniforms,
@@ -181,6 +221,10 @@ class GlslDiffusion:
     def _pass_draws(self, residual: bool) -> list[tuple[moderngl.VertexArray, int]]:
         """Vertex arrays of the interior and boundary passes (sweep or residual variant), over
         the primitive buffers built once."""
+        if self.packing == "texels":   # one quad: every texel reads its row kind and offsets
+            prog = self._program("texels", residual)
+            return [(self._gpu.add(self.ctx.vertex_array(prog, [(vbo, "2f", "in_pos")])), mode)
+                    for vbo, mode in self._vbos["texels"]]
         out = []
         for name in PASSES:
             prog = self._program(name, residual)

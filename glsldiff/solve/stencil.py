@@ -7,7 +7,9 @@ and ``mosaic`` (:class:`~glsldiff.packing.Mosaic`); from those alone come
 
 * the rasterisation primitives of the interior pass and of the boundary pass
   (:func:`pass_primitives`: quads, lines and points carrying the texel offsets to the nodes a
-  row reads; a regular grid's interior is one quad per z-slice, its side faces lines);
+  row reads; a regular grid's interior is one quad per z-slice, its side faces lines), or the
+  same offsets per texel for the ``"texels"`` packing (:func:`offset_textures`: one quad per
+  sweep reads them from two integer textures);
 * the weight textures T_w1 / T_w2 (:func:`weight_textures`: scaled Laplacian weights and the
   row scale, mm^2, at interior nodes; the partner distance d, mm, at boundary nodes), or the
   two uniforms that replace them on a regular grid (:func:`uniform_weights`);
@@ -46,6 +48,45 @@ def pass_primitives(grid: PackedGrid, update: NDArray[np.bool_] | None = None) -
     off_i = mosaic.texel(g.neighbours[si]) - ti[:, None, :]
     off_b = (mosaic.texel(g.link[sb]) - tb)[:, None, :]
     return {"interior": decompose(ti, off_i), "boundary": decompose(tb, off_b)}
+
+
+#: How the sweeps reach each texel's neighbour offsets: ``"primitives"`` (the paper's quads,
+#: lines and points with the offsets as vertex attributes) or ``"texels"`` (per-texel offset
+#: textures, one quad per sweep).
+PACKINGS = ("primitives", "texels")
+_BIAS = 32768
+
+
+def _pack_offsets(off: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``(..., 2)`` texel offsets -> one int each, ``(dx + 32768) << 16 | (dy + 32768)``."""
+    if off.size and np.abs(off).max() >= _BIAS:
+        raise ValueError("texel offsets beyond +-32767 do not fit the texels packing")
+    return ((off[..., 0] + _BIAS) << 16) | (off[..., 1] + _BIAS)
+
+
+def offset_textures(grid: PackedGrid, update: NDArray[np.bool_] | None = None
+                    ) -> tuple[NDArray[np.uint32], NDArray[np.uint32]]:
+    """T_offA = (off0, off1, off2, kind), T_offB = (off3, off4, off5, 0) as ``(h, w, 4)`` uint32
+    textures of the ``"texels"`` packing: per texel the packed offsets to the nodes its row reads
+    (interior: the six neighbours; boundary: the partner, off0) and its kind (0: not updated,
+    1: interior, 2: boundary), over the nodes where ``update`` is true. The same offsets as
+    :func:`pass_primitives`."""
+    g, mosaic = grid.graph, grid.mosaic
+    w, h = mosaic.texture_size
+    a = np.zeros((h, w, 4), np.int64)
+    b = np.zeros((h, w, 4), np.int64)
+    si = slice(None) if update is None else update[g.interior]
+    sb = slice(None) if update is None else update[g.boundary]
+    ti = mosaic.texel(g.interior[si])
+    tb = mosaic.texel(g.boundary[sb])
+    off_i = _pack_offsets(mosaic.texel(g.neighbours[si]) - ti[:, None, :])
+    off_b = _pack_offsets(mosaic.texel(g.link[sb]) - tb)
+    a[ti[:, 1], ti[:, 0], :3] = off_i[:, :3]
+    a[ti[:, 1], ti[:, 0], 3] = 1
+    b[ti[:, 1], ti[:, 0], :3] = off_i[:, 3:]
+    a[tb[:, 1], tb[:, 0], 0] = off_b
+    a[tb[:, 1], tb[:, 0], 3] = 2
+    return a.astype(np.uint32), b.astype(np.uint32)
 
 
 def weight_textures(grid: PackedGrid) -> tuple[NDArray[np.float32], NDArray[np.float32]]:

@@ -1,0 +1,72 @@
+"""Sweep throughput of the GLSL Jacobi solver: node updates per second of a polygrid against a
+regular grid with the same node count in the same run, for each packing of the sweeps
+(:data:`glsldiff.solve.stencil.PACKINGS`: the paper's quads/lines/points with per-primitive
+offsets, or per-texel offset textures drawn as one quad). Part of ``glsldiff bench forward
+--throughput``.
+
+Each grid solves a homogeneous marble problem lit on its boundary; after a few warm-up sweeps
+(shader compilation), ``sweeps`` sweeps are timed with the GPU finished (``ctx.finish``), no
+read-back inside the clock.
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import numpy as np
+
+from glsldiff import gl
+from glsldiff.grids.cache import cached_polygrid
+from glsldiff.grids.regular import RegularGrid
+from glsldiff.mesh import load_mesh
+from glsldiff.physics.material import preset
+from glsldiff.solve.jacobi import GlslDiffusion
+from glsldiff.solve.stencil import PACKINGS
+from glsldiff.system.problem import DiffusionProblem
+
+#: (mesh, n per cube edge, target cube count) of the polygrids measured: the default lattice
+#: (253 cubes x 8^3) and the viewer's editing lattice (about 2000 cubes x 4^3), both ~125 k nodes.
+POLYGRIDS = (("bunny", 8, 253), ("bunny", 4, 2000))
+
+
+def _problem(grid: Any) -> DiffusionProblem:
+    kappa, mu = preset("marble").coefficients()
+    shape = tuple(grid.shape) + (3,)
+    if isinstance(grid, RegularGrid):
+        n = grid.shape
+        q: Any = {"z-": np.ones((n[1] - 2, n[2] - 2, 3))}
+    else:
+        q = np.ones((len(grid.graph.boundary), 3))
+    return DiffusionProblem(grid, np.broadcast_to(kappa, shape), np.broadcast_to(mu, shape), q,
+                            stencil="conservative")
+
+
+def _rate(problem: DiffusionProblem, packing: str, sweeps: int, ctx: Any) -> dict[str, Any]:
+    with GlslDiffusion(problem, ctx, packing=packing) as lv:
+        lv.sweep(5)                                   # compile, first-use costs
+        t0 = lv.sweep_seconds
+        lv.sweep(sweeps)
+        dt = lv.sweep_seconds - t0
+        prims = sum(sum(k.values()) for k in lv.primitive_counts().values())
+        return {"nodes updated": lv.updated_nodes, "draws per sweep": prims if packing == "primitives" else 1,
+                "ms per sweep": 1e3 * dt / sweeps, "M updates/s": lv.updated_nodes * sweeps / dt / 1e6}
+
+
+def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, sweeps: int = 200,
+                     packings: Sequence[str] = PACKINGS) -> list[dict[str, Any]]:
+    """One row per grid and packing: node updates per second and the polygrid's cost per node
+    relative to the regular grid of the same node count with the same packing."""
+    ctx = gl.get_context()
+    rows: list[dict[str, Any]] = []
+    for mesh_name, n, cubes in polygrids:
+        pg, _ = cached_polygrid(load_mesh(mesh_name, size_mm=100.0), n=n, n_cubes=cubes)
+        side = int(round(pg.n_active ** (1.0 / 3.0)))
+        reg = RegularGrid(side, side, side, h=1.0)
+        for packing in packings:
+            r_reg = _rate(_problem(reg), packing, sweeps, ctx)
+            r_pg = _rate(_problem(pg), packing, sweeps, ctx)
+            label = f"{mesh_name} polygrid {pg.shape[0]} cubes x {n}^3"
+            rows.append({"grid": f"regular {side}^3 (same node count)", "packing": packing, **r_reg,
+                         "cost per node vs regular": 1.0})
+            rows.append({"grid": label, "packing": packing, **r_pg,
+                         "cost per node vs regular": r_reg["M updates/s"] / r_pg["M updates/s"]})
+    return rows
