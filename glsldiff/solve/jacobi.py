@@ -55,17 +55,20 @@ _FORMAT = ("2f", "2i", "2i", "2i", "2i", "2i", "2i")
 _ATTRS = ("in_pos", "in_off0", "in_off1", "in_off2", "in_off3", "in_off4", "in_off5")
 
 
-#: Primitives per updated node above which the "texels" packing is the default: measured with
-#: ``glsldiff bench forward --throughput`` (llvmpipe, 2 cores), one quad reading per-texel
-#: offsets costs ~7 ms per 125 k-node sweep whatever the layout, the paper's primitives 3.2 ms on
-#: a regular grid (0.002 per node), 9.3 ms at 8^3 per cube (0.11) and 25 ms at 4^3 (0.49).
-TEXELS_ABOVE = 0.01
+#: Primitives per updated node above which the "texels" packing is the default. From
+#: ``glsldiff bench forward --throughput`` (llvmpipe, 2 cores): a primitives sweep costs about
+#: 2.8e-8 s per node + 4e-7 s per primitive (regular 50^3: 242 primitives, 3.3 ms; bunny 8^3 per
+#: cube: 14 k, 9-12 ms; 4^3: 62 k, 25-31 ms), a texels sweep about 6e-8 s per node whatever the
+#: layout: they break even near 0.07 primitives per node (the 12^3 torus, 0.041, is faster
+#: with primitives: 2.65 vs 3.3 ms).
+TEXELS_ABOVE = 0.07
 
 
 def default_packing(draws_per_node: float) -> str:
     """The sweeps' packing when none is given: ``$GLSLDIFF_PACKING``, else ``"texels"`` when the
-    paper's primitives would draw more than :data:`TEXELS_ABOVE` primitives per node (polygrids),
-    ``"primitives"`` otherwise (regular grids: a few quads per slice). Not measured on a discrete GPU."""
+    paper's primitives would draw more than :data:`TEXELS_ABOVE` primitives per node (polygrids of
+    small cubes), ``"primitives"`` otherwise (regular grids, polygrids of large cubes). Not
+    measured on a discrete GPU."""
     name = os.environ.get("GLSLDIFF_PACKING", "").strip().lower()
     if not name:
         return "texels" if draws_per_node > TEXELS_ABOVE else "primitives"
