@@ -147,6 +147,7 @@ class Renderer:
         self._load: NDArray | None = None
         self._flux_q: NDArray | None = None
         self._editor: GpuMaterialEditor | None = None
+        self._fem_reuse: tuple[list, NDArray] | None = None   # (prolongations, phi) kept across a tetrahedral edit
         self._history = MaterialHistory()
         self._edit_version = 0
         self._surface: tuple[Any, NDArray] | None = None
@@ -304,6 +305,7 @@ class Renderer:
         shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
         self._fem_system = None
+        self._fem_reuse = None
         self._drop_solver()
         self._history = MaterialHistory()     # a new material starts a new edit history
 
@@ -385,11 +387,14 @@ class Renderer:
         if self._solver is None:
             self._solver = self._fem_solver(scene) if fem else self._lattice_solver(scene)
             x0 = None
+            if fem and self._fem_reuse is not None:   # an edit: start from the last frame's answer
+                x0 = self._fem_reuse[1]
         elif fem:    # the assembled system takes the frame's source, the GPU solver its b
             self._solver.set_b(self._fem_linear_system(scene).b.reshape(3, -1).T)
         else:
             self._solver.set_q(self._q)
         self._from_cache = False
+        self._fem_reuse = None
         if x0 is None and opts.scheme != "adaptive":   # adaptive needs its coarse-to-fine start
             x0 = stored
             self._from_cache = x0 is not None
@@ -468,7 +473,9 @@ class Renderer:
             raise InputError(f"{scene.source}: [options].precision = {scene.options.precision!r}: the fem "
                              "discretisation solves in fp32 only; use precision = \"fp32\"")
         system = self._fem_linear_system(scene)
-        return GlslSparseMultigrid([system.block(c)[0] for c in range(3)], system.b.reshape(3, -1).T, ctx=self.ctx)
+        reuse = self._fem_reuse[0] if self._fem_reuse is not None else None   # an edit keeps the aggregates
+        return GlslSparseMultigrid([system.block(c)[0] for c in range(3)], system.b.reshape(3, -1).T, ctx=self.ctx,
+                                   prolongations=reuse)
 
     def _fem_linear_system(self, scene: Scene) -> LinearSystem:
         """The P1 system of the current material, assembled once per material (a cached answer's
@@ -716,7 +723,8 @@ class Renderer:
         the last frame; the next :meth:`render` re-solves pass 2 from that frame's solution
         (frame coherence). On a lattice polygrid in fp32/fp16 the edit is a GPU pass over the
         solver's material textures (:class:`GpuMaterialEditor`); on tetrahedra (and with 8-bit
-        material) it is the numpy twin, and the P1 system is re-assembled next frame.
+        material) it is the numpy twin, and the P1 system is re-assembled next frame (its
+        multigrid keeps the old prolongations and starts from the last frame's solution).
         ``history=False`` joins the previous undo step (the dabs of one brush stroke)."""
         if not self._mat:
             raise RuntimeError("render a frame before editing")
@@ -752,6 +760,12 @@ class Renderer:
         a re-assembly of the P1 system next frame."""
         self._mat = {**self._mat, "kappa": kappa, "mu": mu}
         if self._geo["fem"]:
+            # the P1 matrix changes: re-assembled next frame, with the old solver's prolongations
+            # (pyamg's aggregation depends on the pattern, not on a local material change) and
+            # the last frame's solution as the start
+            if self._solver is not None and getattr(self, "_phi_active", None) is not None:
+                Ps = [lv.P for lv in self._solver.levels if lv.P is not None]
+                self._fem_reuse = (Ps, self._phi_active)
             self._fem_system = None
             self._drop_solver()
         elif self._solver is not None:
