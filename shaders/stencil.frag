@@ -15,7 +15,9 @@
 // one quad over the level, every texel reads its row kind and offsets from T_offA / T_offB
 // (each uint packs (dx + 32768) << 16 | (dy + 32768); T_offA.w = kind: 0 not updated, 1
 // interior, 2 boundary) and runs the same row code; two fetches more per interior texel,
-// one quad instead of thousands of primitives.
+// one quad instead of thousands of primitives. A sweep copies the texels it does not update
+// (the schedules keep both ping-pong buffers equal there, so this is what the primitives'
+// untouched texels hold too); the residual variant leaves them untouched.
 #ifndef TEXEL_OFFSETS
 #define TEXEL_OFFSETS 0
 #endif
@@ -76,7 +78,14 @@ ivec2 unpack_offset(uint v) { return ivec2(int(v >> 16u), int(v & 0xFFFFu)) - 32
 void main() {
     ivec2 p = ivec2(gl_FragCoord.xy);
     uvec4 a = texelFetch(u_offa, p, 0);
-    if (a.w == 0u) discard;                // not updated by this level's sweeps
+#if RESIDUAL
+    if (a.w == 0u) discard;                // the residual leaves other texels untouched
+#else
+    if (a.w == 0u) {                       // not updated: keeps its value, which the schedules hold in
+        f_color = vec4(fetch(u_state, p), 0.0);  // both buffers (on llvmpipe a discard made the sweep 2x slower)
+        return;
+    }
+#endif
     if (a.w == 2u) {
         f_color = boundary_value(p, p + unpack_offset(a.x));
         return;

@@ -56,12 +56,12 @@ _ATTRS = ("in_pos", "in_off0", "in_off1", "in_off2", "in_off3", "in_off4", "in_o
 
 
 #: Primitives per updated node above which the "texels" packing is the default. From
-#: ``glsldiff bench forward --throughput`` (llvmpipe, 2 cores): a primitives sweep costs about
-#: 2.8e-8 s per node + 4e-7 s per primitive (regular 50^3: 242 primitives, 3.3 ms; bunny 8^3 per
-#: cube: 14 k, 9-12 ms; 4^3: 62 k, 25-31 ms), a texels sweep about 6e-8 s per node whatever the
-#: layout: they break even near 0.07 primitives per node (the 12^3 torus, 0.041, is faster
-#: with primitives: 2.65 vs 3.3 ms).
-TEXELS_ABOVE = 0.07
+#: ``glsldiff bench forward --throughput`` (llvmpipe, 2 cores, best of 3): a primitives sweep costs
+#: about 2.7e-8 s per node + 4.5e-7 s per primitive (regular 50^3: 242 primitives, 3.3-3.4 ms;
+#: bunny 8^3 per cube: 14 k, 11.5 ms; 4^3: 62 k, 30 ms), a texels sweep 3.1-3.4e-8 s per node
+#: whatever the layout (3.7-3.9 ms on the regular grid, 4.4-4.5 ms on both bunnies, 1.86 ms on
+#: the 54 k-node torus); they break even near 0.01 primitives per node.
+TEXELS_ABOVE = 0.01
 
 
 def default_packing(draws_per_node: float) -> str:
