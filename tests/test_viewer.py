@@ -39,7 +39,7 @@ def pump():
         v.step()
 
 def shot():
-    return v.read_screen()
+    return v.shown                            # the window's pixels, read back before the flip
 
 pump()
 v.show_overlay = False

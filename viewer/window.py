@@ -36,6 +36,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff import gl
 from glsldiff.core import io
 from glsldiff.core.errors import BackendError, GlsldiffError, InputError
 from glsldiff.render.output import auto_exposure
@@ -95,7 +96,6 @@ class Viewer:
         self.log = log or (lambda line: None)
         self.window, self.ctx = open_window(width, height, f"glsldiff: {self.presets[0][0]}")
         import moderngl
-        from glsldiff import gl
         self._gpu = gl.Resources()
         self.prog = self._gpu.add(gl.program(self.ctx, "quad.vert", "copy.frag"))
         self._quad_size: tuple[int, int] | None = None
@@ -111,6 +111,7 @@ class Viewer:
         self.last_report: Any = None
         self._stroke_started = False
         self._image8: NDArray[np.uint8] | None = None
+        self.shown: NDArray[np.uint8] | None = None   # the last frame as the window shows it
         self._connect()
         self.select(0)
 
@@ -185,7 +186,6 @@ class Viewer:
 
     def _show(self, image8: NDArray[np.uint8]) -> None:
         """Draw an ``(h, w, 3)`` 8-bit image (row 0 = top) over the window and flip."""
-        from glsldiff import gl
         gl.make_current(self.ctx)
         self.window.switch_to()
         h, w = image8.shape[:2]
@@ -198,8 +198,7 @@ class Viewer:
             if self._vao is not None:
                 self._vao.release()
                 self._vbo.release()
-            quad = np.array([[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]], dtype="f4") * np.array([w, h], "f4")
-            self._vbo = self.ctx.buffer(quad.tobytes())
+            self._vbo = self.ctx.buffer(gl.quad_vertices((w, h)).tobytes())
             self._vao = self.ctx.vertex_array(self.prog, [(self._vbo, "2f", "in_pos")])
             self._quad_size = (w, h)
         self.ctx.screen.use()
@@ -209,12 +208,13 @@ class Viewer:
         self.prog["u_src"].value = 0
         self.prog["u_size"].value = (float(w), float(h))
         self._vao.render()
-        self._screen = self.read_screen()
+        self.shown = self.read_screen()   # before the flip: the back buffer is undefined after it
         self._clear_gl_errors()
         self.window.flip()
 
     def read_screen(self) -> NDArray[np.uint8]:
-        """``(h, w, 3)`` of what is in the window's back buffer now (row 0 = top)."""
+        """``(h, w, 3)`` of what is in the window's back buffer now (row 0 = top); what the window
+        shows is :attr:`shown`, read this way just before each flip."""
         w, h = self.window.get_framebuffer_size()
         raw = self.ctx.screen.read(viewport=(0, 0, w, h), components=3, alignment=1)
         return np.frombuffer(raw, np.uint8).reshape(h, w, 3)[::-1].copy()
@@ -224,7 +224,7 @@ class Viewer:
         if path is None:
             k = len(list(self.shots.glob("glsldiff-view-*.png")))
             path = self.shots / f"glsldiff-view-{k:03d}.png"
-        out = io.write_png(path, self._screen)
+        out = io.write_png(path, self.shown)
         self.message = f"screenshot {out}"
         self.log(self.message)
         return out
@@ -264,7 +264,6 @@ class Viewer:
             return
         self._released = True
         self.closed = True
-        from glsldiff import gl
         gl.make_current(self.ctx)
         self.renderer.release()
         for obj in (self._vao, getattr(self, "_vbo", None), self._tex):

@@ -28,6 +28,7 @@ from glsldiff.core.plotting import pyplot, save_figure
 from glsldiff.physics.editing import NO_SURFACE, Brush, Edit
 from glsldiff.render.renderer import Renderer
 from glsldiff.render.scene import EDIT_LATTICE, MeshSpec, PolygridSpec, Scene, default_scene
+from glsldiff.system.problem import relative_l2
 
 #: Wang et al. 2008, Table III (GeForce 8800 GTX): polygrid, fps and fps with frame coherence.
 TABLE_III = {"bunny": ("253 x 16^3", 25.9, 34.7), "bunny-n8": ("253 x 16^3", 25.9, 34.7),
@@ -53,8 +54,7 @@ def model_scenes(size: int = 512) -> dict[str, Scene]:
 
 def rel_l2(img: NDArray, ref: NDArray) -> float:
     """Relative L2 difference over the pixels the reference lights."""
-    on = ref.sum(axis=-1) > 0
-    return float(np.linalg.norm(img[on] - ref[on]) / max(np.linalg.norm(ref[on]), 1e-300))
+    return relative_l2(img, ref, ref.sum(axis=-1) > 0)
 
 
 def _stroke(view: Any, dabs: int, radius: float) -> list[tuple[float, float]]:

@@ -18,7 +18,7 @@ import numpy as np
 from glsldiff import gl
 from glsldiff.grids.cache import cached_polygrid
 from glsldiff.grids.regular import RegularGrid
-from glsldiff.mesh import load_mesh, torus_mesh
+from glsldiff.mesh import GENERATED_MESHES, generated_mesh, load_mesh
 from glsldiff.physics.material import preset
 from glsldiff.solve.jacobi import GlslDiffusion
 from glsldiff.solve.stencil import PACKINGS, pass_primitives
@@ -63,7 +63,8 @@ def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, swee
     ctx = gl.get_context()
     rows: list[dict[str, Any]] = []
     for mesh_name, n, cubes in polygrids:
-        mesh = torus_mesh(35.0, 15.0) if mesh_name == "torus" else load_mesh(mesh_name, size_mm=100.0)
+        mesh = (generated_mesh(mesh_name, 100.0) if mesh_name in GENERATED_MESHES
+                else load_mesh(mesh_name, size_mm=100.0))
         pg, _ = cached_polygrid(mesh, n=n, n_cubes=cubes)
         side = int(round(pg.n_active ** (1.0 / 3.0)))
         reg = RegularGrid(side, side, side, h=1.0)

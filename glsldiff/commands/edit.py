@@ -19,7 +19,7 @@ from glsldiff.core import arguments as A
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import check_output, read_mask, read_npz, write_npz
 from glsldiff.physics.editing import PROPERTIES, Brush, Edit, apply_edit, block_positions, block_view
-from glsldiff.render.scene import block_volume, node_volume
+from glsldiff.render.scene import block_arrays, node_arrays
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -80,16 +80,15 @@ def cmd_edit(args: argparse.Namespace) -> int:
     arrays = read_npz(src, what, ("kappa", "mu"))
     name, prop, value = _op(args)
     if "positions_mm" in arrays:
-        kappa, mu, pos = node_volume(src, what)
+        kappa, mu, pos = node_arrays(arrays, src, what)
         if args.mask or args.depth or args.brush:
             raise InputError(f"{src}: a node material has no face to place --mask, --depth or --brush on; restrict "
                              "edits in the viewer (glsldiff view), or edit a block volume here")
         view, shape = None, (len(pos),)
     else:
-        kappa, mu, h = block_volume(src, what)
+        kappa, mu, h = block_arrays(arrays, src, what)
         shape = kappa.shape[:3]
-        pos, view = block_positions(shape, h), block_view(shape, h)
-        arrays["h_mm"] = np.asarray(h)
+        pos, view = block_positions(shape, h), block_view(shape, h)   # (block_arrays added h_mm to a fit's h)
     brush = None
     if args.brush is not None:
         x, y, r = args.brush

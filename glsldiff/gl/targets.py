@@ -28,6 +28,12 @@ def keep_framebuffer(ctx: moderngl.Context) -> Iterator[None]:
         bound.use()
 
 
+def quad_vertices(size: tuple[int, int]) -> NDArray[np.float32]:
+    """Two triangles covering ``size = (w, h)`` texels, in texel-space corners (``quad.vert``)."""
+    unit = np.array([[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]], dtype="f4")
+    return unit * np.array(size, dtype="f4")
+
+
 class Resources:
     """GL objects owned by one module, released together in reverse order of creation."""
 

@@ -26,7 +26,7 @@ from glsldiff.mesh.inside import axis_hits, contains, contains_grid
 from glsldiff.mesh.load import (COMPONENT_MODES, MAX_HOLE_EDGES, SAMPLE_MESHES, load_mesh,
                                 mesh_from_arrays, sample_mesh_path)
 from glsldiff.mesh.ops import subdivide, surface_samples
-from glsldiff.mesh.primitives import box_mesh, sphere_mesh, torus_mesh
+from glsldiff.mesh.primitives import GENERATED_MESHES, box_mesh, generated_mesh, sphere_mesh, torus_mesh
 from glsldiff.mesh.types import Mesh, vertex_areas
 
 __all__ = [
@@ -40,6 +40,8 @@ __all__ = [
     "sphere_mesh",
     "box_mesh",
     "torus_mesh",
+    "generated_mesh",
+    "GENERATED_MESHES",
     "contains",
     "contains_grid",
     "axis_hits",

@@ -36,6 +36,20 @@ def box_mesh(extents_mm: ArrayLike, origin: ArrayLike = (0.0, 0.0, 0.0)) -> Mesh
     return mesh_from_arrays(b.vertices + ext / 2 + vector3(origin, "box origin (mm)"), b.faces, name="box")
 
 
+#: Closed meshes made from one size (no file): a sphere of that diameter, a torus that wide
+#: (ring radius 0.35 size, tube 0.15 size, around z). Scenes and benchmarks name them.
+GENERATED_MESHES = ("sphere", "torus")
+
+
+def generated_mesh(name: str, size_mm: float) -> Mesh:
+    """The mesh :data:`GENERATED_MESHES` names, ``size_mm`` mm across."""
+    if name == "sphere":
+        return sphere_mesh(size_mm / 2.0)
+    if name == "torus":
+        return torus_mesh(0.35 * size_mm, 0.15 * size_mm)
+    raise InputError(f"no generated mesh {name!r}; choose one of {GENERATED_MESHES}")
+
+
 def torus_mesh(R: float, r: float, major_sections: int = 48, minor_sections: int = 24,
                center: ArrayLike = (0.0, 0.0, 0.0)) -> Mesh:
     """Torus (genus 1) around the z axis: ring radius ``R`` mm, tube radius ``r`` mm."""

@@ -23,8 +23,6 @@ from glsldiff import gl
 from glsldiff.core.errors import InputError
 from glsldiff.physics.editing import KAPPA_MIN, NO_SURFACE, OPS, PROPERTIES, Edit, EditView
 
-_QUAD = np.array([[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]], dtype="f4")
-
 
 class GpuMaterialEditor:
     """Edits the material textures of ``level`` (a :class:`glsldiff.solve.jacobi.GlslDiffusion`
@@ -61,7 +59,7 @@ class GpuMaterialEditor:
             self.fbo_to = [self._gpu.add(self.ctx.framebuffer(color_attachments=[level.textures[f"u_{name}"]]))
                            for name in PROPERTIES]
             self.prog = self._gpu.add(gl.program(self.ctx, "quad.vert", "edit.frag"))
-            vbo = self._gpu.add(self.ctx.buffer((_QUAD * np.array(self.size, dtype="f4")).tobytes()))
+            vbo = self._gpu.add(self.ctx.buffer(gl.quad_vertices(self.size).tobytes()))
             self.vao = self._gpu.add(self.ctx.vertex_array(self.prog, [(vbo, "2f", "in_pos")]))
             self.blank = self._gpu.add(gl.float_texture(self.ctx, (1, 1), np.zeros((1, 1, 4)), components=4))
             gl.set_uniforms(self.prog, {"u_size": tuple(float(s) for s in self.size), "u_kappa": 0, "u_mu": 1,

@@ -63,7 +63,7 @@ from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
 from glsldiff.grids.tetwild import cached_tetrahedralize
-from glsldiff.mesh import SAMPLE_MESHES, Mesh, load_mesh, sphere_mesh, subdivide, torus_mesh
+from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, subdivide
 from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, apply_edit
 from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import coefficients, optical_properties, regime
@@ -219,10 +219,8 @@ class Renderer:
     # -- stages --------------------------------------------------------------------
     def _setup(self, scene: Scene) -> None:
         m, g = scene.mesh, scene.polygrid
-        if m.source == "sphere":
-            mesh = sphere_mesh(m.size_mm / 2.0)
-        elif m.source == "torus":
-            mesh = torus_mesh(0.35 * m.size_mm, 0.15 * m.size_mm)
+        if m.source in GENERATED_MESHES:
+            mesh = generated_mesh(m.source, m.size_mm)
         else:
             src = m.source if m.source in SAMPLE_MESHES else str(scene.resolve(m.source))
             mesh = load_mesh(src, size_mm=m.size_mm)
@@ -739,6 +737,7 @@ class Renderer:
             self._editor.apply(edit, view)
             kappa, mu = self._editor.read()
             self._solver.set_material(kappa, mu, finest_uploaded=True)
+            self._mat = {**self._mat, "kappa": kappa, "mu": mu}
             x, x0 = (kappa, before[0]) if edit.prop == "kappa" else (mu, before[1])
             act = np.asarray(pg.active)
             changed = np.any(x != x0, axis=-1) & act
@@ -751,7 +750,6 @@ class Renderer:
             self._set_edited_material(kappa, mu)
         if history or self._history.counts[0] == 0:
             self._history.push(*before)
-        self._mat = {**self._mat, "kappa": kappa, "mu": mu}
         self._edit_version += 1
         return replace(result, seconds=time.perf_counter() - t0)
 

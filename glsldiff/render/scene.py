@@ -130,7 +130,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_image, read_npz
 from glsldiff.grids.fem_grid import FEM_BYTES_PER_NODE, FEM_MAX_NODES
 from glsldiff.grids.polygrid import node_budget_problem
-from glsldiff.mesh import SAMPLE_MESHES
+from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.physics.exitance import EXITANT
 from glsldiff.physics.collision import SOURCES
@@ -142,8 +142,6 @@ from glsldiff.physics.procedural import POINT_KINDS
 #: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem)
 #: on the pillowed polycube (fem) or on an fTetWild mesh of the surface (tetwild, grids.tetwild).
 DISCRETISATIONS = ("conservative", "paper", "fem", "tetwild")
-#: Mesh sources generated from ``size_mm`` (no file): a sphere of that diameter, a torus that wide.
-GENERATED_MESHES = ("sphere", "torus")
 #: The discretisations on tetrahedra (the P1 system, the volume source, the gradient flux).
 TETRAHEDRAL = ("fem", "tetwild")
 #: tetwild's default target edge length: the mesh's longest extent over this.
@@ -673,10 +671,26 @@ def vec(a: Any) -> NDArray[np.float64]:
     return np.asarray(a, dtype=np.float64)
 
 
+def _check_coefficients(kappa: NDArray, mu: NDArray, path: str | Path, what: str, also: str = "",
+                        rest_ok: bool = True) -> None:
+    """InputError unless kappa is finite and > 0, mu finite and >= 0 (and ``rest_ok``, the file's
+    other arrays checked by the caller, named in ``also``)."""
+    if not (rest_ok and np.isfinite(kappa).all() and np.isfinite(mu).all()
+            and (kappa > 0).all() and (mu >= 0).all()):
+        raise InputError(f"{what} {str(path)!r}: kappa must be finite and > 0 (mm), mu finite and >= 0 "
+                         f"(mm^-1){also}")
+
+
 def block_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
     """kappa (mm), mu (mm^-1) as ``(nz, ny, nx, 3)`` and the voxel size h_mm of a block volume
     ``.npz`` (the ``[material].volume`` of a scene), checked."""
-    z = read_npz(path, what, ("kappa", "mu"))
+    return block_arrays(read_npz(path, what, ("kappa", "mu")), path, what)
+
+
+def block_arrays(z: dict[str, NDArray], path: str | Path, what: str
+                 ) -> tuple[NDArray[np.float64], NDArray[np.float64], float]:
+    """:func:`block_volume` of the arrays ``z`` already read from ``path`` (adds ``h_mm`` to ``z``
+    when only the fit's ``h`` is there)."""
     if "h_mm" not in z and "h" in z:        # glsldiff fit / synth write the voxel size as "h"
         z["h_mm"] = z["h"]
     if "h_mm" not in z:
@@ -690,24 +704,24 @@ def block_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDAr
     h = float(z["h_mm"].reshape(()))
     if not (np.isfinite(h) and h > 0):
         raise InputError(f"{what} {str(path)!r}: h_mm must be a positive voxel size in mm, got {h}")
-    if not (np.isfinite(kappa).all() and np.isfinite(mu).all() and (kappa > 0).all() and (mu >= 0).all()):
-        raise InputError(f"{what} {str(path)!r}: kappa must be finite and > 0 (mm), mu finite and >= 0 "
-                         "(mm^-1) everywhere")
+    _check_coefficients(kappa, mu, path, what, " everywhere")
     return kappa, mu, h
 
 
 def node_volume(path: str | Path, what: str) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
     """kappa (mm), mu (mm^-1) and positions (mm), ``(N, 3)`` each, of a per-node material
     ``.npz`` (``[material].nodes``, written by :meth:`glsldiff.render.renderer.Renderer.save_material`), checked."""
-    z = read_npz(path, what, ("kappa", "mu", "positions_mm"))
+    return node_arrays(read_npz(path, what, ("kappa", "mu", "positions_mm")), path, what)
+
+
+def node_arrays(z: dict[str, NDArray], path: str | Path, what: str
+                ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """:func:`node_volume` of the arrays ``z`` already read from ``path``."""
     kappa, mu, pos = (np.asarray(z[k], dtype=np.float64) for k in ("kappa", "mu", "positions_mm"))
     if pos.ndim != 2 or pos.shape[1] != 3 or len(pos) < 1 or kappa.shape != pos.shape or mu.shape != pos.shape:
         raise InputError(f"{what} {str(path)!r}: kappa, mu and positions_mm must all have shape (N, 3), got "
                          f"{kappa.shape}, {mu.shape} and {pos.shape}")
-    if not (np.isfinite(kappa).all() and np.isfinite(mu).all() and np.isfinite(pos).all()
-            and (kappa > 0).all() and (mu >= 0).all()):
-        raise InputError(f"{what} {str(path)!r}: kappa must be finite and > 0 (mm), mu finite and >= 0 "
-                         "(mm^-1), positions finite")
+    _check_coefficients(kappa, mu, path, what, ", positions finite", rest_ok=bool(np.isfinite(pos).all()))
     return kappa, mu, pos
 
 

@@ -168,8 +168,8 @@ class GlslDiffusion:
                     tex = self.ctx.texture(self.size, 4, np.ascontiguousarray(arr).tobytes(), dtype="u4", alignment=1)
                     tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
                     self._textures[name] = self._gpu.add(tex)
-                quad = np.array([[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]], "f4") * np.array(self.size, "f4")
-                self._vbos = {"texels": [(self._gpu.add(self.ctx.buffer(quad.tobytes())), moderngl.TRIANGLES)]}
+                quad = self._gpu.add(self.ctx.buffer(gl.quad_vertices(self.size).tobytes()))
+                self._vbos = {"texels": [(quad, moderngl.TRIANGLES)]}
             else:
                 self._vbos = {name: [(self._gpu.add(self.ctx.buffer(np.ascontiguousarray(v).tobytes())),
                                       _MODES[mode]) for mode, v in primitive_vertices(prims).items() if len(v)]

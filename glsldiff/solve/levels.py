@@ -32,7 +32,6 @@ from glsldiff.solve.jacobi import GlslDiffusion, buffer_precision
 from glsldiff.solve.stencil import transfer_slots
 from glsldiff.system.problem import DiffusionProblem
 
-_QUAD = np.array([[0, 0], [1, 0], [1, 1], [0, 0], [1, 1], [0, 1]], dtype="f4")
 
 
 class LevelStack:
@@ -92,7 +91,7 @@ class LevelStack:
 
     # ---- GPU set-up ----------------------------------------------------------------------
     def _quad(self, prog: moderngl.Program, size: tuple[int, int]) -> moderngl.VertexArray:
-        vbo = self._gpu.add(self.ctx.buffer((_QUAD * np.array(size, dtype="f4")).tobytes()))
+        vbo = self._gpu.add(self.ctx.buffer(gl.quad_vertices(size).tobytes()))
         return self._gpu.add(self.ctx.vertex_array(prog, [(vbo, "2f", "in_pos")]))
 
     def _gather(self, matrix: object, target: GlslDiffusion, source: GlslDiffusion, defines: dict[str, int]

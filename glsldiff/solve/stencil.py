@@ -40,14 +40,20 @@ class PackedGrid(Protocol):
 def pass_primitives(grid: PackedGrid, update: NDArray[np.bool_] | None = None) -> dict[str, Primitives]:
     """Quad/line/point decomposition of the interior pass and of the boundary pass, over the
     nodes where ``update`` (``(N,)`` flat node mask; default all) is true."""
+    ti, off_i, tb, off_b = _pass_offsets(grid, update)
+    return {"interior": decompose(ti, off_i), "boundary": decompose(tb, off_b[:, None, :])}
+
+
+def _pass_offsets(grid: PackedGrid, update: NDArray[np.bool_] | None
+                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Texels of the updated interior rows, their ``(m, 6, 2)`` offsets to the six neighbours,
+    texels of the updated boundary rows and their ``(m, 2)`` offsets to the partner."""
     g, mosaic = grid.graph, grid.mosaic
     si = slice(None) if update is None else update[g.interior]
     sb = slice(None) if update is None else update[g.boundary]
     ti = mosaic.texel(g.interior[si])
     tb = mosaic.texel(g.boundary[sb])
-    off_i = mosaic.texel(g.neighbours[si]) - ti[:, None, :]
-    off_b = (mosaic.texel(g.link[sb]) - tb)[:, None, :]
-    return {"interior": decompose(ti, off_i), "boundary": decompose(tb, off_b)}
+    return ti, mosaic.texel(g.neighbours[si]) - ti[:, None, :], tb, mosaic.texel(g.link[sb]) - tb
 
 
 #: How the sweeps reach each texel's neighbour offsets: ``"primitives"`` (the paper's quads,
@@ -71,16 +77,11 @@ def offset_textures(grid: PackedGrid, update: NDArray[np.bool_] | None = None
     (interior: the six neighbours; boundary: the partner, off0) and its kind (0: not updated,
     1: interior, 2: boundary), over the nodes where ``update`` is true. The same offsets as
     :func:`pass_primitives`."""
-    g, mosaic = grid.graph, grid.mosaic
-    w, h = mosaic.texture_size
+    w, h = grid.mosaic.texture_size
     a = np.zeros((h, w, 4), np.int64)
     b = np.zeros((h, w, 4), np.int64)
-    si = slice(None) if update is None else update[g.interior]
-    sb = slice(None) if update is None else update[g.boundary]
-    ti = mosaic.texel(g.interior[si])
-    tb = mosaic.texel(g.boundary[sb])
-    off_i = _pack_offsets(mosaic.texel(g.neighbours[si]) - ti[:, None, :])
-    off_b = _pack_offsets(mosaic.texel(g.link[sb]) - tb)
+    ti, off_i, tb, off_b = _pass_offsets(grid, update)
+    off_i, off_b = _pack_offsets(off_i), _pack_offsets(off_b)
     a[ti[:, 1], ti[:, 0], :3] = off_i[:, :3]
     a[ti[:, 1], ti[:, 0], 3] = 1
     b[ti[:, 1], ti[:, 0], :3] = off_i[:, 3:]
