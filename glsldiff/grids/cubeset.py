@@ -69,6 +69,35 @@ def block_codes(occ: NDArray[np.bool_]) -> NDArray[np.int64]:
     return code
 
 
+_S6 = ndimage.generate_binary_structure(3, 1)
+_FACES = _S6.copy()
+_FACES[1, 1, 1] = False
+_N18 = ndimage.generate_binary_structure(3, 2)
+_N18[1, 1, 1] = False
+
+
+def addable(occ: NDArray[np.bool_], cell: ArrayLike) -> bool:
+    """Whether filling the empty ``cell`` of ``occ`` (at least one cell from the border) keeps
+    the cube set's topology and a two-manifold surface: the cell is simple (Bertrand's
+    topological numbers: one 6-component of cubes in its 18-neighbourhood touching its faces,
+    one 26-component of empty cells in its 26-neighbourhood) and the eight 2x2x2 blocks
+    around it stay :data:`MANIFOLD`."""
+    x, y, z = (int(v) for v in cell)
+    nb = occ[x - 1:x + 2, y - 1:y + 2, z - 1:z + 2].copy()
+    if nb.shape != (3, 3, 3) or nb[1, 1, 1]:
+        return False
+    full = nb & _N18
+    labels, _ = ndimage.label(full, _S6)
+    if len(np.unique(labels[_FACES & full])) != 1:
+        return False
+    empty = ~nb
+    empty[1, 1, 1] = False
+    if ndimage.label(empty, np.ones((3, 3, 3), dtype=bool))[1] != 1:
+        return False
+    nb[1, 1, 1] = True
+    return bool(MANIFOLD[block_codes(nb)].all())
+
+
 # ---------------------------------------------------------------------------------------
 # Topology
 # ---------------------------------------------------------------------------------------

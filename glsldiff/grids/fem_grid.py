@@ -19,6 +19,12 @@ Mapping (:func:`map_pillow`):
    polycube reaches only partly (ear tips, legs). Measured at n = 2: bunny (1600 cubes)
    largest vertex-to-node distance 2.9 h -> 1.8 h (99th percentile 1.75 h -> 0.82 h); cow
    (12,000 cubes) 2.6 h -> 1.6 h.
+   **Tips**: a centroid never reaches an extreme point, so mesh vertices still more than
+   :data:`TIP_REACH` h from every node (ends of horns, tails, ear tips) each get the nearest
+   free node moved onto them, which then stays like a corner node (:func:`_snap_tips`).
+   Parts thinner than a cube get cubes first (:mod:`glsldiff.grids.polycube`, step 5).
+   At the default 15,000 cubes the cow went 3.91 h -> 1.39 h (167 cubes grown, 36 tip
+   nodes), the bunny 1.35 h -> 1.20 h.
 2. **Lattice nodes**: the harmonic map with the surface nodes fixed: graph Laplacian of the
    lattice links plus the links from each outer lattice node to its surface copy, weighted 2
    (springs of half the length: the outer layer settles about half a spacing under the
@@ -35,8 +41,17 @@ Mapping (:func:`map_pillow`):
    each, measured while pyamg's unseeded set-up still made builds differ; pinned since, see
    :mod:`glsldiff.core.rng`), 3 free rounds ->
    8 tangent rounds: bunny 5, 5 -> 0, 1; bone 3, 5 -> 0, 0; cow 10, 12 -> 6, 8 (16 rounds:
-   8); torus 0. Every one of the cow's 8 has two or three crease nodes, which do not slide
-   (letting them slide and re-projecting them onto their creases: 9).
+   8); torus 0. Every one of the cow's 8 had two or three crease nodes, which do not slide.
+   So, where tetrahedra stay inverted or flat (below :data:`DEGENERATE` of their target:
+   three crease nodes on one crease line make a flat surface triangle), the crease and
+   corner nodes within one ring of them are released to slide too, and the rounds run again
+   (up to :data:`RELEASE_ATTEMPTS` times); the cow (with its thin parts grown): 0 inverted,
+   40 nodes released. L-BFGS-B's stopping test is absolute for objectives below 1, so the
+   shortfalls are measured in units of the median target (in mm^3 the optimiser stopped at
+   once on small cells).
+4. **Fallback**: if the grid of a polycube grown into thin parts keeps inverted tetrahedra,
+   the ungrown polycube is mapped too and the grid with fewer is kept (the bunny: 18 cubes
+   grown at an ear tip gave 6 inverted, the ungrown polycube none; twice the mapping time).
 
 :class:`MappingQuality` reports inverted and the worst tetrahedra and the surface nodes'
 spacing.
@@ -87,6 +102,9 @@ class MappingQuality:
     coverage_max: float = float("nan")      # largest mesh-vertex-to-nearest-surface-node distance / h
     coverage_p99: float = float("nan")      # its 99th percentile
     corner_nodes: int = 0                   # surface nodes kept on a mesh corner
+    released: int = 0                       # crease / corner nodes let slide to untangle
+    tip_nodes: int = 0                      # surface nodes moved onto mesh tips
+    thin_cubes: int = 0                     # polycube cubes grown into thin parts
     seconds: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, object]:
@@ -226,22 +244,34 @@ def _det_gradients(X: NDArray[np.float64], tets: NDArray[np.int64]) -> tuple[NDA
 
 #: Rounds of the untangling step in which the surface nodes slide (module docstring, step 3).
 UNTANGLE_ROUNDS = 8
+#: Times the crease and corner nodes at tetrahedra still flat or inverted are let slide.
+RELEASE_ATTEMPTS = 2
+#: A tetrahedron below this fraction of its untangling target counts as flat (the untangling
+#: also lifts it).
+DEGENERATE = 0.01
+
+
+def _untangle_targets(reference_det: NDArray[np.float64], fraction: float) -> NDArray[np.float64]:
+    """``6 V`` each tetrahedron should reach: ``fraction`` of its reference value (a quarter of
+    the median where the reference is flatter, as at polycube saddle vertices)."""
+    return fraction * np.maximum(reference_det, np.median(np.abs(reference_det)) * 0.25)
 
 
 def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[np.bool_],
              reference_det: NDArray[np.float64], fraction: float = 0.1, rings: int = 2,
-             iterations: int = 300, tangent: NDArray[np.float64] | None = None) -> int:
+             iterations: int = 300, tangent: NDArray[np.float64] | None = None, floor: float = 0.0) -> int:
     """Move ``movable`` nodes near inverted tetrahedra (in place) until every tetrahedron's
     ``6 V`` reaches ``fraction`` of its reference value where possible: L-BFGS on
     ``sum_t max(0, target_t - 6 V_t)^2`` (Knupp's untangling objective, squared), over the
     movable nodes within ``rings`` tetrahedron rings of an inverted one. ``tangent`` ``(n, 3)``
     (unit normals, zero rows for free nodes) keeps those nodes in their tangent planes: a
     penalty on the normal component of their move (surface nodes sliding on the mesh). Returns
-    how many tetrahedra were inverted before."""
-    bad = signed_volumes(X, tets) <= 0
+    how many tetrahedra were inverted before (``floor`` > 0: also those below ``floor`` of
+    their target, which are then untangled too)."""
+    target = _untangle_targets(reference_det, fraction)
+    bad = 6.0 * signed_volumes(X, tets) <= floor * target
     if not bad.any():
         return 0
-    target = fraction * np.maximum(reference_det, np.median(np.abs(reference_det)) * 0.25)
     near = np.zeros(len(X), dtype=bool)
     near[tets[bad].ravel()] = True
     for _ in range(rings):
@@ -256,12 +286,15 @@ def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[n
     # the penalty's scale: a normal move of a tenth of an edge costs as much as a tetrahedron
     # missing its whole target volume
     edge = float(np.median(np.abs(reference_det)) ** (1.0 / 3.0))
-    w = 100.0 * float(np.median(tgt)) ** 2 / max(edge, 1e-300) ** 2
+    scale = max(float(np.median(tgt)), 1e-300)   # shortfalls in units of a typical target: L-BFGS-B's
+    tgt = tgt / scale                            # stopping test is absolute below f = 1
+    w = 100.0 / max(edge, 1e-300) ** 2
 
     def objective(x: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
         Y = X.copy()
         Y[free] = x.reshape(-1, 3)
         d, G = _det_gradients(Y, T)
+        d, G = d / scale, G / scale
         r = np.maximum(tgt - d, 0.0)
         grad = np.zeros_like(Y)
         np.add.at(grad, T.ravel(), (-2.0 * r[:, None, None] * G).reshape(-1, 3))
@@ -308,6 +341,42 @@ def _spread(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], smoot
     return xs
 
 
+#: Mesh vertices farther than this many spacings h from every surface node after the
+#: coverage rounds get the nearest free node (:func:`_snap_tips`).
+TIP_REACH = 1.25
+TIP_PASSES = 5
+
+
+def _snap_tips(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], h: float
+               ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Tips (ends of horns, tails, ears: mesh vertices the Lloyd rounds leave more than
+    :data:`TIP_REACH` h from every surface node, since a centroid never reaches an extreme
+    point): farthest first, the nearest surface node that is not ``fixed`` and not yet moved
+    (a crease node too), within 3 h, moves onto the vertex and stays there as a corner node
+    does. Returns the
+    positions and the moved nodes."""
+    xs = xs.copy()
+    moved = np.zeros(len(xs), dtype=bool)
+    V = np.asarray(mesh.vertices, dtype=np.float64)
+    for _ in range(TIP_PASSES):   # a move can uncover a vertex the moved node covered: passes
+        gap, _ = cKDTree(xs).query(V)
+        before = int(moved.sum())
+        for v in np.argsort(-gap):
+            if gap[v] <= TIP_REACH * h:
+                break
+            d = np.linalg.norm(xs - V[v], axis=1)
+            if d.min() <= TIP_REACH * h:   # an earlier move covers it
+                continue
+            d[fixed | moved] = np.inf
+            k = int(np.argmin(d))
+            if d[k] <= 3.0 * h:
+                xs[k] = V[v]
+                moved[k] = True
+        if moved.sum() == before:
+            break
+    return xs, moved
+
+
 def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_step: float = 0.5,
                copy_weight: float = 2.0, untangle_fraction: float = 0.1, crease_deg: float = 45.0,
                cover_rounds: int = 10) -> tuple[NDArray[np.float64], NDArray[np.float64], MappingQuality]:
@@ -332,6 +401,10 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
         moved[on_corner] = xs[on_corner]
         xs, nrm = _project(mesh, moved, features, on_crease)
     xs = _spread(mesh, xs, on_corner, M, features, on_crease, cx.lattice.h, cover_rounds)
+    xs, tips = _snap_tips(mesh, xs, on_corner, cx.lattice.h)
+    on_corner |= tips
+    on_crease &= ~tips
+    q.tip_nodes = int(tips.sum())
     nrm = closest_points(mesh, xs)[3]
     X[N:] = xs
     e = np.concatenate([cx.surface[:, [0, 1]], cx.surface[:, [1, 2]], cx.surface[:, [2, 0]]])
@@ -346,17 +419,29 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     movable = np.zeros(len(X), dtype=bool)
     movable[cx.used] = True
     reference = 6.0 * signed_volumes(ref, cx.tets)
-    q.untangled = untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
+    q.untangled = untangle(X, cx.tets, movable, reference, fraction=untangle_fraction, floor=DEGENERATE)
     sliding = np.zeros(len(X), dtype=bool)
     sliding[N:] = ~(on_crease | on_corner)
     tangent = np.zeros_like(X)
-    for _ in range(UNTANGLE_ROUNDS if q.untangled else 0):   # folds of the surface map: surface nodes slide too
-        tangent[N:] = nrm
-        if untangle(X, cx.tets, movable | sliding, reference, fraction=untangle_fraction,
-                    tangent=tangent) == 0:
+    for attempt in range(RELEASE_ATTEMPTS + 1 if q.untangled else 0):
+        for _ in range(UNTANGLE_ROUNDS):   # folds of the surface map: surface nodes slide too
+            tangent[N:] = nrm
+            if untangle(X, cx.tets, movable | sliding, reference, fraction=untangle_fraction,
+                        tangent=tangent, floor=DEGENERATE) == 0:
+                break
+            X[N:][sliding[N:]], _, _, nrm[sliding[N:]] = closest_points(mesh, X[N:][sliding[N:]])
+            untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
+        # what is left: flat or inverted tetrahedra at crease and corner nodes (three pinned
+        # nodes on one crease line make a flat surface triangle): those nodes slide as well
+        flat = 6.0 * signed_volumes(X, cx.tets) <= DEGENERATE * _untangle_targets(reference, untangle_fraction)
+        near = np.zeros(len(X), dtype=bool)
+        near[cx.tets[flat].ravel()] = True
+        near[cx.tets[near[cx.tets].any(axis=1)].ravel()] = True
+        pinned = near[N:] & ~sliding[N:]
+        if not pinned.any():
             break
-        X[N:][sliding[N:]], _, _, nrm[sliding[N:]] = closest_points(mesh, X[N:][sliding[N:]])
-        untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
+        sliding[N:] |= pinned
+        q.released += int(pinned.sum())
     q.seconds["untangle"] = time.perf_counter() - t2
 
     gap, _ = cKDTree(X[N:]).query(mesh.vertices)
@@ -379,10 +464,24 @@ def build_fem_grid(mesh: Mesh, n: int = 4, cube_size: float | None = None, n_cub
     budget = {"what": "tetrahedral grid", "limit": FEM_MAX_NODES, "bytes_per_node": FEM_BYTES_PER_NODE}
     if n_cubes is not None:
         check_node_budget(n_cubes, n, **budget)   # the target count: before the polycube search
-    if polycube is None:
-        polycube = polycube_from_mesh(mesh, cube_size=cube_size, n_cubes=n_cubes, threshold=threshold)
+    if polycube is not None:
+        return _map_polycube(mesh, polycube, int(n), mapping, budget)
+    search = {"cube_size": cube_size, "n_cubes": n_cubes, "threshold": threshold}
+    grid = _map_polycube(mesh, polycube_from_mesh(mesh, **search), int(n), mapping, budget)
+    if grid.quality.inverted and grid.polycube is not None and grid.polycube.grown:
+        # cubes grown into a thin part can leave a fold the untangling does not undo (the
+        # bunny's ear tip: 6 inverted with 700 grown cubes, 0 without): keep the better grid
+        plain = _map_polycube(mesh, polycube_from_mesh(mesh, thin_parts=False, **search), int(n), mapping, budget)
+        if plain.quality.inverted < grid.quality.inverted:
+            return plain
+    return grid
+
+
+def _map_polycube(mesh: Mesh, polycube: Polycube, n: int, mapping: dict[str, Any] | None,
+                  budget: dict[str, Any]) -> FemGrid:
     check_node_budget(polycube.count, n, **budget)
-    lattice = Lattice(polycube.cubes, int(n), polycube.size, np.asarray(polycube.origin, dtype=np.float64))
+    lattice = Lattice(polycube.cubes, n, polycube.size, np.asarray(polycube.origin, dtype=np.float64))
     cx = PillowComplex.build(lattice)
     X, nrm, q = map_pillow(cx, mesh, **(mapping or {}))
+    q.thin_cubes = polycube.grown
     return FemGrid(cx, X, nrm, q, mesh, polycube)

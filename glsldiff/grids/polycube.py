@@ -10,7 +10,14 @@ builds it automatically:
 4. Make the surface two-manifold: wherever two cubes share only an edge or a vertex (or two
    empty cells do, inside a block of cubes), add the missing cube with the largest inside
    fraction, until no such configuration remains.
-5. Accept the result only if its topology equals the mesh's: one 6-connected component,
+5. **Thin parts** (:func:`_grow_thin_parts`): where the mesh surface lies more than
+   :data:`THIN_SEED` cube edges outside the cubes (ears, horns, tails thinner than a cube,
+   which no threshold keeps; a smooth surface never does), add the empty cubes that hold
+   surface points of that region farther than :data:`THIN_REACH` edges outside, are
+   face-adjacent to the set and at least :data:`THIN_MIN_FRACTION` inside, one at a time
+   and only where that keeps the topology and the manifold surface
+   (:func:`glsldiff.grids.cubeset.addable`); repeat while cubes are added.
+6. Accept the result only if its topology equals the mesh's: one 6-connected component,
    no cavity, the same genus. Otherwise retry with other thresholds.
 
 Cube coordinates are integer triples ``(ix, iy, iz)``; cube ``(i, j, k)`` spans
@@ -32,8 +39,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.checks import integer, real, vector3
 from glsldiff.core.errors import InputError
-from glsldiff.grids.cubeset import MANIFOLD, OFFSETS, Topology, block_codes, cube_coordinates, occupancy, topology_of
-from glsldiff.mesh import Mesh, contains_grid
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from glsldiff.grids.cubeset import (MANIFOLD, OFFSETS, Topology, addable, block_codes, cube_coordinates, occupancy,
+                                    topology_of)
+from glsldiff.mesh import Mesh, contains_grid, surface_samples
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +52,17 @@ log = logging.getLogger(__name__)
 FALLBACK_THRESHOLDS = (0.5, 0.4, 0.6, 0.3, 0.7, 0.2)
 #: Largest number of sample points (candidate cubes x samples^3) one build may test.
 MAX_SAMPLE_POINTS = 50_000_000
+#: Thin parts (module docstring, step 5): where the surface lies farther than THIN_SEED cube
+#: edges outside the cubes (a smooth surface leaves at most ~0.47: spheres of 2-32 cubes per
+#: radius; the bunny's ears 0.80, the cow's ears and horns 2.7), the surface within
+#: THIN_REGION cube edges of it that is farther than THIN_REACH gets cubes ...
+THIN_SEED = 0.6
+THIN_REGION = 2.0
+THIN_REACH = 0.3
+#: ... that are at least this much inside (thinner slivers squeeze the tetrahedral grid's
+#: lattice flat: with 0.15, one tetrahedron stayed inverted on the cow, with 0.3 none).
+THIN_MIN_FRACTION = 0.3
+_THIN_ROUNDS = 50
 _N_CUBES_TOL = 0.03  # relative count tolerance that ends the n_cubes search
 _N_CUBES_ITER = 12
 
@@ -68,6 +90,8 @@ class Polycube:
         ``(k,)`` inside-volume fraction of each cube (NaN for explicit cube lists).
     threshold
         The inside-fraction threshold used (NaN for explicit cube lists).
+    grown
+        Cubes added in thin parts (module docstring, step 5).
 
     Build with :func:`polycube_from_mesh` or :func:`polycube_from_cubes` (which validate).
     """
@@ -77,6 +101,7 @@ class Polycube:
     origin: NDArray[np.float64]
     fraction: NDArray[np.float64]
     threshold: float = float("nan")
+    grown: int = 0
 
     def __post_init__(self) -> None:
         c = cube_coordinates(self.cubes)
@@ -249,15 +274,61 @@ def _make_manifold(occ: NDArray[np.bool_], frac: NDArray[np.float64]
     raise InputError("polycube manifold repair did not converge")  # pragma: no cover
 
 
-def _build(mesh: Mesh, fr: _Fractions, threshold: float
-           ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:
-    """Cubes (k,3), their fractions and the padded occupancy for one threshold."""
+def _outside_distance(points: NDArray[np.float64], occ: NDArray[np.bool_], corner: NDArray[np.float64],
+                      size: float) -> NDArray[np.float64]:
+    """Distance (mm) from each point to the union of the occupied cubes (exact for the eight
+    nearest cube centres); cell ``p`` of ``occ`` spans ``corner + size * [p, p + 1]``."""
+    centres = corner + size * (np.argwhere(occ) + 0.5)
+    _, j = cKDTree(centres).query(points, k=min(8, len(centres)))
+    j = j.reshape(len(points), -1)
+    gap = np.maximum(np.abs(points[:, None] - centres[j]) - 0.5 * size, 0.0)
+    return np.linalg.norm(gap, axis=2).min(axis=1)
+
+
+def _grow_thin_parts(samples: NDArray[np.float64], occ: NDArray[np.bool_], frac: NDArray[np.float64],
+                     corner: NDArray[np.float64], size: float) -> tuple[NDArray[np.bool_], int]:
+    """Step 5 of the module docstring on a manifold occupancy ``occ`` (with its ``frac``; cell
+    ``p`` spans ``corner + size * [p, p + 1]``, at least two empty border layers). Returns the
+    new occupancy and the number of cubes added."""
+    occ = occ.copy()
+    added = 0
+    d = _outside_distance(samples, occ, corner, size)
+    seeds = samples[d > THIN_SEED * size]
+    if len(seeds) == 0:
+        return occ, 0
+    near, _ = cKDTree(seeds).query(samples, distance_upper_bound=THIN_REGION * size)
+    region = samples[np.isfinite(near)]
+    for _ in range(_THIN_ROUNDS):
+        far = region[_outside_distance(region, occ, corner, size) > THIN_REACH * size]
+        cells = np.floor((far - corner) / size).astype(np.int64)
+        inside = ((cells >= 1) & (cells < np.array(occ.shape) - 1)).all(axis=1)
+        want = np.zeros_like(occ)
+        want[tuple(cells[inside].T)] = True
+        want &= ~occ & ndimage.binary_dilation(occ) & (frac >= THIN_MIN_FRACTION)
+        before = added
+        for cell in np.argwhere(want):
+            if addable(occ, cell):
+                occ[tuple(cell)] = True
+                added += 1
+        if added == before:
+            break
+    return occ, added
+
+
+def _build(mesh: Mesh, fr: _Fractions, threshold: float, samples: NDArray[np.float64] | None = None
+           ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_], int]:
+    """Cubes (k,3), their fractions, the padded occupancy for one threshold and the number of
+    cubes grown into thin parts (with surface ``samples``; module docstring, step 5)."""
     occ0 = fr.frac >= threshold
     if not occ0.any():
-        return np.zeros((0, 3), np.int64), np.zeros(0), np.zeros((1, 1, 1), bool)
+        return np.zeros((0, 3), np.int64), np.zeros(0), np.zeros((1, 1, 1), bool), 0
     occ, frac, off = _make_manifold(occ0, fr.frac)
+    added = 0
+    if samples is not None:   # fraction cells outside the grid are empty (0 inside): pad
+        occ, frac, off = np.pad(occ, 1), np.pad(frac, 1), off + 1
+        occ, added = _grow_thin_parts(samples, occ, frac, fr.origin - off * fr.size, fr.size)
     cubes = np.argwhere(occ) - off
-    return cubes, frac[occ], occ
+    return cubes, frac[occ], occ, added
 
 
 def _count(mesh: Mesh, size: float, threshold: float, samples: int,
@@ -317,7 +388,7 @@ def snap_to_extents(size: float, extents: NDArray[np.float64], band: float = 0.2
 
 
 def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int | None = None,
-                       threshold: float = 0.5, samples: int = 4) -> Polycube:
+                       threshold: float = 0.5, samples: int = 4, thin_parts: bool = True) -> Polycube:
     """Polycube approximating a closed mesh, with the mesh's topology.
 
     Parameters
@@ -336,6 +407,8 @@ def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int 
         which one was used.
     samples
         ``samples**3`` stratified points estimate each cube's inside fraction.
+    thin_parts
+        Grow the cubes into parts of the mesh thinner than a cube (module docstring, step 5).
     """
     name = f"mesh {mesh.name!r}" if mesh.name else "mesh"
     if (cube_size is None) == (n_cubes is None):
@@ -366,16 +439,16 @@ def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int 
         s = float(cube_size) if cube_size is not None else snap_to_extents(
             _search_size(mesh, int(n_cubes), t, samples, cache), ext)
         fr = _fractions(mesh, s, samples, cache)
-        cubes, frac, occ = _build(mesh, fr, t)
+        cubes, frac, occ, grown = _build(mesh, fr, t, surface_samples(mesh, s / 3.0) if thin_parts else None)
         if len(cubes) == 0:
             failures.append(f"threshold {t:g}: no cube is {t:.0%} inside")
             continue
         topo = topology_of(occ)
         got = (topo.components, topo.cavities, topo.genus)
         if got == want:
-            pc = Polycube(cubes, s, fr.origin, frac, t)
-            log.info("%s: polycube of %d cubes, size %.6g mm, threshold %g (genus %d)",
-                     name, pc.count, s, t, topo.genus)
+            pc = Polycube(cubes, s, fr.origin, frac, t, grown)
+            log.info("%s: polycube of %d cubes (%d in thin parts), size %.6g mm, threshold %g (genus %d)",
+                     name, pc.count, grown, s, t, topo.genus)
             return pc
         failures.append(f"threshold {t:g} ({len(cubes)} cubes of {s:.4g} mm): {topo.components} "
                         f"component(s), {topo.cavities} cavit(y/ies), genus {topo.genus}")
