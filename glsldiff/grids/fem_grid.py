@@ -353,8 +353,7 @@ def _snap_tips(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], h:
     :data:`TIP_REACH` h from every surface node, since a centroid never reaches an extreme
     point): farthest first, the nearest surface node that is not ``fixed`` and not yet moved
     (a crease node too), within 3 h, moves onto the vertex and stays there as a corner node
-    does. Returns the
-    positions and the moved nodes."""
+    does. Returns the positions and the moved nodes."""
     xs = xs.copy()
     moved = np.zeros(len(xs), dtype=bool)
     V = np.asarray(mesh.vertices, dtype=np.float64)
@@ -423,7 +422,7 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     sliding = np.zeros(len(X), dtype=bool)
     sliding[N:] = ~(on_crease | on_corner)
     tangent = np.zeros_like(X)
-    for attempt in range(RELEASE_ATTEMPTS + 1 if q.untangled else 0):
+    for _release in range(RELEASE_ATTEMPTS + 1 if q.untangled else 0):
         for _ in range(UNTANGLE_ROUNDS):   # folds of the surface map: surface nodes slide too
             tangent[N:] = nrm
             if untangle(X, cx.tets, movable | sliding, reference, fraction=untangle_fraction,
