@@ -21,7 +21,7 @@ from glsldiff.grids.regular import RegularGrid
 from glsldiff.mesh import GENERATED_MESHES, generated_mesh, load_mesh
 from glsldiff.physics.material import preset
 from glsldiff.solve.jacobi import GlslDiffusion
-from glsldiff.solve.stencil import PACKINGS, pass_primitives
+from glsldiff.solve.stencil import PACKINGS, pass_primitives, primitive_count
 from glsldiff.system.problem import DiffusionProblem
 
 #: (mesh, n per cube edge, target cube count) of the polygrids measured: the torus standing in for
@@ -51,8 +51,8 @@ def _rate(problem: DiffusionProblem, packing: str, sweeps: int, ctx: Any, repeat
             lv.sweep(sweeps)
             times.append(lv.sweep_seconds - t0)
         dt = min(times)
-        prims = sum(sum(k.values()) for k in lv.primitive_counts().values())
-        return {"nodes updated": lv.updated_nodes, "draws per sweep": prims if packing == "primitives" else 1,
+        return {"nodes updated": lv.updated_nodes,
+                "draws per sweep": primitive_count(lv.primitives) if packing == "primitives" else 1,
                 "ms per sweep": 1e3 * dt / sweeps, "M updates/s": lv.updated_nodes * sweeps / dt / 1e6}
 
 
@@ -68,8 +68,7 @@ def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, swee
         pg, _ = cached_polygrid(mesh, n=n, n_cubes=cubes)
         side = int(round(pg.n_active ** (1.0 / 3.0)))
         reg = RegularGrid(side, side, side, h=1.0)
-        prims = pass_primitives(pg)
-        per_node = sum(sum(p.kinds.values()) for p in prims.values()) / pg.n_active
+        per_node = primitive_count(pass_primitives(pg)) / pg.n_active
         for packing in packings:
             r_reg = _rate(_problem(reg), packing, sweeps, ctx)
             r_pg = _rate(_problem(pg), packing, sweeps, ctx)

@@ -105,7 +105,7 @@ class MappingQuality:
     quality_p1: float = float("nan")        # its 1st percentile
     surface_spacing: float = float("nan")   # mean surface edge length
     surface_spacing_cv: float = float("nan")
-    untangled: int = 0                      # inverted tetrahedra before the untangling step
+    untangled: int = 0                      # inverted or flat tetrahedra before the untangling step
     crease_nodes: int = 0                   # surface nodes kept on a mesh crease
     coverage_max: float = float("nan")      # largest mesh-vertex-to-nearest-surface-node distance / h
     coverage_p99: float = float("nan")      # its 99th percentile
@@ -265,6 +265,22 @@ def _untangle_targets(reference_det: NDArray[np.float64], fraction: float) -> ND
     return fraction * np.maximum(reference_det, np.median(np.abs(reference_det)) * 0.25)
 
 
+def _below_target(X: NDArray[np.float64], tets: NDArray[np.int64], target: NDArray[np.float64],
+                  floor: float) -> NDArray[np.bool_]:
+    """``(T,)`` tetrahedra whose ``6 V`` is at most ``floor`` of their untangling ``target``
+    (``floor`` 0: the inverted ones)."""
+    return 6.0 * signed_volumes(X, tets) <= floor * target
+
+
+def _near_nodes(n: int, tets: NDArray[np.int64], bad: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
+    """``(n,)`` nodes of the ``bad`` tetrahedra and of the ``rings`` tetrahedron rings around them."""
+    near = np.zeros(n, dtype=bool)
+    near[tets[bad].ravel()] = True
+    for _ in range(rings):
+        near[tets[near[tets].any(axis=1)].ravel()] = True
+    return near
+
+
 def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[np.bool_],
              reference_det: NDArray[np.float64], fraction: float = 0.1, rings: int = 2,
              iterations: int = 300, tangent: NDArray[np.float64] | None = None, floor: float = 0.0) -> int:
@@ -277,14 +293,10 @@ def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[n
     how many tetrahedra were inverted before (``floor`` > 0: also those below ``floor`` of
     their target, which are then untangled too)."""
     target = _untangle_targets(reference_det, fraction)
-    bad = 6.0 * signed_volumes(X, tets) <= floor * target
+    bad = _below_target(X, tets, target, floor)
     if not bad.any():
         return 0
-    near = np.zeros(len(X), dtype=bool)
-    near[tets[bad].ravel()] = True
-    for _ in range(rings):
-        touch = near[tets].any(axis=1)
-        near[tets[touch].ravel()] = True
+    near = _near_nodes(len(X), tets, bad, rings)
     free = np.flatnonzero(near & movable)
     sel = np.flatnonzero(near[tets].any(axis=1))
     T, tgt = tets[sel], target[sel]
@@ -440,11 +452,8 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
             untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
         # what is left: flat or inverted tetrahedra at crease and corner nodes (three pinned
         # nodes on one crease line make a flat surface triangle): those nodes slide as well
-        flat = 6.0 * signed_volumes(X, cx.tets) <= DEGENERATE * _untangle_targets(reference, untangle_fraction)
-        near = np.zeros(len(X), dtype=bool)
-        near[cx.tets[flat].ravel()] = True
-        near[cx.tets[near[cx.tets].any(axis=1)].ravel()] = True
-        pinned = near[N:] & ~sliding[N:]
+        flat = _below_target(X, cx.tets, _untangle_targets(reference, untangle_fraction), DEGENERATE)
+        pinned = _near_nodes(len(X), cx.tets, flat, rings=1)[N:] & ~sliding[N:]
         if not pinned.any():
             break
         sliding[N:] |= pinned
@@ -471,14 +480,15 @@ def build_fem_grid(mesh: Mesh, n: int = 4, cube_size: float | None = None, n_cub
     budget = {"what": "tetrahedral grid", "limit": FEM_MAX_NODES, "bytes_per_node": FEM_BYTES_PER_NODE}
     if n_cubes is not None:
         check_node_budget(n_cubes, n, **budget)   # the target count: before the polycube search
+    n = int(n)
     if polycube is not None:
-        return _map_polycube(mesh, polycube, int(n), mapping, budget)
+        return _map_polycube(mesh, polycube, n, mapping, budget)
     search = {"cube_size": cube_size, "n_cubes": n_cubes, "threshold": threshold}
-    grid = _map_polycube(mesh, polycube_from_mesh(mesh, thin_parts=False, **search), int(n), mapping, budget)
+    grid = _map_polycube(mesh, polycube_from_mesh(mesh, thin_parts=False, **search), n, mapping, budget)
     if grid.quality.inverted or grid.quality.coverage_max > COVERAGE_TARGET:
         grown = polycube_from_mesh(mesh, **search)
         if grown.grown:
-            other = _map_polycube(mesh, grown, int(n), mapping, budget)
+            other = _map_polycube(mesh, grown, n, mapping, budget)
             if _rank(other.quality) < _rank(grid.quality):
                 return other
     return grid

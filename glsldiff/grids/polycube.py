@@ -36,12 +36,11 @@ from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-
-from glsldiff.core.checks import integer, real, vector3
-from glsldiff.core.errors import InputError
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from glsldiff.core.checks import integer, real, vector3
+from glsldiff.core.errors import InputError
 from glsldiff.grids.cubeset import (MANIFOLD, OFFSETS, Topology, addable, block_codes, cube_coordinates, occupancy,
                                     topology_of)
 from glsldiff.mesh import Mesh, contains_grid, surface_samples

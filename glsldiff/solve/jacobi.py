@@ -42,8 +42,8 @@ from glsldiff.oracle.assembly import LinearSystem, assemble, assemble_rhs
 from glsldiff.oracle.solvers import Callback, relax
 from glsldiff.packing import primitive_vertices
 from glsldiff.solve import quantize
-from glsldiff.solve.stencil import (PACKINGS, PASSES, offset_textures, pass_primitives, uniform_weights,
-                                    weight_textures)
+from glsldiff.solve.stencil import (PACKINGS, PASSES, offset_textures, pass_primitives, primitive_count,
+                                    uniform_weights, weight_textures)
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
@@ -161,8 +161,7 @@ class GlslDiffusion:
             self.state = state if state is not None else self._gpu.add(
                 gl.PingPong.create(self.ctx, self.size, self.buffers))
             self.primitives = pass_primitives(g, update)
-            draws = sum(sum(p.kinds.values()) for p in self.primitives.values())
-            self.packing = packing or default_packing(draws / max(1, sum(p.texels for p in self.primitives.values())))
+            self.packing = packing or default_packing(primitive_count(self.primitives) / max(1, self.updated_nodes))
             if self.packing == "texels":
                 for name, arr in zip(("u_offa", "u_offb"), offset_textures(g, update)):
                     tex = self.ctx.texture(self.size, 4, np.ascontiguousarray(arr).tobytes(), dtype="u4", alignment=1)

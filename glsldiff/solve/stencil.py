@@ -44,6 +44,11 @@ def pass_primitives(grid: PackedGrid, update: NDArray[np.bool_] | None = None) -
     return {"interior": decompose(ti, off_i), "boundary": decompose(tb, off_b[:, None, :])}
 
 
+def primitive_count(primitives: dict[str, Primitives]) -> int:
+    """Quads, lines and points of all passes together (the draws of one ``"primitives"`` sweep)."""
+    return sum(sum(p.kinds.values()) for p in primitives.values())
+
+
 def _pass_offsets(grid: PackedGrid, update: NDArray[np.bool_] | None
                   ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
     """Texels of the updated interior rows, their ``(m, 6, 2)`` offsets to the six neighbours,
