@@ -62,6 +62,7 @@ from glsldiff.core.io import write_npz
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
+from glsldiff.grids.shapes import SHAPE_TARGET
 from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, subdivide
 from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, apply_edit
@@ -682,7 +683,8 @@ class Renderer:
         elif self._geo["fem"]:
             q = pg.quality
             rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, {q.inverted} "
-                             f"inverted, worst quality {q.worst_quality:.3g}; coverage: mesh vertices within "
+                             f"inverted, worst quality {q.worst_quality:.3g} ({q.poor_before:,} -> {q.poor:,} below "
+                             f"{SHAPE_TARGET:g} by the shape step); coverage: mesh vertices within "
                              f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
         through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
