@@ -86,7 +86,7 @@ from scipy.spatial import cKDTree
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
-from glsldiff.grids.pillow import PillowComplex, signed_volumes
+from glsldiff.grids.pillow import PillowComplex, edge_adjacency, mean_operator, signed_volumes, triangle_edges
 from glsldiff.grids.polycube import Polycube, polycube_from_mesh
 from glsldiff.grids.shapes import improve_shapes, shape_quality
 from glsldiff.grids.polygrid import check_node_budget
@@ -197,10 +197,7 @@ class FemGrid:
 
 def _surface_smoother(surface: NDArray[np.int64], offset: int, n: int) -> sp.csr_matrix:
     """Row-normalised adjacency (mean of edge neighbours) of the surface nodes."""
-    e = np.concatenate([surface[:, [0, 1]], surface[:, [1, 2]], surface[:, [2, 0]]]) - offset
-    A = sp.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])), shape=(n, n)).tocsr()
-    A.data[:] = 1.0
-    return sp.diags(1.0 / np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1)) @ A
+    return mean_operator(edge_adjacency(triangle_edges(surface) - offset, n))
 
 
 def _feature_nodes(cx: PillowComplex, mesh: Mesh, xs: NDArray[np.float64], features: Features
@@ -369,11 +366,12 @@ def _spread(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], smoot
 #: Mesh vertices farther than this many spacings h from every surface node after the
 #: coverage rounds get the nearest free node (:func:`_snap_tips`).
 TIP_REACH = 1.25
+#: Passes of the tip snapping (a moved node can uncover what it covered).
+TIP_PASSES = 5
 #: How far (in spacings h) the shape step may slide a surface node along the surface; nodes
 #: nearest to a mesh vertex more than SHAPE_COVER h away do not slide.
 SHAPE_SLIDE = 0.25
 SHAPE_COVER = 1.0
-TIP_PASSES = 5
 
 
 def _snap_tips(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], h: float
@@ -435,7 +433,7 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     q.tip_nodes = int(tips.sum())
     nrm = closest_points(mesh, xs)[3]
     X[N:] = xs
-    e = np.concatenate([cx.surface[:, [0, 1]], cx.surface[:, [1, 2]], cx.surface[:, [2, 0]]])
+    e = triangle_edges(cx.surface)
     L = np.linalg.norm(X[e[:, 0]] - X[e[:, 1]], axis=1)
     q.surface_spacing, q.surface_spacing_cv = float(L.mean()), float(L.std() / L.mean())
     q.seconds["surface"] = time.perf_counter() - t0

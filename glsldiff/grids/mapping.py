@@ -36,6 +36,7 @@ from scipy.spatial import cKDTree
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
+from glsldiff.grids.pillow import edge_adjacency, mean_operator
 from glsldiff.mesh import Mesh, axis_hits, closest_points, contains
 
 logger = logging.getLogger(__name__)
@@ -64,16 +65,6 @@ class MappingStats:
 
     def as_dict(self) -> dict[str, object]:
         return asdict(self)
-
-
-def _adjacency(pairs: NDArray[np.int64], index: NDArray[np.int64], n: int) -> sp.csr_matrix:
-    """Row-normalised adjacency (mean of neighbours) over ``n`` local nodes."""
-    a, b = index[pairs[:, 0]], index[pairs[:, 1]]
-    A = sp.coo_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(n, n)).tocsr()
-    A.sum_duplicates()
-    A.data[:] = 1.0
-    deg = np.asarray(A.sum(axis=1)).ravel()
-    return sp.diags(1.0 / np.maximum(deg, 1)) @ A
 
 
 def _pair_lengths(x: NDArray, pairs_local: NDArray) -> NDArray:
@@ -189,7 +180,7 @@ def map_to_mesh(lattice: Lattice, mesh: Mesh, relax_iterations: int = 10, relax_
     local = np.full(lattice.size_nodes, -1, dtype=np.int64)
     local[b] = np.arange(b.size)
     pairs = local[lattice.surface_pairs]
-    M = _adjacency(lattice.surface_pairs, local, b.size)
+    M = mean_operator(edge_adjacency(local[lattice.surface_pairs], b.size))
     axis = lattice.outward
 
     # 1. projection

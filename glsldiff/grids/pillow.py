@@ -29,12 +29,14 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
 
-__all__ = ["PillowComplex", "KUHN", "TET_EDGES", "prism_tets", "signed_volumes"]
+__all__ = ["PillowComplex", "KUHN", "TET_EDGES", "edge_adjacency", "mean_operator", "node_tets", "prism_tets", "signed_volumes",
+           "tet_edges", "triangle_edges"]
 
 #: The six edges of a tetrahedron (local corner pairs); edge ``5 - e`` is the one opposite edge ``e``.
 TET_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
@@ -239,3 +241,32 @@ def _signed_volumes_of(P: NDArray[np.float64]) -> NDArray[np.float64]:
 def signed_volumes(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
     """``(T,)`` signed tetrahedron volumes, mm^3 (positive: right-handed)."""
     return _signed_volumes(np.asarray(X, dtype=np.float64), np.asarray(tets, dtype=np.int64))
+
+
+def tet_edges(tets: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``(6 T, 2)`` the node pairs of every tetrahedron's edges (shared edges repeated)."""
+    return tets[:, TET_EDGES].reshape(-1, 2)
+
+
+def triangle_edges(triangles: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``(3 F, 2)`` the node pairs of every triangle's edges: all first edges, then all second,
+    then all third (shared edges repeated)."""
+    return np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+
+
+def node_tets(tets: NDArray[np.int64], n: int) -> sp.csr_matrix:
+    """``(n, T)`` incidence: row ``i`` holds the tetrahedra with node ``i`` as a corner."""
+    return sp.csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))), shape=(n, len(tets)))
+
+
+def edge_adjacency(edges: NDArray[np.int64], n: int) -> sp.csr_matrix:
+    """``(n, n)`` 0/1 adjacency of the undirected ``edges`` ``(E, 2)`` (repeats count once)."""
+    A = sp.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
+                      shape=(n, n)).tocsr()
+    A.data[:] = 1.0
+    return A
+
+
+def mean_operator(A: sp.csr_matrix) -> sp.csr_matrix:
+    """Row-normalised ``A``: the mean over each node's neighbours (isolated nodes: zero rows)."""
+    return sp.diags(1.0 / np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1)) @ A

@@ -28,10 +28,9 @@ from typing import Callable
 
 import numpy as np
 import scipy.optimize as so
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from glsldiff.grids.pillow import TET_EDGES
+from glsldiff.grids.pillow import TET_EDGES, edge_adjacency, node_tets, tet_edges, triangle_edges
 
 __all__ = ["SHAPE_TARGET", "ShapeReport", "improve_shapes", "shape_quality"]
 
@@ -72,13 +71,6 @@ class ShapeReport:
     seconds: float = 0.0
 
 
-def _adjacency(n: int, edges: NDArray[np.int64]) -> sp.csr_matrix:
-    A = sp.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
-                      shape=(n, n)).tocsr()
-    A.data[:] = 1.0
-    return A
-
-
 def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArray[np.bool_],
                    sliding: NDArray[np.bool_], surface: NDArray[np.int64], project: Project,
                    max_slide: float = np.inf, target: float = SHAPE_TARGET, sweeps: int = SHAPE_SWEEPS
@@ -97,10 +89,9 @@ def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArra
     rep = ShapeReport(below_before=int((q < target).sum()), worst_before=float(q.min()) if len(q) else 1.0)
     movable = free | sliding
     start = X.copy()
-    node_tets = sp.csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))),
-                              shape=(n, len(tets)))
-    volume_nb = _adjacency(n, np.concatenate([tets[:, [i, j]] for i, j in TET_EDGES]))
-    surface_nb = _adjacency(n, np.concatenate([surface[:, [0, 1]], surface[:, [1, 2]], surface[:, [2, 0]]]))
+    incident = node_tets(tets, n)
+    volume_nb = edge_adjacency(tet_edges(tets), n)
+    surface_nb = edge_adjacency(triangle_edges(surface), n)
 
     def place(v: int, p: NDArray[np.float64]) -> NDArray[np.float64]:
         return project(p[None], np.array([v]))[0] if sliding[v] else p
@@ -173,7 +164,7 @@ def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArra
             nodes = nodes[movable[nodes]]
             cand = targets(nodes) if stage is smooth else np.empty((0, len(nodes), 3))
             for k, v in enumerate(nodes):
-                tt = node_tets.indices[node_tets.indptr[v]:node_tets.indptr[v + 1]]
+                tt = incident.indices[incident.indptr[v]:incident.indptr[v + 1]]
                 qn = stage(int(v), tt, q[tt], cand[:, k])
                 if qn is not None:
                     q[tt] = qn

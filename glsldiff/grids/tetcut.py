@@ -28,11 +28,10 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import TET_EDGES, signed_volumes
+from glsldiff.grids.pillow import edge_adjacency, node_tets, signed_volumes, tet_edges
 from glsldiff.grids.tetwild import INERT_DIHEDRAL_DEG, TetMesh, boundary_faces, tet_quality
 from glsldiff.grids.tetwild import min_dihedral_deg as smallest_dihedral
 from glsldiff.mesh import Mesh
@@ -111,13 +110,6 @@ class CutReport:
         return d
 
 
-def _adjacency(T: NDArray[np.int64], n: int) -> sp.csr_matrix:
-    i, j = T[:, TET_EDGES[:, 0]].ravel(), T[:, TET_EDGES[:, 1]].ravel()
-    A = sp.csr_matrix((np.ones(2 * len(i)), (np.concatenate([i, j]), np.concatenate([j, i]))), shape=(n, n))
-    A.data[:] = 1.0
-    return A
-
-
 def _to_cut(side: Side, x: NDArray[np.float64], y: NDArray[np.float64], steps: int = 30) -> NDArray[np.float64]:
     """Points on the segments ``x -> y`` (``side(x) > 0 >= side(y)``) where ``side`` crosses 0."""
     lo, hi = np.zeros(len(x)), np.ones(len(x))
@@ -172,11 +164,11 @@ def cut(tm: TetMesh, side: Side, iterations: int = 20, rho: float = RHO,
     t_remove = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    A = _adjacency(T, len(X))
+    A = edge_adjacency(tet_edges(T), len(X))
     deg = np.asarray(A.sum(axis=1)).ravel()
     movable = f > 0.0
     to_relax = int(movable.sum())
-    tets_of = sp.csr_matrix((np.ones(T.size), (T.ravel(), np.repeat(np.arange(len(T)), 4))), shape=(len(X), len(T)))
+    tets_of = node_tets(T, len(X))
     mind = smallest_dihedral(X, T)
     refused, done, on_cut = 0, 0, 0
     for done in range(1, iterations + 1):
