@@ -259,7 +259,7 @@ def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
 
 def cmd_bench_meshes(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
-    rows = mesh_bench(args.meshes, args.cubes, args.n, out, args.size,
+    rows = mesh_bench(args.meshes, args.cubes, args.n, out, args.size, refined=not args.no_refined,
                       progress=_status)
     print_table("tetrahedral polygrid on meshes (fem discretisation; coverage in lattice spacings h)", rows)
     print(f"wrote meshes.csv, meshes.png and the renders to {out}/")
@@ -462,6 +462,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="target cube counts (default: the scene default's for --n)")
     b.add_argument("--n", type=A.integer(2, 16), default=2, help="nodes per cube edge")
     b.add_argument("--size", type=A.integer(16, 2048), default=256, help="render side, px")
+    b.add_argument("--no-refined", action="store_true",
+                   help="skip the comparison with each grid's 1:8 refinement (about 8x the grid's memory, "
+                        "a minute per default grid)")
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_meshes)

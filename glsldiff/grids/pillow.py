@@ -36,7 +36,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
 
 __all__ = ["PillowComplex", "KUHN", "TET_EDGES", "edge_adjacency", "mean_operator", "node_tets", "prism_tets", "signed_volumes",
-           "tet_edges", "triangle_edges"]
+           "subdivide_tets", "tet_edges", "triangle_edges"]
 
 #: The six edges of a tetrahedron (local corner pairs); edge ``5 - e`` is the one opposite edge ``e``.
 TET_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
@@ -241,6 +241,31 @@ def _signed_volumes_of(P: NDArray[np.float64]) -> NDArray[np.float64]:
 def signed_volumes(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
     """``(T,)`` signed tetrahedron volumes, mm^3 (positive: right-handed)."""
     return _signed_volumes(np.asarray(X, dtype=np.float64), np.asarray(tets, dtype=np.int64))
+
+
+#: The eight children of a tetrahedron in its regular 1:8 subdivision, as local indices into its
+#: corners 0-3 and its edge midpoints 4-9 (edges 01, 02, 03, 12, 13, 23: :data:`TET_EDGES`
+#: order): the four corner tetrahedra and the inner octahedron split along m02-m13.
+RED_CHILDREN = np.array([(0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3),
+                         (5, 8, 4, 7), (5, 8, 7, 9), (5, 8, 9, 6), (5, 8, 6, 4)])
+
+
+def subdivide_tets(X: NDArray[np.float64], tets: NDArray[np.int64]
+                   ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
+    """Regular 1:8 subdivision (a node at every edge midpoint): positions ``(n + E, 3)`` (the
+    old nodes keep their indices, node ``n + e`` is the midpoint of edge ``e``), the ``(8 T, 4)``
+    children (right-handed) and the ``(E, 2)`` edges."""
+    X = np.asarray(X, dtype=np.float64)
+    T = np.asarray(tets, dtype=np.int64)
+    pairs = np.sort(tet_edges(T), axis=1)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    n = len(X)
+    X8 = np.concatenate([X, 0.5 * (X[edges[:, 0]] + X[edges[:, 1]])])
+    local = np.concatenate([T, n + inverse.reshape(-1, 6)], axis=1)           # (T, 10)
+    T8 = local[:, RED_CHILDREN].reshape(-1, 4)
+    neg = _signed_volumes(X8, T8) < 0.0
+    T8[neg] = T8[neg][:, [0, 2, 1, 3]]
+    return X8, T8, edges
 
 
 def tet_edges(tets: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import TET_EDGES, signed_volumes
+from glsldiff.grids.pillow import TET_EDGES, signed_volumes, subdivide_tets
 from glsldiff.mesh import Mesh, closest_points
 from glsldiff.mesh.types import unique_edges
 
@@ -281,26 +281,13 @@ def cached_tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, thr
     return tm, False
 
 
-# 1:8 subdivision: the four corner tetrahedra and the inner octahedron split along m02-m13;
-# indices 0-3 the corners, 4-9 the midpoints of edges 01, 02, 03, 12, 13, 23 (TET_EDGES order)
-_EIGHT = np.array([(0, 4, 5, 6), (4, 1, 7, 8), (5, 7, 2, 9), (6, 8, 9, 3),
-                   (5, 8, 4, 7), (5, 8, 7, 9), (5, 8, 9, 6), (5, 8, 6, 4)])
-
-
 def refine(tm: TetMesh) -> TetMesh:
-    """Regular 1:8 subdivision of every tetrahedron (a node at each edge midpoint): 8x the
-    tetrahedra at half the edge length, for timing solvers at scale. The new boundary nodes lie on
+    """Regular 1:8 subdivision of every tetrahedron (:func:`glsldiff.grids.pillow.subdivide_tets`):
+    8x the tetrahedra at half the edge length, for timing solvers at scale. The new boundary nodes lie on
     the old boundary triangles (not on the input surface); their normals are the normalised
     mean of the edge ends'."""
-    T = tm.tets
-    pairs = np.sort(T[:, TET_EDGES].reshape(-1, 2), axis=1)
-    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    X, T8, edges = subdivide_tets(tm.positions, tm.tets)
     n = len(tm.positions)
-    X = np.concatenate([tm.positions, 0.5 * (tm.positions[edges[:, 0]] + tm.positions[edges[:, 1]])])
-    local = np.concatenate([T, n + inverse.reshape(-1, 6)], axis=1)           # (T, 10)
-    T8 = local[:, _EIGHT].reshape(-1, 4)
-    neg = signed_volumes(X, T8) < 0.0
-    T8[neg] = T8[neg][:, [0, 2, 1, 3]]
     surface = boundary_faces(T8)
     nodes = np.unique(surface)
     normal = np.zeros((len(X), 3))

@@ -227,12 +227,17 @@ def solve_matrix_reference(A: sp.spmatrix, b: NDArray[np.float64], max_direct: i
                     maxiter: int = 200) -> tuple[NDArray[np.float64], str]:
     """``(x, method)`` of one symmetric positive definite system: SuperLU up to ``max_direct``
     unknowns, above it pyamg (smoothed aggregation + CG) to a relative residual of
-    :data:`~glsldiff.system.report.REFERENCE_TOL` within ``maxiter`` cycles."""
+    :data:`~glsldiff.system.report.REFERENCE_TOL` within ``maxiter`` cycles. ``b`` ``(n,)`` or
+    ``(n, k)``: k right-hand sides share one factorisation / hierarchy."""
+    b = np.asarray(b, dtype=np.float64)
     if A.shape[0] <= max_direct:
         return spla.splu(sp.csc_matrix(A)).solve(b), "direct (SuperLU)"
     with pinned_global_rng():
         ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric")
-    return ml.solve(b, tol=REFERENCE_TOL, maxiter=maxiter, accel="cg"), f"pyamg to {REFERENCE_TOL:g}"
+    cols = b.reshape(len(b), -1)
+    x = np.stack([ml.solve(cols[:, k], tol=REFERENCE_TOL, maxiter=maxiter, accel="cg") for k in range(cols.shape[1])],
+                 axis=1)
+    return x.reshape(b.shape), f"pyamg to {REFERENCE_TOL:g}"
 
 
 def solve_system_direct(s: LinearSystem) -> NDArray[np.float64]:

@@ -455,6 +455,14 @@ class Renderer:
         return (moment_boundary_constant(eta) if scene.options.source == "volume"
                 else float(boundary_constant(eta)))
 
+    def fem_problem(self, scene: Scene) -> TetProblem:
+        """The last frame's P1 problem of ``scene`` (grid, node material, boundary source, eta
+        and the Robin constant C) on a tetrahedral grid; without the first-collision load of
+        ``source = "volume"``."""
+        if not self._geo.get("fem") or self._q is None:
+            raise RuntimeError("no frame of a tetrahedral grid rendered yet")
+        return self._fem_problem(scene)
+
     def _fem_problem(self, scene: Scene) -> TetProblem:
         return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
                           C=self._boundary_C(scene))
