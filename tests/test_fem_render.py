@@ -139,7 +139,7 @@ def test_shell_mapped_volume_on_tetrahedra(tmp_path, monkeypatch):
     # nearest its normal; staircase faces of a sphere may lie 78 deg off it)
     from glsldiff.grids.lattice import STEPS
     face = geo["face"][g.surface_nodes]
-    assert np.all((STEPS[face] * g.complex.outward_axes).sum(axis=1) == 1)
+    assert np.all((STEPS[face] * g.outward_axes).sum(axis=1) == 1)
     assert np.all(np.einsum("ij,ij->i", STEPS[face], g.normals) > 0.0)   # never an inward face
     img = np.zeros((6, 6, 3))
     img[:, :3] = 1.0                                  # half the face white: both halves appear

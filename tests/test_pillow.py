@@ -181,6 +181,14 @@ def test_cow_grid_covers_its_ears_and_horns_without_inverted_tetrahedra():
     assert q.inverted == 0 and q.worst_quality > 0
     assert q.coverage_max <= 1.5
     assert q.reshaped > 0 and q.poor < q.poor_before / 5
+    # the long edges of the stretched ear and horn tetrahedra are split (measured 3.4k new
+    # nodes), and the split grid's surface data line up
+    assert q.split_edges > 1000 and 0 < q.split_surface_nodes < q.split_edges
+    S = len(g.surface_nodes)
+    assert len(g.normals) == len(g.outward_axes) == S == len(g.complex.outer) + q.split_surface_nodes
+    assert g.surface_triangles.min() == 0 and g.surface_triangles.max() == S - 1
+    assert len(g.reference_positions()) == len(g.positions) == g.complex.n_nodes + q.split_edges
+    assert np.allclose(np.linalg.norm(g.normals, axis=1), 1.0)
 
 
 def test_surface_mass_rows_sum_to_the_lumped_areas_and_lower_the_sphere_error():

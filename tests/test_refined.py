@@ -110,3 +110,32 @@ def test_reference_solve_takes_several_right_hand_sides():
         assert x.shape == b.shape and ("pyamg" in how) == (max_direct == 10)
         for k in range(2):
             assert np.allclose(x[:, k], solve_matrix_reference(A, b[:, k])[0], rtol=1e-8, atol=1e-10)
+
+
+def _scene(tmp_path, polygrid: str) -> str:
+    path = tmp_path / "s.toml"
+    path.write_text('[mesh]\nsource = "torus"\nsize_mm = 40.0\n'
+                    f'[polygrid]\n{polygrid}\n'
+                    '[material]\npreset = "marble"\n'
+                    '[[lights]]\ntype = "directional"\ndirection = [0.3, 0.5, 1.0]\n'
+                    '[output]\nwidth = 32\nheight = 32\n')
+    return str(path)
+
+
+def test_render_check_grid_prints_the_error_against_the_refined_grid(tmp_path, capsys):
+    """``glsldiff render --check-grid`` on a coarse tetrahedral grid prints one line with the
+    error against the 1:8 refinement; on a lattice grid it refuses in one line (exit 2)."""
+    import re
+    from glsldiff.commands.cli import main
+    assert main(["render", _scene(tmp_path, "cubes = 300"), "-o", str(tmp_path / "r.exr"), "--check-grid"]) == 0
+    out = capsys.readouterr().out
+    m = re.search(r"discretisation: exitance within ([0-9.]+)% RMS \(max ([0-9.]+)% of the largest\) of the 1:8 "
+                  r"refined grid's \(([0-9,]+) nodes", out)
+    assert m, out
+    rms, mx = float(m.group(1)), float(m.group(2))
+    assert 0.1 < rms <= mx < 100.0
+    code = main(["render", _scene(tmp_path, 'discretisation = "paper"\nn = 4\nlevels = 1\ncubes = 40'), "-o",
+                 str(tmp_path / "p.exr"), "--check-grid"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "tetrahedral grid" in err[0], err
+    assert not list(tmp_path.glob("p.*"))                 # refused before any work

@@ -137,7 +137,7 @@ def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = Non
                 if g is not None:
                     q = g.quality
                     row.update({"cubes": len(g.polycube.cubes), "h_mm": g.h, "nodes": g.n_active,
-                                "inverted": q.inverted, "worst_quality": q.worst_quality,
+                                "inverted": q.inverted, "worst_quality": q.worst_quality, "split_edges": q.split_edges,
                                 "coverage_max_h": q.coverage_max, "coverage_p99_h": q.coverage_p99,
                                 "mapping_s": q.seconds.get("total", float("nan"))})
                 rows.append(row)

@@ -62,6 +62,7 @@ from glsldiff.core.io import write_npz
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
+from glsldiff.grids.fem_grid import SPLIT_LENGTH
 from glsldiff.grids.shapes import SHAPE_TARGET
 from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, subdivide
@@ -84,6 +85,7 @@ from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolat
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.fem import assemble_tet, tet_geometry, tet_rhs
+from glsldiff.oracle.refined import RefinedComparison, RefinedError
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
@@ -463,6 +465,30 @@ class Renderer:
             raise RuntimeError("no frame of a tetrahedral grid rendered yet")
         return self._fem_problem(scene)
 
+    @staticmethod
+    def check_discretisation_scene(scene: Scene) -> None:
+        """Refuse (:class:`InputError`, one line) a scene :meth:`discretisation_error` cannot
+        check, before any work: a lattice grid, or the first-collision volume source."""
+        if scene.polygrid.discretisation not in ("fem", "tetwild"):
+            raise InputError(f"the discretisation check needs a tetrahedral grid; this scene's is "
+                             f"{scene.polygrid.discretisation!r} (set [polygrid] discretisation = \"fem\")")
+        if scene.options.source == "volume":
+            raise InputError("the discretisation check does not carry the first-collision load yet; render with "
+                             "[options] source = \"surface\" to check the grid")
+
+    def discretisation_error(self, scene: Scene, channel: int = 1) -> tuple[RefinedError, int, float]:
+        """How far the last frame's pass-2 answer is from the converged one: the same problem
+        solved on the grid's 1:8 refinement (:class:`glsldiff.oracle.refined.RefinedComparison`;
+        one colour ``channel``, exact CPU solves). Returns the comparison, the refined grid's
+        node count and the seconds it all took. Tetrahedral grids with the surface source only."""
+        self.check_discretisation_scene(scene)
+        if not self._geo.get("fem") or self._q is None:
+            raise RuntimeError("no frame of a tetrahedral grid rendered yet")
+        t0 = time.perf_counter()
+        rc = RefinedComparison(self._fem_problem(scene), channel)
+        err = rc.compare()[0]
+        return err, rc.nodes[1], time.perf_counter() - t0
+
     def _fem_problem(self, scene: Scene) -> TetProblem:
         return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
                           C=self._boundary_C(scene))
@@ -692,7 +718,8 @@ class Renderer:
             q = pg.quality
             rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, {q.inverted} "
                              f"inverted, worst quality {q.worst_quality:.3g} ({q.poor_before:,} -> {q.poor:,} below "
-                             f"{SHAPE_TARGET:g} by the shape step); coverage: mesh vertices within "
+                             f"{SHAPE_TARGET:g} by the shape step), {q.split_edges:,} edges longer than "
+                             f"{SPLIT_LENGTH:g} h split; coverage: mesh vertices within "
                              f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
         through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "

@@ -187,11 +187,11 @@ def _shell(pg: Any) -> _Shell:
         return _Shell(pg.positions, lat.boundary, lat.kind != INACTIVE, lat.outward_slot[lat.boundary],
                       lat.lattice_positions, pg.mesh, pg.shape, lat)
     if isinstance(pg, FemGrid):
-        axes = pg.complex.outward_axes                                   # (S, 3) of +-1 / 0
+        axes = pg.outward_axes                                           # (S, 3) of +-1 / 0
         fits = np.where((STEPS[None] * axes[:, None]).sum(axis=2) > 0,   # the node's own faces
                         pg.normals @ STEPS.T.astype(np.float64), -np.inf)
         return _Shell(pg.positions, pg.surface_nodes, pg.active, np.argmax(fits, axis=1),
-                      pg.complex.reference_positions(), pg.mesh, (len(pg.positions),))
+                      pg.reference_positions(), pg.mesh, (len(pg.positions),))
     raise InputError(f"the shell mapping needs a Polygrid or a FemGrid, got {type(pg).__name__}")
 
 

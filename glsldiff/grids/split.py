@@ -1,0 +1,137 @@
+"""Conforming refinement of a tetrahedral grid by splitting its long edges at their midpoints.
+
+Splitting an edge cuts every tetrahedron around it in two (each child keeps one end of the
+edge and takes the midpoint for the other), and every surface triangle on it likewise, so
+the grid stays conforming without templates. :func:`split_long_edges` splits, in rounds, the
+edges longer than a bound (longest first; in one round no tetrahedron loses more than one
+edge, so the children never overlap), until none is left or ``max_rounds`` is reached. A child
+has the orientation of its parent and half its volume; new surface nodes lie on the old
+surface triangles (the boundary does not move).
+
+Why (measured with :mod:`glsldiff.oracle.refined`): where the mapping stretches tetrahedra into
+thin parts (the bunny's ear tips: edges of 2-4 lattice spacings), the P1 solution is far from
+the converged one and dips below zero next to lit nodes; splitting the edges longer than 2 h
+there (+2.5 % nodes on the default bunny) took the back-lit bunny's error against its 1:8
+refinement from 2.15 % to 1.81 % RMS (max 24 % -> 18 %).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.grids.pillow import TET_EDGES
+
+__all__ = ["EdgeSplit", "split_long_edges"]
+
+
+@dataclass(eq=False)
+class EdgeSplit:
+    """The refined grid: ``positions`` ``(n + K, 3)`` mm (the old nodes first, with their
+    indices), ``tets`` and ``surface`` (right-handed / outward as before) and ``parents``
+    ``(K, 2)``: node ``n + k`` is the midpoint of nodes ``parents[k]`` (which may themselves be
+    new nodes with a smaller index)."""
+
+    positions: NDArray[np.float64]
+    tets: NDArray[np.int64]
+    surface: NDArray[np.int64]
+    parents: NDArray[np.int64]
+    rounds: int = 0
+
+    def extend(self, values: NDArray) -> NDArray[np.float64]:
+        """Per-node ``values`` ``(n, ...)`` of the old nodes -> ``(n + K, ...)``: each new node
+        the mean of its parents' (the P1 interpolant, in order of creation)."""
+        v = np.asarray(values, dtype=np.float64)
+        n = len(self.positions) - len(self.parents)
+        if len(v) != n:
+            raise ValueError(f"values has {len(v)} rows; the grid had {n} nodes before the split")
+        out = np.concatenate([v, np.zeros((len(self.parents),) + v.shape[1:])])
+        # parents of a round's nodes are older nodes: one vectorised pass per round of creation
+        k = 0
+        while k < len(self.parents):
+            stop = k + 1
+            while stop < len(self.parents) and self.parents[stop].max() < n + k:
+                stop += 1
+            p = self.parents[k:stop]
+            out[n + k:n + stop] = 0.5 * (out[p[:, 0]] + out[p[:, 1]])
+            k = stop
+        return out
+
+
+def _unique_edges(tets: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``(E, 2)`` unique edges (``i < j``, in lexicographic order) of tetrahedra over ``n``
+    nodes and ``(T, 6)`` each tetrahedron's edges as indices into them (one integer key per
+    edge: 5x faster than ``np.unique(axis=0)`` on the default bunny's 4.7 M edge copies)."""
+    a, b = tets[:, TET_EDGES[:, 0]], tets[:, TET_EDGES[:, 1]]
+    keys, inverse = np.unique((np.minimum(a, b) * n + np.maximum(a, b)).ravel(), return_inverse=True)
+    return np.stack([keys // n, keys % n], axis=1), inverse.reshape(-1, 6)
+
+
+def _independent(cand: NDArray[np.int64], tet_edges: NDArray[np.int64], n_edges: int) -> NDArray[np.int64]:
+    """The candidates (in their order) kept greedily so that no tetrahedron has two."""
+    flat = tet_edges.ravel()
+    order = np.argsort(flat, kind="stable")
+    starts = np.searchsorted(flat[order], np.arange(n_edges + 1))
+    tet_of = order // 6
+    used = np.zeros(len(tet_edges), dtype=bool)
+    chosen = []
+    for e in cand:
+        ts = tet_of[starts[e]:starts[e + 1]]
+        if not used[ts].any():
+            used[ts] = True
+            chosen.append(e)
+    return np.asarray(chosen, dtype=np.int64)
+
+
+def split_long_edges(positions: NDArray[np.float64], tets: NDArray[np.int64], surface: NDArray[np.int64],
+                     max_length: float, max_rounds: int = 20) -> EdgeSplit:
+    """Split every edge longer than ``max_length`` (mm) at its midpoint (module docstring)."""
+    X = np.asarray(positions, dtype=np.float64)
+    T = np.asarray(tets, dtype=np.int64).copy()
+    F = np.asarray(surface, dtype=np.int64).copy()
+    parents: list[NDArray[np.int64]] = []
+    rounds = 0
+    for rounds in range(1, max_rounds + 1):
+        edges, te = _unique_edges(T, len(X))
+        length = np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
+        cand = np.flatnonzero(length > max_length)
+        if cand.size == 0:
+            rounds -= 1
+            break
+        chosen = _independent(cand[np.argsort(-length[cand], kind="stable")], te, len(edges))
+        mid = np.full(len(edges), -1, dtype=np.int64)
+        mid[chosen] = len(X) + np.arange(len(chosen))
+        a, b = edges[chosen, 0], edges[chosen, 1]
+        X = np.concatenate([X, 0.5 * (X[a] + X[b])])
+        parents.append(np.stack([a, b], axis=1))
+        # tetrahedra: the one split edge (local corners i, j) -> children with j := m and i := m
+        loc = mid[te]
+        hit = np.flatnonzero((loc >= 0).any(axis=1))
+        k = np.argmax(loc[hit] >= 0, axis=1)
+        m = loc[hit, k]
+        rows = np.arange(len(hit))
+        c1, c2 = T[hit].copy(), T[hit].copy()
+        c1[rows, TET_EDGES[k, 1]] = m
+        c2[rows, TET_EDGES[k, 0]] = m
+        keep = np.ones(len(T), dtype=bool)
+        keep[hit] = False
+        T = np.concatenate([T[keep], c1, c2])
+        # surface triangles on a split edge: at most one per triangle (its tetrahedron had one)
+        n = len(X)
+        key = edges[:, 0] * n + edges[:, 1]
+        done = np.zeros(len(F), dtype=bool)
+        added = []
+        for u, v in ((0, 1), (1, 2), (2, 0)):
+            lo, hi = np.minimum(F[:, u], F[:, v]), np.maximum(F[:, u], F[:, v])
+            at = np.minimum(np.searchsorted(key, lo * n + hi), len(key) - 1)
+            on = (key[at] == lo * n + hi) & (mid[at] >= 0) & ~done
+            idx = np.flatnonzero(on)
+            f1, f2 = F[idx].copy(), F[idx].copy()
+            f1[:, v] = mid[at[idx]]
+            f2[:, u] = mid[at[idx]]
+            added += [f1, f2]
+            done[idx] = True
+        F = np.concatenate([F[~done]] + added)
+    P = np.concatenate(parents) if parents else np.zeros((0, 2), dtype=np.int64)
+    return EdgeSplit(X, T, F, P, rounds)
