@@ -49,6 +49,19 @@ def test_split_is_conforming_and_keeps_volume_boundary_and_linear_data():
         s.extend(np.zeros(3))
 
 
+def test_inverted_tetrahedra_are_not_split():
+    """An inverted tetrahedron's edges stay whole (its children would all be inverted)."""
+    g = stretched_box()
+    X = g.positions.copy()
+    top = np.argmax(X.sum(axis=1))
+    X[top] = X[top] * 0.5 + 0.5 * X.mean(axis=0) - np.array([0.0, 0.0, 3.0])   # folds its cells over
+    bad = signed_volumes(X, g.tets) <= 0
+    assert bad.any()
+    s = split_long_edges(X, g.tets, g.surface, 1.5 * 2.5)
+    assert len(s.parents) > 0
+    assert int((signed_volumes(s.positions, s.tets) <= 0).sum()) == int(bad.sum())
+
+
 def test_nothing_to_split():
     g = kuhn_box(2)
     s = split_long_edges(g.positions, g.tets, g.surface, 100.0)

@@ -22,8 +22,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.grids.pillow import TET_EDGES
+from glsldiff.grids.shapes import shape_quality
 
-__all__ = ["EdgeSplit", "split_long_edges"]
+__all__ = ["EdgeSplit", "SPLIT_MIN_QUALITY", "split_long_edges"]
 
 
 @dataclass(eq=False)
@@ -84,9 +85,15 @@ def _independent(cand: NDArray[np.int64], tet_edges: NDArray[np.int64], n_edges:
     return np.asarray(chosen, dtype=np.int64)
 
 
+#: Edges of tetrahedra below this shape quality (:func:`glsldiff.grids.shapes.shape_quality`:
+#: flat or inverted) are not split.
+SPLIT_MIN_QUALITY = 0.01
+
+
 def split_long_edges(positions: NDArray[np.float64], tets: NDArray[np.int64], surface: NDArray[np.int64],
-                     max_length: float, max_rounds: int = 20) -> EdgeSplit:
-    """Split every edge longer than ``max_length`` (mm) at its midpoint (module docstring)."""
+                     max_length: float, max_rounds: int = 20, min_quality: float = SPLIT_MIN_QUALITY) -> EdgeSplit:
+    """Split every edge longer than ``max_length`` (mm) at its midpoint, but no edge of a
+    tetrahedron below ``min_quality`` (module docstring)."""
     X = np.asarray(positions, dtype=np.float64)
     T = np.asarray(tets, dtype=np.int64).copy()
     F = np.asarray(surface, dtype=np.int64).copy()
@@ -95,7 +102,9 @@ def split_long_edges(positions: NDArray[np.float64], tets: NDArray[np.int64], su
     for rounds in range(1, max_rounds + 1):
         edges, te = _unique_edges(T, len(X))
         length = np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
-        cand = np.flatnonzero(length > max_length)
+        long = length > max_length
+        long[te[shape_quality(X, T) < min_quality].ravel()] = False   # their children would be as flat or inverted
+        cand = np.flatnonzero(long)
         if cand.size == 0:
             rounds -= 1
             break
