@@ -183,10 +183,7 @@ class FemGrid:
         """``(S + S',)`` node indices of the surface nodes: ``N .. N+S-1``, then the split
         midpoints on the surface in node order."""
         copies = self.complex.n_lattice + np.arange(len(self.complex.outer))
-        if self.split is None:
-            return copies
-        new = np.unique(self.split.surface)
-        return np.concatenate([copies, new[new >= self.complex.n_nodes]])
+        return copies if self.split is None else np.concatenate([copies, self.split.surface_midpoints])
 
     @property
     def active(self) -> NDArray[np.bool_]:
@@ -234,12 +231,9 @@ class FemGrid:
         axes = np.asarray(self.complex.outward_axes)
         if self.split is None:
             return axes
-        n0 = self.complex.n_nodes
-        full = np.zeros((len(self.positions), 3), dtype=axes.dtype)
-        full[self.complex.n_lattice:n0] = axes
-        for k, (a, _) in enumerate(self.split.parents):   # parents precede their midpoints
-            full[n0 + k] = full[a]
-        return full[self.surface_nodes]
+        full = np.zeros((self.complex.n_nodes, 3))
+        full[self.complex.n_lattice:] = axes
+        return self.split.extend(full, weights=(1.0, 0.0))[self.surface_nodes]
 
 
 def _surface_smoother(surface: NDArray[np.int64], offset: int, n: int) -> sp.csr_matrix:
@@ -538,22 +532,17 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     q.poor_before, q.poor, q.reshaped = shapes.below_before, shapes.below_after, shapes.smoothed + shapes.searched
     q.seconds["shapes"] = shapes.seconds
 
-    split = None
+    split, tets, surface_nodes = None, cx.tets, np.arange(N, cx.n_nodes)
     if split_length is not None:
         t3 = time.perf_counter()
-        split = split_long_edges(X, cx.tets, cx.surface, split_length * cx.lattice.h)
-        if len(split.parents):
-            X = split.positions
-            new = np.unique(split.surface)
-            new = new[new >= cx.n_nodes]
+        s = split_long_edges(X, cx.tets, cx.surface, split_length * cx.lattice.h)
+        if len(s.parents):
+            split, X, tets, new = s, s.positions, s.tets, s.surface_midpoints
+            surface_nodes = np.concatenate([surface_nodes, new])
             nrm = np.concatenate([nrm, closest_points(mesh, X[new])[3]])
-            q.split_edges, q.split_surface_nodes = len(split.parents), len(new)
-            surface_X = np.concatenate([X[N:cx.n_nodes], X[new]])
-        else:
-            split = None
+            q.split_edges, q.split_surface_nodes = len(s.parents), len(new)
         q.seconds["split"] = time.perf_counter() - t3
-    _final_quality(q, X, cx.tets if split is None else split.tets,
-                   X[N:] if split is None else surface_X, mesh, cx.lattice.h)
+    _final_quality(q, X, tets, X[surface_nodes], mesh, cx.lattice.h)
     q.seconds["total"] = time.perf_counter() - t0
     return X, nrm, q, split
 

@@ -36,7 +36,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
 
 __all__ = ["PillowComplex", "KUHN", "TET_EDGES", "edge_adjacency", "mean_operator", "node_tets", "prism_tets", "signed_volumes",
-           "subdivide_tets", "tet_edges", "triangle_edges"]
+           "edge_lookup", "subdivide_tets", "tet_edges", "triangle_edges", "unique_tet_edges"]
 
 #: The six edges of a tetrahedron (local corner pairs); edge ``5 - e`` is the one opposite edge ``e``.
 TET_EDGES = np.array([(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)])
@@ -257,11 +257,10 @@ def subdivide_tets(X: NDArray[np.float64], tets: NDArray[np.int64]
     children (right-handed) and the ``(E, 2)`` edges."""
     X = np.asarray(X, dtype=np.float64)
     T = np.asarray(tets, dtype=np.int64)
-    pairs = np.sort(tet_edges(T), axis=1)
-    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
     n = len(X)
+    edges, inverse = unique_tet_edges(T, n)
     X8 = np.concatenate([X, 0.5 * (X[edges[:, 0]] + X[edges[:, 1]])])
-    local = np.concatenate([T, n + inverse.reshape(-1, 6)], axis=1)           # (T, 10)
+    local = np.concatenate([T, n + inverse], axis=1)                           # (T, 10)
     T8 = local[:, RED_CHILDREN].reshape(-1, 4)
     neg = _signed_volumes(X8, T8) < 0.0
     T8[neg] = T8[neg][:, [0, 2, 1, 3]]
@@ -271,6 +270,28 @@ def subdivide_tets(X: NDArray[np.float64], tets: NDArray[np.int64]
 def tet_edges(tets: NDArray[np.int64]) -> NDArray[np.int64]:
     """``(6 T, 2)`` the node pairs of every tetrahedron's edges (shared edges repeated)."""
     return tets[:, TET_EDGES].reshape(-1, 2)
+
+
+def unique_tet_edges(tets: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """``(E, 2)`` unique edges (``i < j``, in lexicographic order) of tetrahedra over ``n``
+    nodes and ``(T, 6)`` each tetrahedron's edges as indices into them, in :data:`TET_EDGES`
+    order (one integer key per edge: 5x faster than ``np.unique(axis=0)`` on the default
+    bunny's 4.7 M edge copies)."""
+    a = tets[:, TET_EDGES[:, 0]].astype(np.int64)
+    b = tets[:, TET_EDGES[:, 1]].astype(np.int64)
+    keys, inverse = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
+    return np.stack([keys // n, keys % n], axis=1), inverse.reshape(len(tets), 6)
+
+
+def edge_lookup(edges: NDArray[np.int64], n: int, a: NDArray[np.int64], b: NDArray[np.int64]
+                ) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Where the node pairs ``(a, b)`` (either order) sit in the lexicographically sorted
+    ``edges`` of :func:`unique_tet_edges` over ``n`` nodes: ``(index, found)``; ``index`` is
+    meaningless where not ``found``."""
+    keys = edges[:, 0] * n + edges[:, 1]
+    k = np.minimum(a, b) * n + np.maximum(a, b)
+    at = np.minimum(np.searchsorted(keys, k), max(len(keys) - 1, 0))
+    return at, (keys[at] == k) if len(keys) else np.zeros(len(k), dtype=bool)
 
 
 def triangle_edges(triangles: NDArray[np.int64]) -> NDArray[np.int64]:

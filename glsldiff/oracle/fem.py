@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import TET_EDGES
+from glsldiff.grids.pillow import TET_EDGES, unique_tet_edges
 from glsldiff.mesh import vertex_areas
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.system.report import REFERENCE_TOL, SolveReport
@@ -133,11 +133,7 @@ class TetGeometry:
         ``(T, 6)`` as indices into them, in the order of :data:`glsldiff.grids.pillow.TET_EDGES`.
         (Sorting the ``6 T`` edge keys once is 2-3x cheaper than summing the ``16 T`` local
         entries into a CSR pattern: 1.2 s against 5 s at 790k tetrahedra, measured.)"""
-        n = len(self.positions)
-        a = self.tets[:, TET_EDGES[:, 0]].astype(np.int64)
-        b = self.tets[:, TET_EDGES[:, 1]].astype(np.int64)
-        keys, tet_edges = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
-        return np.stack([keys // n, keys % n], axis=1), tet_edges.reshape(len(self.tets), 6)
+        return unique_tet_edges(self.tets, len(self.positions))
 
     def stiffness(self, kappa: ArrayLike) -> sp.csr_matrix:
         """``K`` for node ``kappa`` (n,) mm (a scalar: homogeneous): the local entries summed

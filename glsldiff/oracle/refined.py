@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import subdivide_tets
+from glsldiff.grids.pillow import edge_lookup, subdivide_tets
 from glsldiff.oracle.fem import TetGeometry, assemble_p1, solve_matrix_reference, tet_geometry
 from glsldiff.physics.exitance import exitant_bracket
 from glsldiff.system.tet_problem import TetProblem
@@ -62,13 +62,11 @@ def refine_grid(grid: Any) -> tuple[RefinedGrid, NDArray[np.int64]]:
     X = np.asarray(grid.positions, dtype=np.float64)
     X8, T8, edges = subdivide_tets(X, np.asarray(grid.tets, dtype=np.int64))
     n = len(X)
-    keys = edges[:, 0] * n + edges[:, 1]                       # sorted (np.unique of sorted pairs)
     f = np.asarray(grid.surface, dtype=np.int64)
 
     def mid(a: NDArray[np.int64], b: NDArray[np.int64]) -> NDArray[np.int64]:
-        k = np.minimum(a, b) * n + np.maximum(a, b)
-        at = np.searchsorted(keys, k)
-        if np.any(at >= len(keys)) or np.any(keys[np.minimum(at, len(keys) - 1)] != k):
+        at, found = edge_lookup(edges, n, a, b)
+        if not found.all():
             raise InputError("a surface triangle's edge is no tetrahedron's edge: the grid's surface is not "
                              "the boundary of its tetrahedra")
         return n + at
