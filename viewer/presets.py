@@ -15,8 +15,19 @@ def lattice(scene: Scene, n: int = 8, cubes: int | None = None, levels: int = 3)
     return replace(scene, polygrid=PolygridSpec(n, cubes or default_cubes("conservative", n), levels, "conservative"))
 
 
+def interactive(scene: Scene) -> Scene:
+    """``scene`` with a grid that does not follow its lights (``[polygrid] adapt = false``):
+    the refinement under sharp light re-runs the setup whenever a light moves, and the viewer
+    turns the light with the mouse."""
+    return replace(scene, polygrid=replace(scene.polygrid, adapt=False))
+
+
 def presets(first: tuple[str, Scene] | None = None, examples: bool = True) -> list[tuple[str, Scene]]:
-    """(name, scene) pairs, ``first`` first."""
+    """(name, scene) pairs, ``first`` first, each :func:`interactive`."""
+    return [(name, interactive(scene)) for name, scene in _presets(first, examples)]
+
+
+def _presets(first: tuple[str, Scene] | None, examples: bool) -> list[tuple[str, Scene]]:
     base = default_scene()
     out = [] if first is None else [first]
     out += [("bunny, veined marble (lattice polygrid: GPU editing)", replace(base, polygrid=EDIT_LATTICE)),

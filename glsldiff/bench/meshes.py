@@ -6,7 +6,8 @@ default's): the grid's node count, inverted and worst tetrahedra (quality 1 = re
 inverted), coverage (largest and 99th-percentile distance from a mesh vertex to its nearest
 surface node, in lattice spacings h), the pass-2 solve (sweeps, status) and the render time,
 with a front-lit and a back-lit render of each (veined marble, 256 x 256) saved as PNG beside
-``meshes.csv``.
+``meshes.csv``. The grids are measured as built: ``[polygrid] adapt = false`` (no refinement
+under the lights' sharp edges, :mod:`glsldiff.grids.adapt`), so both lights share one grid.
 
 Against the oracle, on the front-lit frame: the GLSL solve's largest surface-fluence
 difference from the CPU solve of the same system (:func:`glsldiff.oracle.fem.solve_system_direct`),
@@ -110,7 +111,8 @@ def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = Non
                     if progress:
                         progress(f"meshes: {name}, {k} cubes, {light}-lit")
                     scene = parse_scene({"mesh": {"source": src, "size_mm": 100.0},
-                                         "polygrid": {"n": n, "cubes": k, "discretisation": "fem", "levels": 1},
+                                         "polygrid": {"n": n, "cubes": k, "discretisation": "fem", "levels": 1,
+                                                      "adapt": False},   # one grid for both lights
                                          "material": {"preset": "marble", "procedural": "veins"},
                                          "lights": [{"type": "directional", "direction": direction}],
                                          "output": {"width": size, "height": size}}, f"<bench {name}>", out)

@@ -9,6 +9,10 @@ falloff from 8 deg). Each discretisation
 is solved exactly (SuperLU / pyamg), so the table shows discretisation error only:
 
 * ``fem``: P1 finite elements on the pillowed polycube (:mod:`glsldiff.grids.fem_grid`);
+* ``fem-adapt``: the same grid refined for each light where its source is not linear over a
+  surface edge (:mod:`glsldiff.grids.adapt`, ``[polygrid] adapt = true``), compared at the unrefined
+  grid's surface nodes (the first ones of the refined grid) so both rows share their points;
+  ``nodes`` is then the refined count and ``adapt_s`` the refinement's time;
 * ``paper`` / ``conservative``: the polygrid with the appendix-B weights and the paper's or
   the conservative stencil (:mod:`glsldiff.system.problem`);
 * ``tetwild`` (on request; pytetwild): the same P1 elements on fTetWild meshes that follow the
@@ -34,6 +38,7 @@ from numpy.typing import NDArray
 
 from glsldiff.core import io
 from glsldiff.core.plotting import pyplot, save_figure
+from glsldiff.grids.adapt import refine_for_source
 from glsldiff.grids.fem_grid import build_fem_grid
 from glsldiff.grids.polycube import polycube_from_mesh
 from glsldiff.grids.polygrid import build_polygrid
@@ -49,7 +54,9 @@ from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
 
 KAPPA, MU, ETA = 1.0 / 3.15, 0.05, 1.3
-DISCRETISATIONS = ("fem", "paper", "conservative")
+#: A light's boundary source at surface points: ``points (P, 3) mm -> q (P,)``.
+Source = Callable[[NDArray[np.float64]], NDArray[np.float64]]
+DISCRETISATIONS = ("fem", "fem-adapt", "paper", "conservative")
 #: Every discretisation the study knows (``tetwild`` needs the optional pytetwild).
 ALL_DISCRETISATIONS = DISCRETISATIONS + ("tetwild",)
 
@@ -71,18 +78,25 @@ class Case:
     renderer's interpolation from those points to other surface points."""
 
     points: NDArray[np.float64]                       # (S, 3) mm, where B is compared
-    solve: Callable[[NDArray[np.float64]], NDArray[np.float64]]   # q (S,) -> B (S,)
+    solve: Callable[[Source], tuple[NDArray[np.float64], dict[str, object]]]   # q(points) -> B (S,), info
     info: dict[str, object]
     interpolation: Callable[[NDArray[np.float64]], Any]          # points (P, 3) -> (P, S) matrix
 
 
-def fem_case(g: Any, build: float) -> Case:
-    """The case of a tetrahedral grid (built in ``build`` seconds)."""
+def fem_case(g: Any, build: float, adapt: bool = False) -> Case:
+    """The case of a tetrahedral grid (built in ``build`` seconds); ``adapt``: refined for each
+    source first (:func:`glsldiff.grids.adapt.refine_for_source`)."""
 
-    def solve(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        p = TetProblem(g, KAPPA, MU, np.repeat(q[:, None], 3, axis=1), eta=ETA)
+    def solve(source: Source) -> tuple[NDArray[np.float64], dict[str, object]]:
+        grid, info = g, {}
+        if adapt:
+            grid, rep = refine_for_source(g, lambda P, N: source(P))
+            info = {"nodes": grid.n_active, "surface_nodes": len(grid.surface_nodes), "adapt_edges": rep.edges,
+                    "adapt_s": rep.seconds}
+        q = np.asarray(source(grid.boundary_positions), dtype=np.float64)
+        p = TetProblem(grid, KAPPA, MU, np.repeat(q[:, None], 3, axis=1), eta=ETA)
         phi, _ = solve_tet_direct(p)
-        return p.exitant_bracket(phi)[:, 0]
+        return p.exitant_bracket(phi)[:len(g.surface_nodes), 0], info   # the unrefined grid's nodes come first
     return Case(g.boundary_positions, solve, {"h_mm": g.h, "nodes": g.n_active, "surface_nodes": len(g.surface_nodes),
                                               "inverted": g.quality.inverted, "build_s": build},
                 lambda p: surface_interpolation(p, g.boundary_positions, g.surface_triangles))
@@ -92,11 +106,11 @@ def polygrid_case(pg: Any, build: float, stencil: str) -> Case:
     """The case of a polygrid (built in ``build`` seconds) with the ``paper`` or
     ``conservative`` stencil (both stencils share one polygrid)."""
 
-    def solve(q: NDArray[np.float64]) -> NDArray[np.float64]:
-        qs = np.repeat(q[:, None], 3, axis=1)
+    def solve(source: Source) -> tuple[NDArray[np.float64], dict[str, object]]:
+        qs = np.repeat(np.asarray(source(pg.boundary_positions), dtype=np.float64)[:, None], 3, axis=1)
         p = DiffusionProblem(pg, KAPPA, MU, qs, eta=ETA, stencil=stencil)
         phi, _ = solve_reference(p)                      # fluence (already converted from kappa phi)
-        return exitant_bracket(pg.boundary_values(phi), qs, ETA, "p1", p.C)[:, 0]
+        return exitant_bracket(pg.boundary_values(phi), qs, ETA, "p1", p.C)[:, 0], {}
     return Case(pg.boundary_positions, solve, {"h_mm": pg.lattice.h, "nodes": int(pg.n_active),
                                                "surface_nodes": len(pg.boundary_positions),
                                                "inverted": pg.mapping.inverted if pg.mapping else -1,
@@ -125,14 +139,16 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
         if disc == "tetwild":             # cs: the target edge length
             runs = [("edge", 0, e) for e in tet_edges]
         else:
-            runs = ([("n", n, cube_size) for n in (ns if disc == "fem" else polygrid_ns)]
-                    + [("cubes", n_fixed if disc == "fem" else polygrid_n_fixed, c) for c in cube_sizes])
+            fem = disc.startswith("fem")
+            runs = ([("n", n, cube_size) for n in (ns if fem else polygrid_ns)]
+                    + [("cubes", n_fixed if fem else polygrid_n_fixed, c) for c in cube_sizes])
         for ser, n, cs in runs:
             if (disc, n, cs) not in solved:   # the grid both series share is built and solved once
                 if progress:
                     progress(f"sphere-lights: {disc}, " + (f"edge {cs:g} mm" if disc == "tetwild" else
                                                            f"n = {n}, cube {cs:g} mm"))
-                kind = disc if disc in ("fem", "tetwild") else "lattice"   # paper and conservative: one polygrid
+                kind = ("fem" if disc.startswith("fem") else disc if disc == "tetwild"
+                        else "lattice")        # paper and conservative: one polygrid; fem and fem-adapt: one grid
                 if (kind, n, cs) not in grids:
                     t0 = time.perf_counter()
                     if kind == "tetwild":
@@ -142,23 +158,24 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
                             polycubes[cs] = polycube_from_mesh(mesh, cube_size=cs)
                         grid = (build_fem_grid if kind == "fem" else build_polygrid)(mesh, n=n, polycube=polycubes[cs])
                     grids[kind, n, cs] = (grid, time.perf_counter() - t0)
-                case = (fem_case(*grids[kind, n, cs]) if disc in ("fem", "tetwild")
+                case = (fem_case(*grids[kind, n, cs], adapt=disc == "fem-adapt") if kind in ("fem", "tetwild")
                         else polygrid_case(*grids[kind, n, cs], disc))
                 results = {}
                 for k in names:
                     t0 = time.perf_counter()
-                    B = case.solve(np.asarray(series[k].source(case.points), dtype=np.float64))
-                    results[k] = (B, time.perf_counter() - t0)
+                    B, extra = case.solve(series[k].source)
+                    results[k] = (B, time.perf_counter() - t0, extra)
                 solved[disc, n, cs] = (case, results)
             case, results = solved[disc, n, cs]
             if ser in ("n", "edge") and disc != "paper":      # the last of series n goes into the error maps
-                finest[disc] = (n, case, {k: B for k, (B, _) in results.items()})
+                finest[disc] = (n, case, {k: B for k, (B, _, _) in results.items()})
             for k in names:
-                B, secs = results[k]
+                B, secs, extra = results[k]
                 ref = series[k].exitant_bracket(case.points)
                 where = {"n": "", "cube_mm": "", "edge_mm": cs} if disc == "tetwild" else {"n": n, "cube_mm": cs,
                                                                                           "edge_mm": ""}
-                rows.append({"discretisation": disc, "series": ser, **where, **case.info, "light": k,
+                rows.append({"discretisation": disc, "series": ser, **where, **case.info, "adapt_edges": 0,
+                             "adapt_s": 0.0, **extra, "light": k,
                              "rel_rms": float(np.linalg.norm(B - ref) / np.linalg.norm(ref)),
                              "rel_max": float(np.abs(B - ref).max() / np.abs(ref).max()),
                              "solve_s": secs, "series_terms": series[k].n_terms})
@@ -213,7 +230,7 @@ def plot(rows: list[dict[str, object]], path: Path) -> None:
     plt = pyplot()
     lights = sorted({str(r["light"]) for r in rows})
     fig, axes = plt.subplots(1, len(lights), figsize=(3.3 * len(lights), 3.4), sharey=True, squeeze=False)
-    colours = {"fem": "C0", "paper": "C3", "conservative": "C1", "tetwild": "C2"}
+    colours = {"fem": "C0", "fem-adapt": "C4", "paper": "C3", "conservative": "C1", "tetwild": "C2"}
     for ax, light in zip(axes[0], lights):
         for disc in ALL_DISCRETISATIONS:
             for ser, style in (("n", "o-"), ("cubes", "s--"), ("edge", "^-")):

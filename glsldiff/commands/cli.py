@@ -141,7 +141,8 @@ def _stroke_point(text: str) -> tuple[float, float]:
 
 
 def cmd_validate(args: argparse.Namespace) -> int:
-    rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp, source=args.source)
+    rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp, source=args.source,
+                    adapt=args.adapt)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
                 "eta != 1: surface reflection removed) and the dipole", rows)
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
@@ -255,7 +256,7 @@ def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
                               radius=args.radius, discretisations=args.discretisations, tet_edges=args.tet_edges,
                               out=out, progress=_status)
     cols = ("discretisation", "series", "n", "cube_mm", "edge_mm", "h_mm", "nodes", "inverted", "light", "rel_rms",
-            "rel_max", "solve_s")
+            "rel_max", "adapt_s", "solve_s")
     print_table(f"sphere R = {args.radius} mm under lights: exitant bracket B vs the exact series",
                 [{k: r[k] for k in cols} for r in rows])
     print("rel_rms = ||B - B_series|| / ||B_series||, rel_max = max |B - B_series| / max |B_series| over the "
@@ -335,6 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "split into 2-4 renders of 4^k samples, all Mitsuba's low-discrepancy sampler takes)")
     p.add_argument("--source", choices=SOURCES, default=None,
                    help="diffusion source model for every case (default: each case's own; slab-patch: volume)")
+    p.add_argument("--adapt", action="store_true",
+                   help="refine the tetrahedra under the light's sharp edges ([polygrid] adapt = true)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)

@@ -102,7 +102,7 @@ from glsldiff.grids.polygrid import check_node_budget
 from glsldiff.mesh import Mesh, closest_points, surface_samples
 from glsldiff.mesh.features import Features, mesh_features
 
-__all__ = ["FEM_MAX_NODES", "FemGrid", "MappingQuality", "build_fem_grid", "map_pillow"]
+__all__ = ["FEM_MAX_NODES", "FemGrid", "MappingQuality", "build_fem_grid", "map_pillow", "measure_quality"]
 
 #: Largest distance (in lattice spacings h) from a mesh vertex to its nearest surface node
 #: that a grid may leave before the polycube is grown into thin parts (step 4).
@@ -542,12 +542,12 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
             nrm = np.concatenate([nrm, closest_points(mesh, X[new])[3]])
             q.split_edges, q.split_surface_nodes = len(s.parents), len(new)
         q.seconds["split"] = time.perf_counter() - t3
-    _final_quality(q, X, tets, X[surface_nodes], mesh, cx.lattice.h)
+    measure_quality(q, X, tets, X[surface_nodes], mesh, cx.lattice.h)
     q.seconds["total"] = time.perf_counter() - t0
     return X, nrm, q, split
 
 
-def _final_quality(q: MappingQuality, X: NDArray[np.float64], tets: NDArray[np.int64],
+def measure_quality(q: MappingQuality, X: NDArray[np.float64], tets: NDArray[np.int64],
                    surface_X: NDArray[np.float64], mesh: Mesh, h: float) -> None:
     """Coverage and tetrahedron quality of the finished grid into ``q``."""
     gap, _ = cKDTree(surface_X).query(mesh.vertices)

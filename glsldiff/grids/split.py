@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,7 +26,7 @@ from numpy.typing import NDArray
 from glsldiff.grids.pillow import TET_EDGES, edge_lookup, unique_tet_edges
 from glsldiff.grids.shapes import shape_quality
 
-__all__ = ["EdgeSplit", "SPLIT_MIN_QUALITY", "split_long_edges"]
+__all__ = ["EdgeSplit", "SPLIT_MIN_QUALITY", "split_edges", "split_long_edges"]
 
 
 @dataclass(eq=False)
@@ -63,7 +64,8 @@ class EdgeSplit:
 
 
 def _independent(cand: NDArray[np.int64], tet_edges: NDArray[np.int64], n_edges: int) -> NDArray[np.int64]:
-    """The candidates (in their order) kept greedily so that no tetrahedron has two."""
+    """The candidates (in their order) kept greedily so that no tetrahedron has two
+    (``tet_edges``: at least the rows of the tetrahedra on a candidate)."""
     flat = tet_edges.ravel()
     order = np.argsort(flat, kind="stable")
     starts = np.searchsorted(flat[order], np.arange(n_edges + 1))
@@ -83,10 +85,14 @@ def _independent(cand: NDArray[np.int64], tet_edges: NDArray[np.int64], n_edges:
 SPLIT_MIN_QUALITY = 0.01
 
 
-def split_long_edges(positions: NDArray[np.float64], tets: NDArray[np.int64], surface: NDArray[np.int64],
-                     max_length: float, max_rounds: int = 20, min_quality: float = SPLIT_MIN_QUALITY) -> EdgeSplit:
-    """Split every edge longer than ``max_length`` (mm) at its midpoint, but no edge of a
-    tetrahedron below ``min_quality`` (module docstring)."""
+def split_edges(positions: NDArray[np.float64], tets: NDArray[np.int64], surface: NDArray[np.int64],
+                choose: Callable[[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64], NDArray[np.int64],
+                                  NDArray[np.int64]], NDArray[np.int64]],
+                max_rounds: int = 20, min_quality: float = SPLIT_MIN_QUALITY) -> EdgeSplit:
+    """Rounds of midpoint splits: each round ``choose(X, T, F, edges, tet_edges)`` returns the
+    unique edges (rows of ``edges``) it wants split, most wanted first; those of tetrahedra below
+    ``min_quality`` are dropped and, of the rest, no two in one tetrahedron are split in the same
+    round (module docstring). Stops when nothing is chosen or after ``max_rounds``."""
     X = np.asarray(positions, dtype=np.float64)
     T = np.asarray(tets, dtype=np.int64).copy()
     F = np.asarray(surface, dtype=np.int64).copy()
@@ -94,42 +100,66 @@ def split_long_edges(positions: NDArray[np.float64], tets: NDArray[np.int64], su
     rounds = 0
     for rounds in range(1, max_rounds + 1):
         edges, te = unique_tet_edges(T, len(X))
-        length = np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
-        long = length > max_length
-        long[te[shape_quality(X, T) < min_quality].ravel()] = False   # their children would be as flat or inverted
-        cand = np.flatnonzero(long)
+        cand = np.asarray(choose(X, T, F, edges, te), dtype=np.int64)
+        wanted = np.zeros(len(edges), dtype=bool)
+        wanted[cand] = True
+        around = np.flatnonzero(wanted[te].any(axis=1))           # the tetrahedra on a candidate
+        flat = np.zeros(len(edges), dtype=bool)
+        flat[te[around[shape_quality(X, T[around]) < min_quality]].ravel()] = True   # children as flat / inverted
+        cand = cand[~flat[cand]]
         if cand.size == 0:
             rounds -= 1
             break
-        chosen = _independent(cand[np.argsort(-length[cand], kind="stable")], te, len(edges))
-        mid = np.full(len(edges), -1, dtype=np.int64)
-        mid[chosen] = len(X) + np.arange(len(chosen))
-        a, b = edges[chosen, 0], edges[chosen, 1]
-        X = np.concatenate([X, 0.5 * (X[a] + X[b])])
-        parents.append(np.stack([a, b], axis=1))
-        # tetrahedra: the one split edge (local corners i, j) -> children with j := m and i := m
-        loc = mid[te]
-        hit = np.flatnonzero((loc >= 0).any(axis=1))
-        k = np.argmax(loc[hit] >= 0, axis=1)
-        m = loc[hit, k]
-        rows = np.arange(len(hit))
-        c1, c2 = T[hit].copy(), T[hit].copy()
-        c1[rows, TET_EDGES[k, 1]] = m
-        c2[rows, TET_EDGES[k, 0]] = m
-        keep = np.ones(len(T), dtype=bool)
-        keep[hit] = False
-        T = np.concatenate([T[keep], c1, c2])
-        # surface triangles on a split edge: at most one per triangle (its tetrahedron had one)
-        done = np.zeros(len(F), dtype=bool)
-        added = []
-        for u, v in ((0, 1), (1, 2), (2, 0)):
-            at, found = edge_lookup(edges, len(X), F[:, u], F[:, v])
-            idx = np.flatnonzero(found & (mid[at] >= 0) & ~done)
-            f1, f2 = F[idx].copy(), F[idx].copy()
-            f1[:, v] = mid[at[idx]]
-            f2[:, u] = mid[at[idx]]
-            added += [f1, f2]
-            done[idx] = True
-        F = np.concatenate([F[~done]] + added)
+        chosen = _independent(cand, te[around], len(edges))
+        X, T, F = _split_round(X, T, F, edges, te, chosen)
+        parents.append(np.stack([edges[chosen, 0], edges[chosen, 1]], axis=1))
     P = np.concatenate(parents) if parents else np.zeros((0, 2), dtype=np.int64)
     return EdgeSplit(X, T, F, P, rounds)
+
+
+def _split_round(X: NDArray[np.float64], T: NDArray[np.int64], F: NDArray[np.int64], edges: NDArray[np.int64],
+                 te: NDArray[np.int64], chosen: NDArray[np.int64]
+                 ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
+    """Split the ``chosen`` edges (no two in one tetrahedron) at their midpoints: new nodes
+    appended in the order of ``chosen``."""
+    mid = np.full(len(edges), -1, dtype=np.int64)
+    mid[chosen] = len(X) + np.arange(len(chosen))
+    a, b = edges[chosen, 0], edges[chosen, 1]
+    X = np.concatenate([X, 0.5 * (X[a] + X[b])])
+    # tetrahedra: the one split edge (local corners i, j) -> children with j := m and i := m
+    loc = mid[te]
+    hit = np.flatnonzero((loc >= 0).any(axis=1))
+    k = np.argmax(loc[hit] >= 0, axis=1)
+    m = loc[hit, k]
+    rows = np.arange(len(hit))
+    c1, c2 = T[hit].copy(), T[hit].copy()
+    c1[rows, TET_EDGES[k, 1]] = m
+    c2[rows, TET_EDGES[k, 0]] = m
+    keep = np.ones(len(T), dtype=bool)
+    keep[hit] = False
+    T = np.concatenate([T[keep], c1, c2])
+    # surface triangles on a split edge: at most one per triangle (its tetrahedron had one)
+    done = np.zeros(len(F), dtype=bool)
+    added = []
+    for u, v in ((0, 1), (1, 2), (2, 0)):
+        at, found = edge_lookup(edges, len(X), F[:, u], F[:, v])
+        idx = np.flatnonzero(found & (mid[at] >= 0) & ~done)
+        f1, f2 = F[idx].copy(), F[idx].copy()
+        f1[:, v] = mid[at[idx]]
+        f2[:, u] = mid[at[idx]]
+        added += [f1, f2]
+        done[idx] = True
+    F = np.concatenate([F[~done]] + added)
+    return X, T, F
+
+
+def split_long_edges(positions: NDArray[np.float64], tets: NDArray[np.int64], surface: NDArray[np.int64],
+                     max_length: float, max_rounds: int = 20, min_quality: float = SPLIT_MIN_QUALITY) -> EdgeSplit:
+    """Split every edge longer than ``max_length`` (mm) at its midpoint, longest first, but no
+    edge of a tetrahedron below ``min_quality`` (module docstring)."""
+
+    def longest(X: NDArray, T: NDArray, F: NDArray, edges: NDArray, te: NDArray) -> NDArray[np.int64]:
+        length = np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1)
+        cand = np.flatnonzero(length > max_length)
+        return cand[np.argsort(-length[cand], kind="stable")]
+    return split_edges(positions, tets, surface, longest, max_rounds, min_quality)

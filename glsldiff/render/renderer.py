@@ -59,6 +59,7 @@ from glsldiff import gl
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.core.io import write_npz
+from glsldiff.grids.adapt import ADAPT_TOL, refine_for_source
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
@@ -241,6 +242,9 @@ class Renderer:
             pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
         self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
                   f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
+        self._adapt_report = None
+        if g.discretisation == "fem" and g.adapt:
+            pg = self._adapt(scene, mesh, pg)
         frame = np.asarray(mesh.vertices)           # the uncut surface frames the camera
         crease, self._cut_report = None, None
         if scene.cut is not None:
@@ -254,6 +258,18 @@ class Renderer:
         self._geo = {"mesh": mesh, "render_mesh": render_mesh, "pg": pg, "hier": hier, "vertices": v, "faces": f,
                      "normals": render_mesh.vertex_normals, "interp": interp, "fem": fem,
                      "tetgeo": tet_geometry(pg) if fem else None, "frame": frame}
+
+    def _adapt(self, scene: Scene, mesh: Mesh, pg: Any) -> Any:
+        """The fem grid refined under the lights' sharp edges (:mod:`glsldiff.grids.adapt`),
+        marked by pass 1's source sampled at the surface nodes (shadows included)."""
+        def source(P: NDArray, N: NDArray) -> NDArray:
+            E_t, _ = incident_light(mesh, P, N, scene.lights, scene.material.eta, ctx=self.ctx)
+            return source_from_irradiance(np.asarray(E_t, dtype=np.float64), scene.material.eta, scene.options.exitant)
+        pg, rep = refine_for_source(pg, source)
+        self._adapt_report = rep
+        if rep.edges:
+            self._say(f"setup: {rep.line()} ({pg.n_active:,} nodes)")
+        return pg
 
     def _cut(self, scene: Scene, tm: Any, frame: NDArray) -> tuple[Any, Mesh, Mesh]:
         """TransCut's cut of the fTetWild mesh ``tm`` (``[cut]``), its report kept in
@@ -643,8 +659,10 @@ class Renderer:
     def render(self, scene: Scene) -> tuple[NDArray[np.float32], RenderReport]:
         """One frame: ``(h, w, 3)`` linear radiance (row 0 = top) and the report."""
         rep = RenderReport(renderer=gl.describe(self.ctx), image_size=(scene.output.width, scene.output.height))
+        adapt = scene.polygrid.discretisation == "fem" and scene.polygrid.adapt   # the grid follows the lights
         geo_key = _key(scene.mesh, scene.polygrid, str(scene.base_dir), scene.cut,
-                       (scene.camera, scene.output) if scene.cut is not None and scene.cut.stroke else None)
+                       (scene.camera, scene.output) if scene.cut is not None and scene.cut.stroke else None,
+                       (scene.lights, scene.material.eta, scene.options.exitant) if adapt else None)
         mat_key = _key(geo_key, replace(scene.material, reflectance=None), scene.paint,  # pass 3 alone: reflectance
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
         light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
@@ -719,6 +737,11 @@ class Renderer:
                              f"{SHAPE_TARGET:g} by the shape step), {q.split_edges:,} edges longer than "
                              f"{SPLIT_LENGTH:g} h split; coverage: mesh vertices within "
                              f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
+            ar = self._adapt_report
+            rep.notes.append("adapt: off ([polygrid] adapt = true refines under the lights' sharp edges)"
+                             if ar is None else f"adapt: {ar.line()}" if ar.edges else
+                             f"adapt: the source is linear along every surface edge (to {ADAPT_TOL:.0%} of its "
+                             "largest value): grid not refined")
         through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
                          f"source: {scene.options.source}; "

@@ -24,6 +24,10 @@ silently ignored).
                               # the lattice)
     levels = 1                # hierarchy levels (lattice only, default 3; fem solves on one
                               # level with its own algebraic multigrid)
+    adapt = false             # fem only: refine the tetrahedra under the lights' sharp edges (a spot's
+                              # rim, shadow borders, projector patterns; glsldiff.grids.adapt): closer to
+                              # the diffusion equation's answer, not to transport at hard light edges;
+                              # the grid then depends on the lights (changing them re-runs the setup)
 
     [material]                # exactly one of: preset / sigma_a + sigma_s_prime / volume / procedural
     preset = "marble"
@@ -181,6 +185,7 @@ class PolygridSpec:
     levels: int = 1
     discretisation: str = "fem"
     edge_mm: float | None = None     # tetwild: target tetrahedron edge, mm (default size_mm / 40)
+    adapt: bool = False              # fem: refine the grid under the lights' sharp edges (grids.adapt)
 
 
 #: The lattice polygrid of interactive editing (glsldiff view's bunny, glsldiff bench edit): many small
@@ -572,13 +577,13 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     g = _Table(src, "polygrid", data.get("polygrid", {}), _keys(PolygridSpec))
     disc = g.string("discretisation", "fem", DISCRETISATIONS)
     if disc == "tetwild":
-        for key in ("n", "cubes", "levels"):
+        for key in ("n", "cubes", "levels", "adapt"):
             if g.has(key):
                 g.fail(key, "not used by discretisation = \"tetwild\" (an fTetWild mesh of the surface); give "
                             "edge_mm, the target tetrahedron edge in mm")
         lo = mesh.size_mm / 200.0
         poly = PolygridSpec(FEM_N, 1, 1, disc, g.number("edge_mm", mesh.size_mm / TETWILD_EDGES_PER_SIZE, lo,
-                                                        hi=mesh.size_mm / 4.0))
+                                                        hi=mesh.size_mm / 4.0), adapt=False)
     else:
         if g.has("edge_mm"):
             g.fail("edge_mm", f"only discretisation = \"tetwild\" takes an edge length (this one: {disc!r})")
@@ -590,7 +595,11 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                              "lattice hierarchy")
         if n % 2 and disc != "fem":
             g.fail("n", f"must be even (the hierarchy halves it), got {n}")
-        poly = PolygridSpec(n, g.integer("cubes", default_cubes(disc, n), 1), levels, disc)
+        adapt = g.boolean("adapt", False)
+        if adapt and disc != "fem":
+            g.fail("adapt", f"the refinement under sharp light is for discretisation = \"fem\" only (this one: "
+                            f"{disc!r}); leave adapt out")
+        poly = PolygridSpec(n, g.integer("cubes", default_cubes(disc, n), 1), levels, disc, adapt=adapt)
         problem = (node_budget_problem(poly.cubes, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE) if disc == "fem"
                    else node_budget_problem(poly.cubes, n))
         if problem:

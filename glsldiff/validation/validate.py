@@ -101,6 +101,7 @@ class Case:
     volume_mm: float | None = None  # voxel size of Mitsuba's copy of a procedural material (default 48 cells)
     discretisation: str = "fem"     # [polygrid].discretisation of the diffusion renderer (fem, tetwild, ...)
     edge_mm: float | None = None    # tetwild's target edge length, mm
+    adapt: bool = False             # fem: [polygrid].adapt (refinement under the light's sharp edges)
 
     def __post_init__(self) -> None:
         if isinstance(self.light, str) and self.light not in ENVIRONMENTS + LOCALIZED:
@@ -185,7 +186,8 @@ def _light(case: Case) -> Light:
 
 def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
     poly = (PolygridSpec(discretisation="tetwild", edge_mm=case.edge_mm) if case.discretisation == "tetwild" else
-            PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1), case.discretisation))
+            PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1), case.discretisation,
+                         adapt=case.adapt and case.discretisation == "fem"))
     return Scene(mesh=MeshSpec(mesh_path or case.mesh, case.size_mm),
                  polygrid=poly,
                  material=MaterialSpec(preset=None, sigma_a=(case.sigma_a,) * 3, sigma_s_prime=(case.sigma_s,) * 3,
@@ -334,7 +336,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     row: dict[str, Any] = {
         "case": case.name, "light": case.light if env else "directional", "eta": case.eta, "source": case.source,
         "albedo": case.sigma_s / (case.sigma_s + case.sigma_a), "material": case.procedural or "homogeneous",
-        "nodes": rep.nodes, "pixels": int(inside.sum()),
+        "nodes": rep.nodes, "adapt": case.adapt and case.discretisation == "fem", "pixels": int(inside.sum()),
         "rmse_vs_mc_multiple": rmse(ours, multiple, inside),
         "rmse_vs_mc_all_scattering": rmse(ours, sub, inside),
         "mean_ratio": float(ours[inside].mean() / multiple[inside].mean()),
@@ -421,7 +423,8 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
     row: dict[str, Any] = {
         "case": case.name, "eta": case.eta, "source": case.source,
         "light": f"patch {case.patch_mm:g} mm" if case.light == "patch" else f"spot {case.patch_mm:g} deg",
-        "albedo": case.sigma_s / st, "thickness_mm": _thickness(case), "nodes": rep.nodes, "pixels": int(every.sum()),
+        "albedo": case.sigma_s / st, "thickness_mm": _thickness(case), "nodes": rep.nodes,
+        "adapt": case.adapt and case.discretisation == "fem", "pixels": int(every.sum()),
         "rel_l2": rmse(ours, sub, every), "power_ratio": float(ours.sum() / sub.sum()),
         "peak_ratio": _centre(ours, half) / peak_mc, "peak_mc": peak_mc,
         "mc_noise": _standard_error([p["subsurface"] for p in parts], every),
@@ -471,13 +474,14 @@ def _panels(path: Path, mc: NDArray, ours: NDArray, name: str, mc_title: str = "
 
 
 def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
-             source: str | None = None) -> list[dict[str, Any]]:
+             source: str | None = None, adapt: bool = False) -> list[dict[str, Any]]:
     """Run ``cases``; write validation.csv, and per case a PNG (diffusion | MC multiple scattering
     (eta = 1) or MC subsurface, all orders (eta != 1) | MC full image, surface reflection and
     background included), a PNG of panels (:func:`_panels`: MC, ours, difference, centre-row
     profile) and with eta = 1 one of the single scattering alone, the images as EXR and the
     environment map (if any). ``source`` (``"surface"`` or
-    ``"volume"``) overrides every case's diffusion source model."""
+    ``"volume"``) overrides every case's diffusion source model; ``adapt=True`` refines every
+    fem case's grid under the light's sharp edges (:mod:`glsldiff.grids.adapt`)."""
     unknown = [c for c in cases if c not in CASES]
     if unknown:
         raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}")
@@ -488,7 +492,8 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in cases:
-        case = CASES[name] if source is None else replace(CASES[name], source=source)
+        case = replace(CASES[name], adapt=CASES[name].adapt or adapt)
+        case = case if source is None else replace(case, source=source)
         row, imgs = run_case(case, size, spp, folder=out)
         rows.append(row)
         middle = imgs.get("mc_multiple", imgs["mc_subsurface"])
