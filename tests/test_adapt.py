@@ -148,3 +148,15 @@ def test_renderer_refines_under_a_spot_and_follows_the_light():
         r.render(off)
         _, rep = r.render(replace(off, lights=moved))
         assert not rep.ran("setup") and rep.ran("pass1")
+
+
+def test_validate_cases_take_the_option_on_fem_only():
+    """``glsldiff validate --adapt`` sets [polygrid] adapt on the fem cases, never on tetwild ones."""
+    from dataclasses import replace
+
+    from glsldiff.validation.validate import CASES, _scene
+    fem = next(c for c in CASES.values() if c.discretisation == "fem" and c.mesh != "slab")
+    tet = next(c for c in CASES.values() if c.discretisation == "tetwild")
+    assert not _scene(fem, None, 16).polygrid.adapt
+    assert _scene(replace(fem, adapt=True), None, 16).polygrid.adapt
+    assert not _scene(replace(tet, adapt=True), None, 16).polygrid.adapt
