@@ -160,3 +160,11 @@ def test_validate_cases_take_the_option_on_fem_only():
     assert not _scene(fem, None, 16).polygrid.adapt
     assert _scene(replace(fem, adapt=True), None, 16).polygrid.adapt
     assert not _scene(replace(tet, adapt=True), None, 16).polygrid.adapt
+
+
+def test_refinement_stops_at_the_node_limit(coarse):
+    g = coarse
+    full, rep_full = refine_for_source(g, lambda P, N: (P[:, 0] > 0.3).astype(float))
+    capped, rep = refine_for_source(g, lambda P, N: (P[:, 0] > 0.3).astype(float), max_nodes=len(g.positions) + 10)
+    assert rep.at_limit and "stopped at the node limit" in rep.line() and not rep_full.at_limit
+    assert 0 < rep.edges < rep_full.edges

@@ -61,21 +61,24 @@ class AdaptReport:
     marked: int             # surface edges over the tolerance before refining
     unfinished: int         # 1 if the rounds ran out with edges still marked
     seconds: float
+    at_limit: bool = False  # stopped at the node limit with edges still marked
 
     def line(self) -> str:
         return (f"refined under the light's sharp edges: {self.marked:,} surface edges where the source is not "
                 f"linear, {self.edges:,} edges split ({self.surface_nodes:,} on the surface) in {self.rounds} "
-                f"rounds{' (stopped at the round limit)' if self.unfinished else ''}, {self.seconds:.2f} s")
+                f"rounds{' (stopped at the round limit)' if self.unfinished else ''}"
+                f"{' (stopped at the node limit)' if self.at_limit else ''}, {self.seconds:.2f} s")
 
 
 def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_TOL,
                       finest: float = ADAPT_FINEST, depth: float = ADAPT_DEPTH,
-                      max_rounds: int = 24) -> tuple[FemGrid, AdaptReport]:
+                      max_rounds: int = 24, max_nodes: int | None = None) -> tuple[FemGrid, AdaptReport]:
     """The grid refined where the P1 interpolant misses ``source`` by more than ``tol`` of its
     largest value (module docstring) and what was done; the grid itself if nothing was marked.
     ``finest``: the shortest edge a split may leave and ``depth``: the reach of the refinement
     into the volume, both in lattice spacings h. The new grid's surface nodes start with the
-    old grid's, in their order."""
+    old grid's, in their order. ``max_nodes``: no round starts once the grid has this many
+    nodes (the report says so)."""
     if not 0.0 < tol < 1.0:
         raise ValueError(f"tol={tol!r} must be a fraction of the largest source value in (0, 1)")
     t0 = time.perf_counter()
@@ -90,6 +93,7 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
     state = _SurfaceSource(source, mesh, len(grid.positions), grid.surface_nodes, grid.normals, q0)
     shortest = 2.0 * finest * grid.h * (1.0 - 1e-9)
     marked: list[int] = []
+    limit = [False]
 
     def choose(X: NDArray, T: NDArray, F: NDArray, edges: NDArray, te: NDArray) -> NDArray[np.int64]:
         state.update(X, F)
@@ -97,6 +101,9 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
         hot_nodes = np.unique(state.surface_edges[miss > tol])
         marked.append(int((miss > tol).sum()))
         if hot_nodes.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        if max_nodes is not None and len(X) >= max_nodes:
+            limit[0] = True
             return np.zeros(0, dtype=np.int64)
         d, _ = cKDTree(X[hot_nodes]).query(X, distance_upper_bound=depth * grid.h + 1e-12)
         near = np.isfinite(d)
@@ -117,7 +124,7 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
     measure_quality(q, s.positions, s.tets, s.positions[np.concatenate([grid.surface_nodes, new_surface])], mesh,
                     grid.h)                           # the refined grid's own worst tetrahedron and coverage
     rep = AdaptReport(len(s.parents), len(new_surface), s.rounds, marked[0],
-                      int(s.rounds == max_rounds and marked[-1] > 0), time.perf_counter() - t0)
+                      int(s.rounds == max_rounds and marked[-1] > 0), time.perf_counter() - t0, limit[0])
     return (FemGrid(grid.complex, s.positions, nrm, q, mesh, grid.polycube, _compose(grid.split, s)), rep)
 
 

@@ -63,7 +63,7 @@ from glsldiff.grids.adapt import ADAPT_TOL, refine_for_source
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
 from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
-from glsldiff.grids.fem_grid import SPLIT_LENGTH
+from glsldiff.grids.fem_grid import FEM_MAX_NODES, SPLIT_LENGTH
 from glsldiff.grids.shapes import SHAPE_TARGET
 from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, subdivide
@@ -265,7 +265,7 @@ class Renderer:
         def source(P: NDArray, N: NDArray) -> NDArray:
             E_t, _ = incident_light(mesh, P, N, scene.lights, scene.material.eta, ctx=self.ctx)
             return source_from_irradiance(np.asarray(E_t, dtype=np.float64), scene.material.eta, scene.options.exitant)
-        pg, rep = refine_for_source(pg, source)
+        pg, rep = refine_for_source(pg, source, max_nodes=FEM_MAX_NODES)
         self._adapt_report = rep
         if rep.edges:
             self._say(f"setup: {rep.line()} ({pg.n_active:,} nodes)")
