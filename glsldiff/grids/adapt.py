@@ -59,7 +59,7 @@ class AdaptReport:
     surface_nodes: int      # ... of which on the surface
     rounds: int
     marked: int             # surface edges over the tolerance before refining
-    unfinished: int         # 1 if the rounds ran out with edges still marked
+    unfinished: bool        # the rounds ran out with edges still marked
     seconds: float
     at_limit: bool = False  # stopped at the node limit with edges still marked
 
@@ -89,7 +89,7 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
     q0 = q0.reshape(len(q0), -1)
     scale = float(np.abs(q0).max())
     if scale <= 0.0:
-        return grid, AdaptReport(0, 0, 0, 0, 0, time.perf_counter() - t0)
+        return grid, AdaptReport(0, 0, 0, 0, False, time.perf_counter() - t0)
     state = _SurfaceSource(source, mesh, len(grid.positions), grid.surface_nodes, grid.normals, q0)
     shortest = 2.0 * finest * grid.h * (1.0 - 1e-9)
     marked: list[int] = []
@@ -116,7 +116,7 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
 
     s = split_edges(grid.positions, grid.tets, grid.surface, choose, max_rounds=max_rounds)
     if not len(s.parents):
-        return grid, AdaptReport(0, 0, 0, marked[0], 0, time.perf_counter() - t0)
+        return grid, AdaptReport(0, 0, 0, marked[0], False, time.perf_counter() - t0)
     state.update(s.positions, s.surface)             # the last round's new surface nodes
     new_surface = s.surface_midpoints                 # node order: after every old node
     nrm = np.concatenate([grid.normals, state.normals[new_surface]])
@@ -124,7 +124,7 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
     measure_quality(q, s.positions, s.tets, s.positions[np.concatenate([grid.surface_nodes, new_surface])], mesh,
                     grid.h)                           # the refined grid's own worst tetrahedron and coverage
     rep = AdaptReport(len(s.parents), len(new_surface), s.rounds, marked[0],
-                      int(s.rounds == max_rounds and marked[-1] > 0), time.perf_counter() - t0, limit[0])
+                      s.rounds == max_rounds and marked[-1] > 0, time.perf_counter() - t0, limit[0])
     return (FemGrid(grid.complex, s.positions, nrm, q, mesh, grid.polycube, _compose(grid.split, s)), rep)
 
 
