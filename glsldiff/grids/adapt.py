@@ -96,7 +96,6 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
     limit = [False]
 
     def choose(X: NDArray, T: NDArray, F: NDArray, edges: NDArray, te: NDArray) -> NDArray[np.int64]:
-        state.update(X, F)
         miss = state.interpolation_miss(X, F) / scale
         hot_nodes = np.unique(state.surface_edges[miss > tol])
         marked.append(int((miss > tol).sum()))
@@ -117,7 +116,7 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
     s = split_edges(grid.positions, grid.tets, grid.surface, choose, max_rounds=max_rounds)
     if not len(s.parents):
         return grid, AdaptReport(0, 0, 0, marked[0], False, time.perf_counter() - t0)
-    state.update(s.positions, s.surface)             # the last round's new surface nodes
+    state.project_new(s.positions, s.surface)        # the last round's new surface nodes: normals only
     new_surface = s.surface_midpoints                 # node order: after every old node
     nrm = np.concatenate([grid.normals, state.normals[new_surface]])
     q = replace(grid.quality, seconds=dict(grid.quality.seconds))
@@ -130,7 +129,7 @@ def refine_for_source(grid: FemGrid, source: SourceFunction, tol: float = ADAPT_
 
 class _SurfaceSource:
     """The source at the surface nodes of a grid being refined, and at its surface edges'
-    midpoints, each evaluated once."""
+    midpoints, each evaluated once (one call of the source per round)."""
 
     def __init__(self, source: SourceFunction, mesh: Any, n: int, nodes: NDArray[np.int64],
                  normals: NDArray[np.float64], q: NDArray[np.float64]) -> None:
@@ -143,36 +142,40 @@ class _SurfaceSource:
         self.mid_values = np.zeros((0, q.shape[1]))
         self.surface_edges = np.zeros((0, 2), dtype=np.int64)
 
-    def update(self, X: NDArray[np.float64], F: NDArray[np.int64]) -> None:
-        """Grow to ``len(X)`` nodes; source and (projected) normals at new surface nodes."""
+    def project_new(self, X: NDArray[np.float64], F: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Grow to ``len(X)`` nodes and project the new surface nodes onto the mesh for their
+        normals; returns them (their source is still to be evaluated)."""
         grow = len(X) - len(self.values)
         if grow > 0:
             self.values = np.concatenate([self.values, np.full((grow, self.values.shape[1]), np.nan)])
             self.normals = np.concatenate([self.normals, np.full((grow, 3), np.nan)])
         new = np.unique(F)
-        new = new[np.isnan(self.values[new, 0])]
+        new = new[np.isnan(self.normals[new, 0])]
         if new.size:
-            nrm = closest_points(self.mesh, X[new])[3]
-            self.normals[new] = nrm
-            self.values[new] = np.asarray(self.source(X[new], nrm), dtype=np.float64).reshape(len(new), -1)
+            self.normals[new] = closest_points(self.mesh, X[new])[3]
+        return new
 
     def interpolation_miss(self, X: NDArray[np.float64], F: NDArray[np.int64]) -> NDArray[np.float64]:
         """Per unique surface edge (kept in :attr:`surface_edges`): the largest difference over
         the channels between the source at its midpoint (normal: the ends' mean) and the mean of
-        its ends' values, i.e. what the P1 interpolant misses there."""
+        its ends' values, i.e. what the P1 interpolant misses there. The new surface nodes and
+        the new edges' midpoints are evaluated together."""
+        new = self.project_new(X, F)
         e = np.sort(triangle_edges(F), axis=1)
         keys, first = np.unique(e[:, 0] * _KEY + e[:, 1], return_index=True)
         e = e[first]
         self.surface_edges = e
-        known = np.isin(keys, self.mid_keys)
-        todo = np.flatnonzero(~known)
-        if todo.size:
-            a, b = e[todo, 0], e[todo, 1]
-            nrm = self.normals[a] + self.normals[b]
-            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
-            v = np.asarray(self.source(0.5 * (X[a] + X[b]), nrm), dtype=np.float64).reshape(len(todo), -1)
+        todo = np.flatnonzero(~np.isin(keys, self.mid_keys))
+        a, b = e[todo, 0], e[todo, 1]
+        nrm = self.normals[a] + self.normals[b]
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-30)
+        if new.size or todo.size:
+            v = np.asarray(self.source(np.concatenate([X[new], 0.5 * (X[a] + X[b])]),
+                                       np.concatenate([self.normals[new], nrm])), dtype=np.float64)
+            v = v.reshape(len(new) + len(todo), -1)
+            self.values[new] = v[:len(new)]
             self.mid_keys = np.concatenate([self.mid_keys, keys[todo]])
-            self.mid_values = np.concatenate([self.mid_values, v])
+            self.mid_values = np.concatenate([self.mid_values, v[len(new):]])
             order = np.argsort(self.mid_keys)
             self.mid_keys, self.mid_values = self.mid_keys[order], self.mid_values[order]
         mid = self.mid_values[np.searchsorted(self.mid_keys, keys)]

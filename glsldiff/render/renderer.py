@@ -243,7 +243,7 @@ class Renderer:
         self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
                   f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
         self._adapt_report = None
-        if g.discretisation == "fem" and g.adapt:
+        if g.refines:
             pg = self._adapt(scene, mesh, pg)
         frame = np.asarray(mesh.vertices)           # the uncut surface frames the camera
         crease, self._cut_report = None, None
@@ -659,10 +659,10 @@ class Renderer:
     def render(self, scene: Scene) -> tuple[NDArray[np.float32], RenderReport]:
         """One frame: ``(h, w, 3)`` linear radiance (row 0 = top) and the report."""
         rep = RenderReport(renderer=gl.describe(self.ctx), image_size=(scene.output.width, scene.output.height))
-        adapt = scene.polygrid.discretisation == "fem" and scene.polygrid.adapt   # the grid follows the lights
         geo_key = _key(scene.mesh, scene.polygrid, str(scene.base_dir), scene.cut,
                        (scene.camera, scene.output) if scene.cut is not None and scene.cut.stroke else None,
-                       (scene.lights, scene.material.eta, scene.options.exitant) if adapt else None)
+                       (scene.lights, scene.material.eta, scene.options.exitant) if scene.polygrid.refines
+                       else None)                                          # the refined grid follows the lights
         mat_key = _key(geo_key, replace(scene.material, reflectance=None), scene.paint,  # pass 3 alone: reflectance
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
         light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),

@@ -187,6 +187,11 @@ class PolygridSpec:
     edge_mm: float | None = None     # tetwild: target tetrahedron edge, mm (default size_mm / 40)
     adapt: bool = False              # fem: refine the grid under the lights' sharp edges (grids.adapt)
 
+    @property
+    def refines(self) -> bool:
+        """The grid is refined under the lights' sharp edges (``adapt`` on a fem grid)."""
+        return self.adapt and self.discretisation == "fem"
+
 
 #: The lattice polygrid of interactive editing (glsldiff view's bunny, glsldiff bench edit): many small
 #: cubes (n = 4, about 2000 of them, 2 levels; 125 k nodes on the bunny) put nodes into thin parts the

@@ -103,6 +103,11 @@ class Case:
     edge_mm: float | None = None    # tetwild's target edge length, mm
     adapt: bool = False             # fem: [polygrid].adapt (refinement under the light's sharp edges)
 
+    @property
+    def refines(self) -> bool:
+        """The diffusion grid is refined under the light's sharp edges (``adapt`` on fem)."""
+        return self.adapt and self.discretisation == "fem"
+
     def __post_init__(self) -> None:
         if isinstance(self.light, str) and self.light not in ENVIRONMENTS + LOCALIZED:
             raise InputError(f"case {self.name}: light {self.light!r} is not an environment "
@@ -187,7 +192,7 @@ def _light(case: Case) -> Light:
 def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
     poly = (PolygridSpec(discretisation="tetwild", edge_mm=case.edge_mm) if case.discretisation == "tetwild" else
             PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1), case.discretisation,
-                         adapt=case.adapt and case.discretisation == "fem"))
+                         adapt=case.refines))
     return Scene(mesh=MeshSpec(mesh_path or case.mesh, case.size_mm),
                  polygrid=poly,
                  material=MaterialSpec(preset=None, sigma_a=(case.sigma_a,) * 3, sigma_s_prime=(case.sigma_s,) * 3,
@@ -336,7 +341,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     row: dict[str, Any] = {
         "case": case.name, "light": case.light if env else "directional", "eta": case.eta, "source": case.source,
         "albedo": case.sigma_s / (case.sigma_s + case.sigma_a), "material": case.procedural or "homogeneous",
-        "nodes": rep.nodes, "adapt": case.adapt and case.discretisation == "fem", "pixels": int(inside.sum()),
+        "nodes": rep.nodes, "adapt": case.refines, "pixels": int(inside.sum()),
         "rmse_vs_mc_multiple": rmse(ours, multiple, inside),
         "rmse_vs_mc_all_scattering": rmse(ours, sub, inside),
         "mean_ratio": float(ours[inside].mean() / multiple[inside].mean()),
@@ -424,7 +429,7 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
         "case": case.name, "eta": case.eta, "source": case.source,
         "light": f"patch {case.patch_mm:g} mm" if case.light == "patch" else f"spot {case.patch_mm:g} deg",
         "albedo": case.sigma_s / st, "thickness_mm": _thickness(case), "nodes": rep.nodes,
-        "adapt": case.adapt and case.discretisation == "fem", "pixels": int(every.sum()),
+        "adapt": case.refines, "pixels": int(every.sum()),
         "rel_l2": rmse(ours, sub, every), "power_ratio": float(ours.sum() / sub.sum()),
         "peak_ratio": _centre(ours, half) / peak_mc, "peak_mc": peak_mc,
         "mc_noise": _standard_error([p["subsurface"] for p in parts], every),
