@@ -1,8 +1,10 @@
 """``glsldiff bench meshes``: the tetrahedral polygrid on meshes nobody tuned it for.
 
 For each mesh (the pymeshlab samples bunny, cow, bone, airplane; a torus; a 100 x 100 x 2 mm
-tile; a 100 mm cube; all 100 mm long) and each target cube count (default: the scene
-default's): the grid's node count, inverted and worst tetrahedra (quality 1 = regular, <= 0
+tile; a 100 mm cube; all 100 mm long), each n asked for and each target cube count (default:
+the scene default's for that n): the cubes actually used (``cube_nodes`` nodes per edge:
+:data:`glsldiff.grids.fem_grid.FINE_CUBE_NODES` where cubes of n nodes cannot carry the mesh,
+``fine_reason`` says why), the grid's node count, inverted and worst tetrahedra (quality 1 = regular, <= 0
 inverted), coverage (largest and 99th-percentile distance from a mesh vertex to its nearest
 surface node, in lattice spacings h), the pass-2 solve (sweeps, status) and the render time,
 with a front-lit and a back-lit render of each (veined marble, 256 x 256) saved as PNG beside
@@ -91,25 +93,26 @@ def _against_refined(r: Renderer, scene: Any, sources: dict[str, np.ndarray]) ->
     return row
 
 
-def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = None, n: int = 2,
+def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = None, ns: Sequence[int] = (2,),
                out: Path = Path("bench-out"), size: int = 256, refined: bool = True,
                progress: Callable[[str], None] | None = None) -> list[dict[str, object]]:
-    """The table (module docstring); renders and ``meshes.csv`` go to ``out``. ``cubes``
-    defaults to the scene default's count for ``n`` (:func:`glsldiff.render.scene.default_cubes`);
-    ``refined``: also compare each grid's solves with its 1:8 refinement's."""
-    cubes = [default_cubes("fem", n)] if cubes is None else cubes
+    """The table (module docstring); renders and ``meshes.csv`` go to ``out``, one row per
+    mesh, n (nodes per cube edge asked for) and cube count. ``cubes`` defaults to the scene
+    default's count for each n (:func:`glsldiff.render.scene.default_cubes`); ``refined``:
+    also compare each grid's solves with its 1:8 refinement's."""
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, object]] = []
     tiles: dict[str, list[np.ndarray]] = {}
+    runs = [(n, k) for n in ns for k in ([default_cubes("fem", n)] if cubes is None else cubes)]
     with Renderer(allow_unconverged=True) as r:
         for name in meshes:
             src = _source(name, out)
-            for k in cubes:
+            for n, k in runs:
                 row: dict[str, object] = {"mesh": name, "cubes_target": k, "n": n}
                 sources: dict[str, np.ndarray] = {}
                 for light, direction in LIGHTS.items():
                     if progress:
-                        progress(f"meshes: {name}, {k} cubes, {light}-lit")
+                        progress(f"meshes: {name}, n = {n}, {k} cubes, {light}-lit")
                     scene = parse_scene({"mesh": {"source": src, "size_mm": 100.0},
                                          "polygrid": {"n": n, "cubes": k, "discretisation": "fem", "levels": 1,
                                                       "adapt": False},   # one grid for both lights
@@ -129,19 +132,21 @@ def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = Non
                     if light == "front":
                         row.update(_against_oracle(r))
                     sources[light] = r.boundary_source.copy()
-                    _, _, exposure = save(img, out / f"{name}_{k}_{light}.exr", scene, rep)
-                    tiles.setdefault(f"{name}_{k}", []).append(io.tonemap(img, exposure))
+                    _, _, exposure = save(img, out / f"{name}_n{n}_{k}_{light}.exr", scene, rep)
+                    tiles.setdefault(f"{name}_n{n}_{k}", []).append(io.tonemap(img, exposure))
                 if refined and sources:
                     if progress:
-                        progress(f"meshes: {name}, {k} cubes, against the 1:8 refined grid")
+                        progress(f"meshes: {name}, n = {n}, {k} cubes, against the 1:8 refined grid")
                     row.update(_against_refined(r, scene, sources))
                 g = r.polygrid if "front_s" in row or "back_s" in row else None
                 if g is not None:
                     q = g.quality
-                    row.update({"cubes": len(g.polycube.cubes), "h_mm": g.h, "nodes": g.n_active,
+                    row.update({"cubes": len(g.polycube.cubes), "cube_nodes": g.complex.lattice.n, "h_mm": g.h,
+                                "nodes": g.n_active,
                                 "inverted": q.inverted, "worst_quality": q.worst_quality, "split_edges": q.split_edges,
                                 "coverage_max_h": q.coverage_max, "coverage_p99_h": q.coverage_p99,
-                                "mapping_s": q.seconds.get("total", float("nan"))})
+                                "mapping_s": q.seconds.get("total", float("nan")),
+                                "fine_reason": q.fine_reason})
                 rows.append(row)
     io.write_csv(out / "meshes.csv", rows)
     full = [np.concatenate(t, axis=1) for t in tiles.values() if len(t) == len(LIGHTS)]

@@ -270,7 +270,12 @@ def cmd_bench_meshes(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
     rows = mesh_bench(args.meshes, args.cubes, args.n, out, args.size, refined=not args.no_refined,
                       progress=_status)
-    print_table("tetrahedral polygrid on meshes (fem discretisation; coverage in lattice spacings h)", rows)
+    print_table("tetrahedral polygrid on meshes (fem discretisation; coverage in lattice spacings h)",
+                [{k: v for k, v in r.items() if k != "fine_reason"} for r in rows])
+    for r in rows:
+        if r.get("fine_reason"):
+            print(f"{r['mesh']}, n = {r['n']}: cubes of {r['cube_nodes']} nodes per edge, since with cubes of "
+                  f"n nodes {r['fine_reason']}")
     print(f"wrote meshes.csv, meshes.png and the renders to {out}/")
     return 0
 
@@ -474,7 +479,9 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--meshes", nargs="+", default=list(BENCH_MESHES), choices=BENCH_MESHES)
     b.add_argument("--cubes", type=A.integer(1), nargs="+", default=None,
                    help="target cube counts (default: the scene default's for --n)")
-    b.add_argument("--n", type=A.integer(2, 16), default=2, help="nodes per cube edge")
+    b.add_argument("--n", type=A.integer(2, 16), nargs="+", default=[2],
+                   help="nodes per cube edge (several: one row each; cubes of 2 nodes are used where "
+                        "larger ones cannot carry the mesh)")
     b.add_argument("--size", type=A.integer(16, 2048), default=256, help="render side, px")
     b.add_argument("--no-refined", action="store_true",
                    help="skip the comparison with each grid's 1:8 refinement (about 8x the grid's memory, "

@@ -73,6 +73,22 @@ Mapping (:func:`map_pillow`):
    (:mod:`glsldiff.oracle.refined`), back-lit bunny: +2.5 % nodes, 2.15 -> 1.81 % RMS of the
    exitance, max 24 -> 18 %.
 
+7. **Cubes no larger than the mesh allows** (:func:`build_fem_grid`): n and the cube count (or
+   size) set the lattice spacing h = cube / n. The cubes themselves play no further part in
+   the P1 system (no texture blocks, no per-cube hierarchy), but they set how closely the
+   polycube follows the mesh, and cubes of many nodes miss thin parts: at n = 8 (234 cubes,
+   the default node budget) the bunny's ears and the cow's legs got no cube (mesh vertices
+   11-12 h from every surface node) and 1-19 tetrahedra stayed inverted on four of six
+   meshes. So a polycube of cubes of n > :data:`FINE_CUBE_NODES` nodes is mapped only if
+   the mesh surface lies at most :data:`FINE_TRIGGER` h outside it and it fits the node
+   budget, and kept only if its grid has no inverted tetrahedron and its coverage is within
+   :data:`COVERAGE_TARGET` h; otherwise the grid is built from cubes of
+   :data:`FINE_CUBE_NODES` nodes for the same request (a cube size ``n / 2`` times smaller, or
+   ``(n / 2)^3`` times as many cubes: about the same h, exactly where a size was given), and
+   :attr:`MappingQuality.fine_reason` says why. A request over the node budget once the
+   search has snapped the cubes to the mesh (a 2 mm tile at n = 8: 2 mm cubes, 1.3 M nodes)
+   falls back the same way, to the spacing the request meant.
+
 :class:`MappingQuality` reports inverted and the worst tetrahedra and the surface nodes'
 spacing.
 """
@@ -95,10 +111,10 @@ from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
 from glsldiff.grids.pillow import PillowComplex, edge_adjacency, mean_operator, signed_volumes, triangle_edges
-from glsldiff.grids.polycube import Polycube, polycube_from_mesh
+from glsldiff.grids.polycube import Polycube, outside_distance, polycube_from_mesh
 from glsldiff.grids.shapes import improve_shapes, shape_quality
 from glsldiff.grids.split import EdgeSplit, split_long_edges
-from glsldiff.grids.polygrid import check_node_budget
+from glsldiff.grids.polygrid import check_node_budget, node_budget_problem
 from glsldiff.mesh import Mesh, closest_points, surface_samples
 from glsldiff.mesh.features import Features, mesh_features
 
@@ -112,6 +128,14 @@ COVERAGE_TARGET = 1.5
 #: ~2 kB of assembly, hierarchy and mapping memory per node (the default scene: 143k nodes).
 FEM_MAX_NODES = 1_000_000
 FEM_BYTES_PER_NODE = 2048
+
+#: Nodes per edge of the cubes a tetrahedral grid falls back to where larger cubes cannot
+#: carry the mesh (step 7; the default scene's n).
+FINE_CUBE_NODES = 2
+#: Largest distance (in h) the mesh surface may lie outside a polycube of larger cubes for it
+#: to be mapped at all (step 7): a smooth surface lies up to ~0.47 cube edges outside, so
+#: cubes of n <= 6 pass on smooth meshes and thin parts send larger ones to the fine cubes.
+FINE_TRIGGER = 3.0
 
 
 @dataclass
@@ -137,6 +161,8 @@ class MappingQuality:
     reshaped: int = 0                       # node moves of the shape step
     split_edges: int = 0                    # edges split after the mapping (new nodes)
     split_surface_nodes: int = 0            # ... of which on the surface
+    requested_n: int = 0                    # n asked for, when cubes of FINE_CUBE_NODES were used instead (step 7)
+    fine_reason: str = ""                   # ... and why
     seconds: dict[str, float] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, object]:
@@ -562,7 +588,12 @@ def measure_quality(q: MappingQuality, X: NDArray[np.float64], tets: NDArray[np.
 def build_fem_grid(mesh: Mesh, n: int = 4, cube_size: float | None = None, n_cubes: int | None = None,
                    threshold: float = 0.5, polycube: Polycube | None = None,
                    mapping: dict[str, Any] | None = None) -> FemGrid:
-    """Polycube, pillowed lattice and mapping for a closed mesh (mm)."""
+    """Polycube, pillowed lattice and mapping for a closed mesh (mm).
+
+    ``cube_size`` (mm) or ``n_cubes`` with ``n`` set the lattice spacing h = cube / n. Cubes
+    of more than :data:`FINE_CUBE_NODES` nodes whose polycube cannot carry the mesh (step 7
+    of the module docstring) give way to cubes of :data:`FINE_CUBE_NODES` nodes at about the
+    same h; an explicit ``polycube`` is mapped as given."""
     if not isinstance(n, (int, np.integer)) or n < 2:
         raise InputError(f"n={n!r} nodes per cube edge must be an integer >= 2")
     budget = {"what": "tetrahedral grid", "limit": FEM_MAX_NODES, "bytes_per_node": FEM_BYTES_PER_NODE}
@@ -572,14 +603,49 @@ def build_fem_grid(mesh: Mesh, n: int = 4, cube_size: float | None = None, n_cub
     if polycube is not None:
         return _map_polycube(mesh, polycube, n, mapping, budget)
     search = {"cube_size": cube_size, "n_cubes": n_cubes, "threshold": threshold}
-    grid = _map_polycube(mesh, polycube_from_mesh(mesh, thin_parts=False, **search), n, mapping, budget)
-    if grid.quality.inverted or grid.quality.coverage_max > COVERAGE_TARGET:
-        grown = polycube_from_mesh(mesh, **search)
-        if grown.grown:
-            other = _map_polycube(mesh, grown, n, mapping, budget)
-            if _rank(other.quality) < _rank(grid.quality):
-                return other
+    try:
+        coarse = polycube_from_mesh(mesh, thin_parts=False, **search)
+        reason = _too_coarse(mesh, coarse, n) if n > FINE_CUBE_NODES else None
+    except InputError as exc:   # no polycube of that topology with cubes that large
+        if n <= FINE_CUBE_NODES:
+            raise
+        why = str(exc)
+        reason = f"no polycube was found ({why if len(why) <= 160 else why[:157] + '...'})"
+    grid = None
+    if reason is None:
+        grid = _map_polycube(mesh, coarse, n, mapping, budget)
+        if grid.quality.inverted or grid.quality.coverage_max > COVERAGE_TARGET:
+            grown = polycube_from_mesh(mesh, **search)
+            if grown.grown:
+                other = _map_polycube(mesh, grown, n, mapping, budget)
+                if _rank(other.quality) < _rank(grid.quality):
+                    grid = other
+        if n <= FINE_CUBE_NODES or _rank(grid.quality)[:2] == (0, False):
+            return grid
+        q = grid.quality
+        reason = (f"its grid had {q.inverted} inverted tetrahedra and left mesh vertices "
+                  f"{q.coverage_max:.2f} h from every surface node")
+    scale = n / FINE_CUBE_NODES   # about the same h: cubes `scale` times smaller, `scale^3` times as many
+    fine = build_fem_grid(mesh, FINE_CUBE_NODES, None if cube_size is None else cube_size / scale,
+                          None if n_cubes is None else max(1, round(n_cubes * scale ** 3)), threshold,
+                          mapping=mapping)
+    fine.quality.requested_n, fine.quality.fine_reason = n, reason
+    if grid is None or _rank(fine.quality) < _rank(grid.quality):
+        return fine
     return grid
+
+
+def _too_coarse(mesh: Mesh, polycube: Polycube, n: int) -> str | None:
+    """Why cubes of ``n`` nodes cannot carry ``mesh`` (step 7 of the module docstring), or None."""
+    problem = node_budget_problem(polycube.count, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE)
+    if problem:
+        return problem
+    h = polycube.size / n
+    gap = float(outside_distance(polycube, surface_samples(mesh, h)).max()) / h
+    if gap > FINE_TRIGGER:
+        return (f"the mesh surface lies up to {gap:.1f} h outside its {polycube.count:,} cubes of "
+                f"{polycube.size:.3g} mm (more than {FINE_TRIGGER:g} h)")
+    return None
 
 
 def _rank(q: MappingQuality) -> tuple[int, bool, float]:

@@ -277,7 +277,16 @@ def _outside_distance(points: NDArray[np.float64], occ: NDArray[np.bool_], corne
                       size: float) -> NDArray[np.float64]:
     """Distance (mm) from each point to the union of the occupied cubes (exact for the eight
     nearest cube centres); cell ``p`` of ``occ`` spans ``corner + size * [p, p + 1]``."""
-    centres = corner + size * (np.argwhere(occ) + 0.5)
+    return _distance_to_cubes(points, corner + size * (np.argwhere(occ) + 0.5), size)
+
+
+def outside_distance(polycube: Polycube, points: ArrayLike) -> NDArray[np.float64]:
+    """Distance (mm) from each point to the union of the polycube's cubes (0 inside)."""
+    return _distance_to_cubes(np.asarray(points, dtype=np.float64), polycube.centers, polycube.size)
+
+
+def _distance_to_cubes(points: NDArray[np.float64], centres: NDArray[np.float64], size: float
+                       ) -> NDArray[np.float64]:
     _, j = cKDTree(centres).query(points, k=min(8, len(centres)))
     j = j.reshape(len(points), -1)
     gap = np.maximum(np.abs(points[:, None] - centres[j]) - 0.5 * size, 0.0)

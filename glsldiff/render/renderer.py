@@ -242,6 +242,9 @@ class Renderer:
             pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
         self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
                   f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
+        if fem and g.discretisation == "fem" and pg.quality.fine_reason:
+            self._say(f"setup: built from {len(pg.polycube.cubes):,} cubes of {pg.complex.lattice.n} nodes per edge at "
+                      f"about the same spacing instead: with n = {g.n}, {pg.quality.fine_reason}")
         self._adapt_report = None
         if g.refines:
             pg = self._adapt(scene, mesh, pg)
@@ -732,7 +735,10 @@ class Renderer:
                              f"{' (before the cut)' if scene.cut is not None else ''}")
         elif self._geo["fem"]:
             q = pg.quality
-            rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, {q.inverted} "
+            rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.polycube.cubes):,} cubes of "
+                             f"{pg.complex.lattice.n} nodes per edge"
+                             f"{f' (n = {q.requested_n} asked for: {q.fine_reason})' if q.fine_reason else ''}, "
+                             f"{len(pg.tets):,} tetrahedra, {q.inverted} "
                              f"inverted, worst quality {q.worst_quality:.3g} ({q.poor_before:,} -> {q.poor:,} below "
                              f"{SHAPE_TARGET:g} by the shape step), {q.split_edges:,} edges longer than "
                              f"{SPLIT_LENGTH:g} h split; coverage: mesh vertices within "

@@ -19,7 +19,9 @@ silently ignored).
                               # conservative | paper (the 6-point lattice stencils, hierarchical)
     edge_mm = 2.5             # tetwild only: target tetrahedron edge (default size_mm / 40); tetwild
                               # takes no n, cubes or levels
-    n = 2                     # nodes per cube edge (default 2 for fem, 8 for the lattice)
+    n = 2                     # nodes per cube edge (default 2 for fem, 8 for the lattice); fem: with
+                              # cubes it sets the spacing h = cube / n, and cubes of n > 2 that cannot
+                              # carry the mesh give way to cubes of 2 nodes (glsldiff.grids.fem_grid, step 7)
     cubes = 15000             # polycube target cube count (default 120000 / n^3 for fem, 253 for
                               # the lattice)
     levels = 1                # hierarchy levels (lattice only, default 3; fem solves on one

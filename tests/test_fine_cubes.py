@@ -1,0 +1,85 @@
+"""Tetrahedral grids fall back to cubes of FINE_CUBE_NODES nodes where cubes of the n asked
+for cannot carry the mesh (glsldiff.grids.fem_grid, step 7)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from glsldiff.core.errors import InputError
+from glsldiff.grids.fem_grid import COVERAGE_TARGET, FINE_CUBE_NODES, FINE_TRIGGER, build_fem_grid
+from glsldiff.grids.polycube import outside_distance, polycube_from_cubes, polycube_from_mesh
+from glsldiff.mesh import box_mesh, sphere_mesh, surface_samples
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return sphere_mesh(10.0, subdivisions=3)
+
+
+def test_outside_distance_of_a_polycube() -> None:
+    pc = polycube_from_cubes([[0, 0, 0], [1, 0, 0]], 2.0)   # the box [0, 4] x [0, 2] x [0, 2] mm
+    d = outside_distance(pc, [[1.0, 1.0, 1.0], [7.0, 1.0, 1.0], [5.0, 3.0, 1.0], [2.0, -0.5, 2.5]])
+    assert d == pytest.approx([0.0, 3.0, np.sqrt(2.0), np.sqrt(0.5)])
+
+
+def test_smooth_mesh_keeps_the_cubes_asked_for(sphere) -> None:
+    g = build_fem_grid(sphere, n=4, cube_size=5.0)   # a sphere lies ~0.47 cubes = 1.9 h outside
+    assert g.complex.lattice.n == 4 and g.polycube.size == 5.0
+    assert g.quality.fine_reason == "" and g.quality.requested_n == 0
+
+
+def test_cubes_too_coarse_for_the_surface(sphere) -> None:
+    pc = polycube_from_mesh(sphere, cube_size=5.0, thin_parts=False)
+    gap = outside_distance(pc, surface_samples(sphere, 5.0 / 8)).max() / (5.0 / 8)
+    assert gap > FINE_TRIGGER   # cubes of 8 nodes: the surface is farther out than the trigger
+    g = build_fem_grid(sphere, n=8, cube_size=5.0)
+    q = g.quality
+    assert g.complex.lattice.n == FINE_CUBE_NODES
+    assert g.polycube.size == pytest.approx(5.0 * FINE_CUBE_NODES / 8)     # the same h
+    assert g.h == pytest.approx(5.0 / 8)
+    assert q.requested_n == 8 and "outside" in q.fine_reason
+    assert q.inverted == 0 and q.coverage_max <= COVERAGE_TARGET
+
+
+def test_no_polycube_of_large_cubes_falls_back(sphere) -> None:
+    with pytest.raises(InputError):
+        polycube_from_mesh(sphere, cube_size=15.0)   # no 15 mm cube is half inside
+    g = build_fem_grid(sphere, n=8, cube_size=15.0)
+    assert g.complex.lattice.n == FINE_CUBE_NODES and "no polycube" in g.quality.fine_reason
+    assert g.quality.inverted == 0
+
+
+def test_over_the_node_budget_falls_back_to_the_requested_budget() -> None:
+    plate = box_mesh((60.0, 60.0, 1.0), origin=(-30.0, -30.0, -0.5))
+    # 20 cubes of n = 8 asked for: the search snaps the cubes to the 1 mm thickness, 3,600 of
+    # them, 1.8 M lattice nodes; the fine cubes are searched for 20 * 4^3 cubes instead
+    g = build_fem_grid(plate, n=8, n_cubes=20)
+    q = g.quality
+    assert g.complex.lattice.n == FINE_CUBE_NODES and "limit" in q.fine_reason
+    assert g.n_active < 100_000
+    assert q.inverted == 0 and q.coverage_max <= COVERAGE_TARGET
+
+
+def test_n_two_has_no_fallback(sphere) -> None:
+    with pytest.raises(InputError, match="polycube"):
+        build_fem_grid(sphere, n=2, cube_size=15.0)
+
+
+def test_render_report_says_which_cubes() -> None:
+    """A scene asking for n = 8 on a sphere too small for cubes of 8 nodes renders from cubes
+    of 2 and says so in its report, with the same spacing h."""
+    from glsldiff.render.renderer import Renderer
+    from glsldiff.render.scene import parse_scene
+    scene = parse_scene({"mesh": {"source": "sphere", "size_mm": 20.0},
+                         "polygrid": {"n": 8, "cubes": 30, "discretisation": "fem"},
+                         "material": {"preset": "marble"}, "lights": [{"type": "directional", "direction": [0, 0, 1]}],
+                         "output": {"width": 32, "height": 32}})
+    said: list[str] = []
+    with Renderer(status=said.append) as r:
+        img, rep = r.render(scene)
+        pg = r.polygrid
+    assert np.isfinite(img).all() and img.max() > 0
+    grid = next(n for n in rep.notes if n.startswith("grid: tetrahedral (fem)"))
+    assert f"cubes of {FINE_CUBE_NODES} nodes per edge (n = 8 asked for: " in grid
+    assert any("cubes of 2 nodes per edge at about the same spacing instead: with n = 8" in s for s in said)
+    assert pg.complex.lattice.n == FINE_CUBE_NODES and pg.quality.inverted == 0
