@@ -83,3 +83,38 @@ def test_render_report_says_which_cubes() -> None:
     assert f"cubes of {FINE_CUBE_NODES} nodes per edge (n = 8 asked for: " in grid
     assert any("cubes of 2 nodes per edge at about the same spacing instead: with n = 8" in s for s in said)
     assert pg.complex.lattice.n == FINE_CUBE_NODES and pg.quality.inverted == 0
+
+
+def test_retries_other_cube_sizes_until_the_targets_are_met(monkeypatch, sphere) -> None:
+    """Step 8's control flow, on stand-in builds: a first grid that misses the targets is built
+    again at the sizes of RETRY_SIZES in turn, the first one meeting both ends the search, the
+    best is kept and the report says what it took (the real builds: the bench's meshes)."""
+    from types import SimpleNamespace
+
+    from glsldiff.grids import fem_grid
+    from glsldiff.grids.fem_grid import MappingQuality, RETRY_SIZES
+
+    outcomes = {1.0: (1, 1.1), RETRY_SIZES[0]: (0, 2.0), RETRY_SIZES[1]: (0, 1.2), RETRY_SIZES[2]: (0, 1.0)}
+    calls = []
+
+    def fake(mesh, n, cube_size, n_cubes, threshold, mapping, budget):
+        size = 2.0 if cube_size is None else cube_size
+        calls.append(round(size / 2.0, 6))
+        inverted, coverage = outcomes[round(size / 2.0, 6)]
+        q = MappingQuality(inverted=inverted, coverage_max=coverage)
+        if cube_size is None:
+            q.requested_n, q.fine_reason = 8, "too coarse"
+        return SimpleNamespace(quality=q, complex=SimpleNamespace(lattice=SimpleNamespace(n=2)),
+                               polycube=SimpleNamespace(size=size))
+
+    monkeypatch.setattr(fem_grid, "_build_searched", fake)
+    g = build_fem_grid(sphere, n=8, n_cubes=40)
+    assert calls == [1.0, RETRY_SIZES[0], RETRY_SIZES[1]]      # stops at the first that meets both targets
+    assert g.quality.inverted == 0 and g.quality.coverage_max == 1.2
+    assert g.quality.retries == 2 and g.quality.size_factor == RETRY_SIZES[1]
+    assert g.quality.requested_n == 8 and g.quality.fine_reason == "too coarse"
+    calls.clear()
+    outcomes.update({f: (3, 1.0) for f in RETRY_SIZES})           # none helps: the first is kept
+    g = build_fem_grid(sphere, n=8, n_cubes=40)
+    assert calls == [1.0, *RETRY_SIZES] and g.quality.inverted == 1 and g.quality.size_factor == 1.0
+    assert g.quality.retries == len(RETRY_SIZES)

@@ -3,11 +3,14 @@
 For each mesh (the pymeshlab samples bunny, cow, bone, airplane; a torus; a 100 x 100 x 2 mm
 tile; a 100 mm cube; all 100 mm long), each n asked for and each target cube count (default:
 the scene default's for that n): the cubes actually used (``cube_nodes`` nodes per edge:
-:data:`glsldiff.grids.fem_grid.FINE_CUBE_NODES` where cubes of n nodes cannot carry the mesh,
-``fine_reason`` says why), the grid's node count, inverted and worst tetrahedra (quality 1 = regular, <= 0
-inverted), coverage (largest and 99th-percentile distance from a mesh vertex to its nearest
-surface node, in lattice spacings h), the pass-2 solve (sweeps, status) and the render time,
-with a front-lit and a back-lit render of each (veined marble, 256 x 256) saved as PNG beside
+:data:`glsldiff.grids.fem_grid.FINE_CUBE_NODES` where cubes of n nodes cannot carry the
+mesh, ``fine_reason`` says why; ``retries`` the rebuilds with other cube sizes,
+``size_factor`` the kept one's size over the first's; see
+:func:`glsldiff.grids.fem_grid.build_fem_grid`), the grid's node count, inverted and worst
+tetrahedra (quality 1 = regular, <= 0 inverted), coverage (largest and 99th-percentile
+distance from a mesh vertex to its nearest surface node, in lattice spacings h), the pass-2
+solve (sweeps, status) and the render time, with a front-lit and a back-lit render of each
+(veined marble, 256 x 256) saved as PNG beside
 ``meshes.csv``. The grids are measured as built: ``[polygrid] adapt = false`` (no refinement
 under the lights' sharp edges, :mod:`glsldiff.grids.adapt`), so both lights share one grid.
 
@@ -146,7 +149,7 @@ def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = Non
                                 "inverted": q.inverted, "worst_quality": q.worst_quality, "split_edges": q.split_edges,
                                 "coverage_max_h": q.coverage_max, "coverage_p99_h": q.coverage_p99,
                                 "mapping_s": q.seconds.get("total", float("nan")),
-                                "fine_reason": q.fine_reason})
+                                "retries": q.retries, "size_factor": q.size_factor, "fine_reason": q.fine_reason})
                 rows.append(row)
     io.write_csv(out / "meshes.csv", rows)
     full = [np.concatenate(t, axis=1) for t in tiles.values() if len(t) == len(LIGHTS)]

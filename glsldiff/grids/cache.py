@@ -17,7 +17,7 @@ from glsldiff.grids.polygrid import Polygrid, build_polygrid
 from glsldiff.mesh import Mesh
 
 #: Part of every key: entries of an older construction are never read.
-CACHE_VERSION = 15
+CACHE_VERSION = 16
 
 
 def polygrid_key(mesh: Mesh, kind: str = "polygrid", **params: Any) -> str:

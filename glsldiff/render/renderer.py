@@ -737,7 +737,8 @@ class Renderer:
             q = pg.quality
             rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.polycube.cubes):,} cubes of "
                              f"{pg.complex.lattice.n} nodes per edge"
-                             f"{f' (n = {q.requested_n} asked for: {q.fine_reason})' if q.fine_reason else ''}, "
+                             f"{f' (n = {q.requested_n} asked for: {q.fine_reason})' if q.fine_reason else ''}"
+                             f"{f', {q.retries} rebuilds with other cube sizes (kept: x{q.size_factor:g})' if q.retries else ''}, "
                              f"{len(pg.tets):,} tetrahedra, {q.inverted} "
                              f"inverted, worst quality {q.worst_quality:.3g} ({q.poor_before:,} -> {q.poor:,} below "
                              f"{SHAPE_TARGET:g} by the shape step), {q.split_edges:,} edges longer than "
