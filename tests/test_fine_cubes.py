@@ -118,3 +118,13 @@ def test_retries_other_cube_sizes_until_the_targets_are_met(monkeypatch, sphere)
     g = build_fem_grid(sphere, n=8, n_cubes=40)
     assert calls == [1.0, *RETRY_SIZES] and g.quality.inverted == 1 and g.quality.size_factor == 1.0
     assert g.quality.retries == len(RETRY_SIZES)
+
+
+def test_cubes_snapped_far_beyond_the_count_fall_back() -> None:
+    """A 1 mm plate at n = 6 and 12 cubes: the search snaps the cubes to the thickness (3,600
+    of them, 780k lattice nodes, within the limit but 300x the request); the fine cubes keep
+    the request's node budget."""
+    plate = box_mesh((60.0, 60.0, 1.0), origin=(-30.0, -30.0, -0.5))
+    g = build_fem_grid(plate, n=6, n_cubes=12)
+    assert g.complex.lattice.n == FINE_CUBE_NODES and "asked for" in g.quality.fine_reason
+    assert g.n_active < 100_000 and g.quality.inverted == 0

@@ -87,7 +87,8 @@ Mapping (:func:`map_pillow`):
    ``(n / 2)^3`` times as many cubes: about the same h, exactly where a size was given), and
    :attr:`MappingQuality.fine_reason` says why. A request over the node budget once the
    search has snapped the cubes to the mesh (a 2 mm tile at n = 8: 2 mm cubes, 1.3 M nodes)
-   falls back the same way, to the spacing the request meant.
+   falls back the same way, to the spacing the request meant, and so does one whose count
+   the snap raised beyond :data:`OVERSHOOT` times the count asked for (the tile at n = 5-7).
 8. **Retries** (:func:`build_fem_grid`): whether a thin part gets a cube, and whether a
    mapping leaves a tetrahedron inverted, turns on where the cube boundaries fall: at the
    default node budget the bunny built clean at 15,027 cubes of 2 nodes and left one
@@ -144,6 +145,10 @@ FINE_CUBE_NODES = 2
 #: to be mapped at all (step 7): a smooth surface lies up to ~0.47 cube edges outside, so
 #: cubes of n <= 6 pass on smooth meshes and thin parts send larger ones to the fine cubes.
 FINE_TRIGGER = 3.0
+#: Step 7: a polycube of larger cubes whose count the search had to raise beyond this multiple
+#: of the count asked for (cubes snapped to a thin box's thickness: the 2 mm tile at n = 7 got
+#: 2,500 cubes for 350, 1.1 M nodes for a budget of 120,000) gives way to the fine cubes.
+OVERSHOOT = 2.0
 #: Step 8: cube sizes (relative to the first build's) tried, in turn, while a searched grid
 #: has inverted tetrahedra or coverage beyond COVERAGE_TARGET.
 RETRY_SIZES = (1.02, 0.98, 1.04, 0.96)
@@ -648,7 +653,7 @@ def _build_searched(mesh: Mesh, n: int, cube_size: float | None, n_cubes: int | 
     search = {"cube_size": cube_size, "n_cubes": n_cubes, "threshold": threshold}
     try:
         coarse = polycube_from_mesh(mesh, thin_parts=False, **search)
-        reason = _too_coarse(mesh, coarse, n) if n > FINE_CUBE_NODES else None
+        reason = _too_coarse(mesh, coarse, n, n_cubes) if n > FINE_CUBE_NODES else None
     except InputError as exc:   # no polycube of that topology with cubes that large
         if n <= FINE_CUBE_NODES:
             raise
@@ -678,11 +683,14 @@ def _build_searched(mesh: Mesh, n: int, cube_size: float | None, n_cubes: int | 
     return grid
 
 
-def _too_coarse(mesh: Mesh, polycube: Polycube, n: int) -> str | None:
+def _too_coarse(mesh: Mesh, polycube: Polycube, n: int, n_cubes: int | None) -> str | None:
     """Why cubes of ``n`` nodes cannot carry ``mesh`` (step 7 of the module docstring), or None."""
     problem = node_budget_problem(polycube.count, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE)
     if problem:
         return problem
+    if n_cubes is not None and polycube.count > OVERSHOOT * n_cubes:
+        return (f"the search fitted {polycube.count:,} cubes of {polycube.size:.3g} mm to the mesh's extents, "
+                f"{polycube.count / n_cubes:.1f}x the {n_cubes:,} asked for")
     h = polycube.size / n
     gap = float(outside_distance(polycube, surface_samples(mesh, h)).max()) / h
     if gap > FINE_TRIGGER:
