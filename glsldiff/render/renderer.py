@@ -242,7 +242,7 @@ class Renderer:
             pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
         self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
                   f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
-        if fem and g.discretisation == "fem" and pg.quality.fine_reason:
+        if g.discretisation == "fem" and pg.quality.fine_reason:   # tetwild grids have no polycube
             self._say(f"setup: built from {len(pg.polycube.cubes):,} cubes of {pg.complex.lattice.n} nodes per edge at "
                       f"about the same spacing instead: with n = {g.n}, {pg.quality.fine_reason}")
         self._adapt_report = None
