@@ -59,9 +59,9 @@ class SolveReport:
         ``(iteration, residual)`` pairs at each check, in order (the initial guess first).
     error_estimate
         Estimated relative L2 error of the unknown to the converged solution, from the
-        change of the iterate over the last check interval and the contraction rho of the
-        residual over it: ``||x_n - x_{n-k}|| / ((1 - rho) ||x_n||)``; ``nan`` when rho
-        could not be estimated; 0 for a direct solve.
+        change of the iterate over the last check interval and the residual's contraction
+        over the last intervals (:func:`contraction_error_estimate`); ``nan`` when no
+        contraction could be measured; 0 for a direct solve.
     error
         Relative L2 error against a reference solution, when the caller measured one.
     status
@@ -120,19 +120,39 @@ def channel_ratio(num: NDArray, den: NDArray) -> float:
     return float(np.max(nn[ok] / dd[ok]))
 
 
+#: Safety factor of the error estimate past its first check interval (:func:`contraction_error_estimate`).
+ESTIMATE_SAFETY = 2.5
+
+
 def contraction_error_estimate(history: list[tuple[int, float]], change_norm: float,
                                x_norm: float) -> float:
-    """Relative error estimate (see :class:`SolveReport`) from the last two residual checks of
-    ``history`` and ``change_norm = ||x_n - x_{n-k}||``, the change of the iterate between them:
-    for a contraction by ``rho`` per check interval the remaining error is at most
-    ``rho / (1 - rho)`` times the last change, and about ``1 / (1 - rho)`` times it while the
-    slowest mode dominates."""
+    """Relative error estimate (see :class:`SolveReport`) from the residual ``history`` and
+    ``change_norm = ||x_n - x_{n-k}||``, the change of the iterate over the last check interval.
+
+    With ``rho`` the residual's contraction over that interval, an iteration that contracts
+    the error by ``rho`` per interval leaves ``rho / (1 - rho)`` times the last change, and
+    the error before the interval was ``1 / (1 - rho)`` times it: the safe form when the error
+    contracts much less than the residual. With one interval only that form is returned
+    (it is about 1 after one interval from a zero start): the residual's first contraction
+    can hide a slow error (the hierarchical schedule's coarse-to-fine start: residual
+    contraction 0.004 over its one interval, where ``rho / (1 - rho)`` times the change was
+    1/80 of the true error). From two intervals on it is scaled by ``ESTIMATE_SAFETY`` times
+    the larger of the last two contractions (and never raised):
+    measured over 90 solves (regular grid: GLSL and numpy Jacobi, the hierarchical,
+    multigrid and adaptive schedules; polygrid Jacobi, both stencils; gather Jacobi, AMG
+    V-cycles and PCG on P1 and 7-point systems, checks every 1-50 iterations, tol 1e-2 ..
+    1e-6) 1.1-3.6x the true error where two or more intervals ran (the bound alone: 1.2-948x),
+    never below it."""
     if len(history) < 2 or x_norm == 0.0:
         return float("nan")
     (n0, r0), (n1, r1) = history[-2], history[-1]
     if r0 <= 0.0 or r1 <= 0.0 or n1 <= n0 or r1 >= r0:
         return float("nan")
-    return change_norm / ((1.0 - r1 / r0) * x_norm)
+    bound = change_norm / ((1.0 - r1 / r0) * x_norm)
+    if len(history) < 3 or history[-3][1] <= 0.0:
+        return bound
+    rho = max(r1 / r0, r0 / history[-3][1])
+    return bound * min(1.0, ESTIMATE_SAFETY * rho)
 
 
 class ConvergenceMonitor:
