@@ -336,3 +336,12 @@ def test_mesh_outside_the_size_range_in_file_units(tmp_path):
                                          r"0\.1 \.\. 100000 mm; scale it to a physical size with --size-mm"):
         load_mesh(path)
     assert np.ptp(load_mesh(path, size_mm=10.0).vertices, axis=0).max() == pytest.approx(10.0)
+
+
+def test_a_malformed_mesh_file_is_one_error_line(tmp_path, capsys):
+    """pymeshlab's own message spans several lines; the command still prints one."""
+    (tmp_path / "empty.stl").write_text("solid x\nendsolid x\n")
+    scene = tmp_path / "s.toml"
+    scene.write_text('[mesh]\nsource = "empty.stl"\n[[lights]]\ntype = "directional"\ndirection = [0, 0, 1]\n'
+                     'irradiance = [1, 1, 1]\n')
+    _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "o.exr")]), "could not be read")

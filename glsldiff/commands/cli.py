@@ -523,8 +523,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             os.environ["GLSLDIFF_GL"] = args.gl
         with created_folders_removed_on_failure():
             return args.func(args)
-    except GlsldiffError as exc:
-        print(f"glsldiff: error: {exc}", file=sys.stderr)
+    except GlsldiffError as exc:   # one line, also where a library's text inside it spans several
+        print(f"glsldiff: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("glsldiff: interrupted; finished output files are kept, none is half-written", file=sys.stderr)
