@@ -63,6 +63,7 @@ def test_good_scene_and_defaults(tmp_path):
     ('preset = "skin1"', "[material].preset"),                                     # unknown preset
     ("size_mm = 20.0", "[mesh].size_mm"),                                          # negative size
     ("n = 4", "[polygrid].n"),                                                     # odd n
+    ("cubes = 8", "[polygrid].cubes"),                                             # over the node budget
     ("fov_deg = 40.0", "[camera].fov_deg"),                                        # out of range
     ("width = 64", "[output].width"),                                              # not an integer
     ('type = "directional"', "[lights.0].type"),                                   # unknown light
@@ -70,7 +71,7 @@ def test_good_scene_and_defaults(tmp_path):
 ])
 def test_bad_fields_name_the_field(tmp_path, edit, field):
     bad = {'source = "sphere"': 'source = "no_such_mesh.obj"', 'preset = "skin1"': 'preset = "unobtainium"',
-           "size_mm = 20.0": "size_mm = -5.0", "n = 4": "n = 5", "fov_deg = 40.0": "fov_deg = 200.0",
+           "size_mm = 20.0": "size_mm = -5.0", "n = 4": "n = 5", "cubes = 8": "cubes = 2000000", "fov_deg = 40.0": "fov_deg = 200.0",
            "width = 64": 'width = "wide"', 'type = "directional"': 'type = "laser"',
            "direction = [0, 1, 1]": "direction = [0, 0, 0]"}[edit]
     with pytest.raises(InputError) as e:

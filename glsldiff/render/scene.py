@@ -609,8 +609,8 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
         poly = PolygridSpec(n, g.integer("cubes", default_cubes(disc, n), 1), levels, disc, adapt=adapt)
         problem = (node_budget_problem(poly.cubes, n, FEM_MAX_NODES, FEM_BYTES_PER_NODE) if disc == "fem"
                    else node_budget_problem(poly.cubes, n))
-        if problem:
-            g.fail("n", problem)
+        if problem:   # the count given is what to change (n alone sets the default count within budget)
+            g.fail("cubes" if g.has("cubes") else "n", problem)
     if poly.levels > 1 and poly.n >> (poly.levels - 1) < 2:
         g.fail("levels", f"{poly.levels} levels need n >= {2 ** poly.levels}, got n = {poly.n}")
 
