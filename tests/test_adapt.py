@@ -110,9 +110,14 @@ def _spot_scene(**polygrid):
 def test_scene_option_is_for_fem_only():
     from glsldiff.core.errors import InputError
     from glsldiff.render.scene import parse_scene
-    assert _spot_scene(adapt=True).polygrid.adapt and not _spot_scene().polygrid.adapt
+    assert _spot_scene(adapt=True).refines and not _spot_scene(adapt=False).refines
+    assert _spot_scene().polygrid.adapt == "auto" and _spot_scene().refines      # auto: a spot is in the scene
+    sun = parse_scene({"mesh": {"source": "sphere"}, "lights": [{"type": "directional", "direction": [0, 0, 1]}]})
+    assert sun.polygrid.adapt == "auto" and not sun.refines                      # shadow borders alone: not refined
+    assert parse_scene({"mesh": {"source": "sphere"}, "polygrid": {"adapt": True},
+                        "lights": [{"type": "directional", "direction": [0, 0, 1]}]}).refines
     lattice = parse_scene({"mesh": {"source": "sphere"}, "lights": SPOT, "polygrid": {"discretisation": "paper"}})
-    assert not lattice.polygrid.adapt
+    assert not lattice.refines
     with pytest.raises(InputError, match=r"\[polygrid\]\.adapt: the refinement under sharp light is for "
                                          r"discretisation = \"fem\" only"):
         parse_scene({"mesh": {"source": "sphere"}, "lights": SPOT,
@@ -120,17 +125,18 @@ def test_scene_option_is_for_fem_only():
     with pytest.raises(InputError, match=r"\[polygrid\]\.adapt: not used by discretisation = \"tetwild\""):
         parse_scene({"mesh": {"source": "sphere"}, "lights": SPOT,
                      "polygrid": {"discretisation": "tetwild", "adapt": True}})
-    with pytest.raises(InputError, match=r"\[polygrid\]\.adapt: must be true or false"):
+    with pytest.raises(InputError, match=r"\[polygrid\]\.adapt: must be true, false or \"auto\""):
         _spot_scene(adapt="yes")
 
 
 def test_renderer_refines_under_a_spot_and_follows_the_light():
-    """``adapt = true`` refines the grid under the spot's rim (more nodes, said in the report);
-    a moved light re-runs the setup with it, and only pass 1 without it (the default)."""
+    """``adapt = true`` (and the default ``"auto"``, with a spot) refines the grid under the spot's
+    rim (more nodes, said in the report); a moved light re-runs the setup with it, and only pass 1
+    without it."""
     from dataclasses import replace
 
     from glsldiff.render.renderer import Renderer
-    on, off = _spot_scene(adapt=True), _spot_scene()
+    on, off = _spot_scene(), _spot_scene(adapt=False)
     moved = _spot_scene(adapt=False).lights[0]
     moved = (replace(moved, position=(5.0, 0.0, 60.0)),)
     with Renderer() as r:
@@ -151,15 +157,18 @@ def test_renderer_refines_under_a_spot_and_follows_the_light():
 
 
 def test_validate_cases_take_the_option_on_fem_only():
-    """``glsldiff validate --adapt`` sets [polygrid] adapt on the fem cases, never on tetwild ones."""
+    """``glsldiff validate --adapt`` sets [polygrid] adapt on the fem cases, never on tetwild ones;
+    by default (``"auto"``) the spot case refines and the directional ones do not."""
     from dataclasses import replace
 
     from glsldiff.validation.validate import CASES, _scene
     fem = next(c for c in CASES.values() if c.discretisation == "fem" and c.mesh != "slab")
     tet = next(c for c in CASES.values() if c.discretisation == "tetwild")
-    assert not _scene(fem, None, 16).polygrid.adapt
-    assert _scene(replace(fem, adapt=True), None, 16).polygrid.adapt
-    assert not _scene(replace(tet, adapt=True), None, 16).polygrid.adapt
+    assert not _scene(fem, None, 16).refines and not fem.refines
+    assert _scene(replace(fem, adapt=True), None, 16).refines
+    assert not _scene(replace(tet, adapt=True), None, 16).refines
+    assert CASES["slab-spot"].refines and _scene(CASES["slab-spot"], None, 16).refines
+    assert not _scene(replace(CASES["slab-spot"], adapt=False), None, 16).refines
 
 
 def test_refinement_stops_at_the_node_limit(coarse):

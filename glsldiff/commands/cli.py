@@ -40,7 +40,7 @@ from glsldiff.mesh import load_mesh, sphere_mesh
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
-from glsldiff.render.scene import (TETWILD_EDGES_PER_SIZE, CutSpec, MeshSpec, PolygridSpec, default_scene,
+from glsldiff.render.scene import (FLUXES, TETWILD_EDGES_PER_SIZE, CutSpec, MeshSpec, PolygridSpec, default_scene,
                                    example_names, example_scene, load_scene)
 from glsldiff.physics.collision import SOURCES
 from glsldiff.validation.validate import validate
@@ -142,7 +142,7 @@ def _stroke_point(text: str) -> tuple[float, float]:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp, source=args.source,
-                    adapt=args.adapt)
+                    adapt=args.adapt, flux=args.flux)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
                 "eta != 1: surface reflection removed) and the dipole", rows)
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
@@ -341,8 +341,12 @@ def build_parser() -> argparse.ArgumentParser:
                    "split into 2-4 renders of 4^k samples, all Mitsuba's low-discrepancy sampler takes)")
     p.add_argument("--source", choices=SOURCES, default=None,
                    help="diffusion source model for every case (default: each case's own; slab-patch: volume)")
-    p.add_argument("--adapt", action="store_true",
-                   help="refine the tetrahedra under the light's sharp edges ([polygrid] adapt = true)")
+    p.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
+                   help="refine the tetrahedra under the light's sharp edges in every case ([polygrid] adapt = true), "
+                   "or in none (--no-adapt); default: each case's own (\"auto\": under the spot)")
+    p.add_argument("--flux", choices=FLUXES, default=None,
+                   help="[options].flux of every case (default smoothed: the source smoothed over half a mean free "
+                   "path in the exitant bracket; boundary: the local one)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)

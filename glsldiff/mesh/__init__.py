@@ -20,6 +20,8 @@ surface. Modules:
     :func:`closest_points`, exact closest surface points.
 ``ops``
     :func:`subdivide` and other operations returning a new mesh; :func:`surface_samples`.
+``smoothing``
+    :func:`screened_smoothing`: ``u - lambda^2 Lap_s u = q`` along the surface.
 """
 from glsldiff.mesh.closest import closest_points
 from glsldiff.mesh.inside import axis_hits, contains, contains_grid
@@ -27,10 +29,12 @@ from glsldiff.mesh.load import (COMPONENT_MODES, MAX_HOLE_EDGES, SAMPLE_MESHES, 
                                 mesh_from_arrays, sample_mesh_path)
 from glsldiff.mesh.ops import subdivide, surface_samples
 from glsldiff.mesh.primitives import GENERATED_MESHES, box_mesh, generated_mesh, sphere_mesh, torus_mesh
+from glsldiff.mesh.smoothing import screened_smoothing
 from glsldiff.mesh.types import Mesh, vertex_areas
 
 __all__ = [
     "Mesh",
+    "screened_smoothing",
     "load_mesh",
     "mesh_from_arrays",
     "sample_mesh_path",

@@ -66,9 +66,10 @@ from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
 from glsldiff.grids.fem_grid import FEM_MAX_NODES, SPLIT_LENGTH
 from glsldiff.grids.shapes import SHAPE_TARGET
 from glsldiff.grids.tetwild import cached_tetrahedralize
-from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, subdivide
+from glsldiff.mesh import (GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, screened_smoothing,
+                           subdivide)
 from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, apply_edit
-from glsldiff.physics.exitance import exitant_bracket, source_from_irradiance
+from glsldiff.physics.exitance import exitant_bracket, flux_smoothing_length, source_from_irradiance
 from glsldiff.physics.material import coefficients, optical_properties, regime
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
@@ -150,6 +151,9 @@ class Renderer:
         self._fem_system: LinearSystem | None = None
         self._load: NDArray | None = None
         self._flux_q: NDArray | None = None
+        self._flux_kind: str | None = None        # the [options].flux that _flux_q was made for
+        self._smoother: Any = None                 # flux = "smoothed": q -> q smoothed along the surface
+        self._smoother_info: tuple[float, float, float] | None = None   # lambda min, max (mm), set-up s
         self._editor: GpuMaterialEditor | None = None
         self._fem_reuse: tuple[list, NDArray] | None = None   # (prolongations, phi) kept across a tetrahedral edit
         self._history = MaterialHistory()
@@ -246,7 +250,7 @@ class Renderer:
             self._say(f"setup: built from {len(pg.polycube.cubes):,} cubes of {pg.complex.lattice.n} nodes per edge at "
                       f"about the same spacing instead: with n = {g.n}, {pg.quality.fine_reason}")
         self._adapt_report = None
-        if g.refines:
+        if scene.refines:
             pg = self._adapt(scene, mesh, pg)
         frame = np.asarray(mesh.vertices)           # the uncut surface frames the camera
         crease, self._cut_report = None, None
@@ -580,21 +584,46 @@ class Renderer:
                      scene.specular.rho_s, scene.specular.alpha, (scene.output.width, scene.output.height))
 
     def _bracket_source(self, scene: Scene) -> NDArray[np.float64]:
-        """The ``q`` of the exitant bracket ``a phi - b q``: the boundary source (``[options].flux =
-        "boundary"``: the boundary condition's flux ``(phi - q) / (2C)``), or, with ``"gradient"``
-        (tetrahedral grids), the ``q`` for which that expression equals the outward flux
-        ``-kappa dphi/dn`` of the solution's recovered gradient (volume-weighted mean of the
-        tetrahedra's gradients at each surface node): smooth where ``q`` has a sharp edge."""
-        if scene.options.flux != "gradient" or not self._geo["fem"]:
+        """The ``q`` of the exitant bracket ``a phi - b q``: with ``[options].flux = "smoothed"``
+        (tetrahedral grids) the source smoothed along the surface over half a transport mean free
+        path (:func:`glsldiff.physics.exitance.flux_smoothing_length`; a hard light edge then
+        leaves no ring); with ``"boundary"`` the local source (the boundary condition's flux
+        ``(phi - q) / (2C)``); with ``"gradient"`` the ``q`` for which that expression equals the
+        outward flux ``-kappa dphi/dn`` of the solution's recovered gradient (volume-weighted mean
+        of the tetrahedra's gradients at each surface node)."""
+        flux = scene.options.flux
+        if flux == "boundary" or not self._geo["fem"] or (flux == "smoothed" and not self._q.any()):
             return self._q
-        if self._flux_q is None:
+        if self._flux_kind != flux:          # the kept q is the other option's
+            self._flux_q, self._flux_kind = None, flux
+        if self._flux_q is None and flux == "smoothed":
+            pg = self._geo["pg"]
+            key = _key(self._keys.get("geometry"), self._keys.get("material"))
+            if self._keys.get("smoother") != key:
+                t0 = time.perf_counter()
+                lam = flux_smoothing_length(self._mat["kappa"][pg.surface_nodes])
+                self._smoother = screened_smoothing(pg.boundary_positions, pg.surface_triangles, lam)
+                self._smoother_info = (float(lam.min()), float(lam.max()), time.perf_counter() - t0)
+                self._keys["smoother"] = key
+            self._flux_q = self._smoother(self._q)
+        elif self._flux_q is None:
             pg, geo = self._geo["pg"], self._geo["tetgeo"]
             full = np.zeros((len(pg.positions), 3))
             full[self._fem_active] = self._phi_active
             grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
-            flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
-            self._flux_q = self._phi_b - 2.0 * self._boundary_C(scene) * flux
+            normal_flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
+            self._flux_q = self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux
         return self._flux_q
+
+    def _flux_note(self, scene: Scene) -> str:
+        """Where the exitant bracket's flux came from, for the report."""
+        flux = scene.options.flux
+        if flux == "smoothed" and not self._geo["fem"]:
+            return "boundary (the lattice has no surface triangles to smooth on)"
+        if flux == "smoothed" and self._smoother_info is not None and self._q is not None and self._q.any():
+            lo, hi, sec = self._smoother_info
+            return f"smoothed over {lo:.3g}-{hi:.3g} mm along the surface (half a mean free path; set-up {sec:.2f} s)"
+        return flux
 
     def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:
         """Per-vertex measured diffuse surface reflection ``rho_d / pi * E`` (Lambertian), with
@@ -664,7 +693,7 @@ class Renderer:
         rep = RenderReport(renderer=gl.describe(self.ctx), image_size=(scene.output.width, scene.output.height))
         geo_key = _key(scene.mesh, scene.polygrid, str(scene.base_dir), scene.cut,
                        (scene.camera, scene.output) if scene.cut is not None and scene.cut.stroke else None,
-                       (scene.lights, scene.material.eta, scene.options.exitant) if scene.polygrid.refines
+                       (scene.lights, scene.material.eta, scene.options.exitant) if scene.refines
                        else None)                                          # the refined grid follows the lights
         mat_key = _key(geo_key, replace(scene.material, reflectance=None), scene.paint,  # pass 3 alone: reflectance
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
@@ -745,13 +774,14 @@ class Renderer:
                              f"{SPLIT_LENGTH:g} h split; coverage: mesh vertices within "
                              f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
             ar = self._adapt_report
-            rep.notes.append("adapt: off ([polygrid] adapt = true refines under the lights' sharp edges)"
+            rep.notes.append("adapt: off ([polygrid] adapt = true refines under the lights' sharp edges; \"auto\", "
+                             "the default, only under a spot's or projector's)"
                              if ar is None else f"adapt: {ar.line()}" if ar.edges else
                              f"adapt: the source is linear along every surface edge (to {ADAPT_TOL:.0%} of its "
                              "largest value): grid not refined")
         through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
-                         f"source: {scene.options.source}; "
+                         f"source: {scene.options.source}; flux: {self._flux_note(scene)}; "
                          f"single scattering: {f'{self._ss_seconds:.2f} s' if scene.options.single_scattering else 'off'}; "
                          f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "

@@ -26,10 +26,10 @@ silently ignored).
                               # the lattice)
     levels = 1                # hierarchy levels (lattice only, default 3; fem solves on one
                               # level with its own algebraic multigrid)
-    adapt = false             # fem only: refine the tetrahedra under the lights' sharp edges (a spot's
-                              # rim, shadow borders, projector patterns; glsldiff.grids.adapt): closer to
-                              # the diffusion equation's answer, not to transport at hard light edges;
-                              # the grid then depends on the lights (changing them re-runs the setup)
+    adapt = "auto"            # fem only: refine the tetrahedra under the lights' sharp edges (a spot's
+                              # rim, shadow borders, projector patterns; glsldiff.grids.adapt): true |
+                              # false | "auto" (default: when a spot or projector light is in the scene);
+                              # the refined grid depends on the lights (changing them re-runs the setup)
 
     [material]                # exactly one of: preset / sigma_a + sigma_s_prime / volume / procedural
     preset = "marble"
@@ -95,7 +95,9 @@ silently ignored).
                               # diffusion already matches all orders front-lit: on adds ~20 % there
     source = "surface"        # surface (Marshak boundary source) | volume (first-collision source, fem only)
     unscattered = true        # area/environment light seen straight through the object (thin parts)
-    flux = "boundary"         # exitant flux: boundary (the Robin condition) | gradient (the solution's, fem only)
+    flux = "smoothed"         # exitant flux: smoothed (the Robin condition's, its q smoothed over half a mean
+                              # free path along the surface; fem/tetwild default) | boundary (the local
+                              # Robin condition; the lattice's default) | gradient (the solution's, fem only)
 
     [cut]                     # tetwild only: TransCut's cut (glsldiff.grids.tetcut); one of plane / stroke
     plane = [1, 0, 0, 50]     # n_x, n_y, n_z, d: removes n . x > d (mm, the scaled mesh's coordinates)
@@ -127,7 +129,7 @@ except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -171,13 +173,21 @@ LIGHT_KEYS = ("type", "direction", "position", "irradiance", "intensity", "cone_
               "scale", "shadows", "image", "up", "fov_deg", "size", "radiance", "samples")
 SCHEMES = ("single", "hierarchical", "multigrid")
 #: Where pass 3 takes the outward flux of the exitant bracket from (``[options].flux``).
-FLUXES = ("boundary", "gradient")
+#: smoothed: the Robin condition's flux with the bracket's q smoothed over half a transport mean free
+#: path along the surface (tetrahedral grids; the lattice takes boundary); boundary: the local
+#: Robin flux; gradient: the solution's recovered gradient.
+FLUXES = ("smoothed", "boundary", "gradient")
 
 
 @dataclass(frozen=True)
 class MeshSpec:
     source: str = "bunny"
     size_mm: float = 100.0
+
+
+#: Lights whose own profile has an edge across the lit surface (a cone's rim, a projector pattern):
+#: ``[polygrid] adapt = "auto"`` refines the grid under them.
+EDGED_LIGHTS = (SpotLight, ProjectorLight)
 
 
 @dataclass(frozen=True)
@@ -187,12 +197,18 @@ class PolygridSpec:
     levels: int = 1
     discretisation: str = "fem"
     edge_mm: float | None = None     # tetwild: target tetrahedron edge, mm (default size_mm / 40)
-    adapt: bool = False              # fem: refine the grid under the lights' sharp edges (grids.adapt)
+    adapt: bool | str = "auto"       # fem: refine the grid under the lights' sharp edges (grids.adapt):
+                                     # true | false | "auto" (when a spot or projector light is in the scene)
 
-    @property
-    def refines(self) -> bool:
-        """The grid is refined under the lights' sharp edges (``adapt`` on a fem grid)."""
-        return self.adapt and self.discretisation == "fem"
+    def refines(self, lights: Sequence[Light]) -> bool:
+        """The grid is refined under ``lights``' sharp edges: ``adapt`` on a fem grid, and with
+        ``"auto"`` only for a spot or projector light (:data:`EDGED_LIGHTS`: an edge in the light's
+        own profile, across the lit surface), not for shadow borders alone."""
+        if self.discretisation != "fem":
+            return False
+        if self.adapt == "auto":
+            return any(isinstance(light, EDGED_LIGHTS) for light in lights)
+        return bool(self.adapt)
 
 
 #: The lattice polygrid of interactive editing (glsldiff view's bunny, glsldiff bench edit): many small
@@ -247,7 +263,7 @@ class OptionsSpec:
     single_scattering: bool = False
     source: str = "surface"
     unscattered: bool = True
-    flux: str = "boundary"
+    flux: str = "smoothed"           # lattice discretisations: "boundary" (no surface triangles to smooth on)
 
 
 @dataclass(frozen=True)
@@ -282,6 +298,11 @@ class Scene:
     base_dir: Path = field(default=Path("."), compare=False)
     cut: CutSpec | None = None
     paint: tuple[PaintSpec, ...] = ()
+
+    @property
+    def refines(self) -> bool:
+        """The grid is refined under the lights' sharp edges (:meth:`PolygridSpec.refines`)."""
+        return self.polygrid.refines(self.lights)
 
     def resolve(self, path: str) -> Path:
         """A path from the scene file, relative to the file's directory."""
@@ -602,8 +623,12 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                              "lattice hierarchy")
         if n % 2 and disc != "fem":
             g.fail("n", f"must be even (the hierarchy halves it), got {n}")
-        adapt = g.boolean("adapt", False)
-        if adapt and disc != "fem":
+        adapt: bool | str = "auto"
+        if g.has("adapt"):
+            adapt = g.data["adapt"]
+            if adapt != "auto" and not isinstance(adapt, bool):
+                g.fail("adapt", f"must be true, false or \"auto\", got {adapt!r}")
+        if adapt is True and disc != "fem":
             g.fail("adapt", f"the refinement under sharp light is for discretisation = \"fem\" only (this one: "
                             f"{disc!r}); leave adapt out")
         poly = PolygridSpec(n, g.integer("cubes", default_cubes(disc, n), 1), levels, disc, adapt=adapt)
@@ -645,10 +670,14 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                           t.string("precision", "fp32", ("fp32", "fp16", "paper")),
                           t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False),
                           t.string("source", "surface", SOURCES), t.boolean("unscattered", True),
-                          t.string("flux", "boundary", FLUXES))
+                          t.string("flux", "smoothed" if poly.discretisation in TETRAHEDRAL else "boundary",
+                                   FLUXES))
     if options.flux == "gradient" and poly.discretisation not in TETRAHEDRAL:
         t.fail("flux", "\"gradient\" (the flux of the solution's gradient) needs the tetrahedral grid; set "
                        "[polygrid] discretisation = \"fem\" (the default) or flux = \"boundary\"")
+    if options.flux == "smoothed" and poly.discretisation not in TETRAHEDRAL:
+        t.fail("flux", "\"smoothed\" (the source smoothed along the surface's triangles) needs the tetrahedral "
+                       "grid; set [polygrid] discretisation = \"fem\" (the default) or flux = \"boundary\"")
     if options.source == "volume" and poly.discretisation not in TETRAHEDRAL:
         t.fail("source", "\"volume\" (the first-collision source) is solved on tetrahedra only; set [polygrid] "
                          "discretisation = \"fem\" (the default) or source = \"surface\"")
