@@ -10,7 +10,8 @@ is solved exactly (SuperLU / pyamg), so the table shows discretisation error onl
 
 * ``fem``: P1 finite elements on the pillowed polycube (:mod:`glsldiff.grids.fem_grid`);
 * ``fem-adapt``: the same grid refined for each light where its source is not linear over a
-  surface edge (:mod:`glsldiff.grids.adapt`, ``[polygrid] adapt = true``), compared at the unrefined
+  surface edge (:mod:`glsldiff.grids.adapt`, ``[polygrid] adapt = true``; what the scene default
+  ``"auto"`` builds under a spot), compared at the unrefined
   grid's surface nodes (the first ones of the refined grid) so both rows share their points;
   ``nodes`` is then the refined count and ``adapt_s`` the refinement's time;
 * ``paper`` / ``conservative``: the polygrid with the appendix-B weights and the paper's or
