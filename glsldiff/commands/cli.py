@@ -345,8 +345,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refine the tetrahedra under the light's sharp edges in every case ([polygrid] adapt = true), "
                    "or in none (--no-adapt); default: each case's own (\"auto\": under the spot)")
     p.add_argument("--flux", choices=FLUXES, default=None,
-                   help="[options].flux of every case (default smoothed: the source smoothed over half a mean free "
-                   "path in the exitant bracket; boundary: the local one)")
+                   help="[options].flux of every case (default smoothed: the exitant bracket's source and fluence "
+                   "smoothed along the surface over 1/2 and 1/8 mean free path; boundary: the local ones)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)

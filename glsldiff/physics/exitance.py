@@ -22,10 +22,11 @@ The ``q`` of the bracket is local: where ``q`` steps (a spot's rim, a projector 
 a cast shadow) ``B`` steps with it, a dark ring just inside the lit edge and a bright one just
 outside, which transport does not show: the diffuse radiance at the surface is made by light
 that entered within about a transport mean free path ``l = 1 / sigma_t' = 3 kappa``.
-:data:`FLUX_SMOOTHING_MFP` is the length, in mean free paths, over which the renderer's default
-``[options].flux = "smoothed"`` spreads the bracket's ``q`` along the surface
-(:func:`glsldiff.mesh.smoothing.screened_smoothing`); :func:`flux_smoothing_length` gives it in
-mm. The load of the diffusion keeps the local ``q``.
+The renderer's default ``[options].flux = "smoothed"`` evaluates the bracket with ``q`` spread
+along the surface over :data:`FLUX_SMOOTHING_MFP` mean free paths and ``phi`` over
+:data:`FLUENCE_SMOOTHING_MFP` (:func:`glsldiff.mesh.smoothing.screened_smoothing`;
+:func:`bracket_smoothing_lengths` gives both in mm). The load of the diffusion keeps the local
+``q``.
 """
 from __future__ import annotations
 
@@ -37,8 +38,8 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.core.errors import InputError
 from glsldiff.physics.optics import boundary_constant, fdr
 
-__all__ = ["EXITANT", "FLUX_SMOOTHING_MFP", "exitance_coefficients", "exitant_bracket", "flux_smoothing_length",
-           "source_from_irradiance"]
+__all__ = ["EXITANT", "FLUENCE_SMOOTHING_MFP", "FLUX_SMOOTHING_MFP", "bracket_smoothing_lengths",
+           "exitance_coefficients", "exitant_bracket", "source_from_irradiance"]
 
 EXITANT = ("p1", "arbree", "paper")
 #: The screening length of the bracket's ``q`` in transport mean free paths: chosen on a 10 mm
@@ -46,6 +47,11 @@ EXITANT = ("p1", "arbree", "paper")
 #: Carlo 0.249 local -> 0.048, best between 0.45 and 0.55) and kept for the cases not used to
 #: choose it: mean free paths 2.0 mm (0.71 -> 0.13) and 0.33 mm (0.051 -> 0.041).
 FLUX_SMOOTHING_MFP = 0.5
+#: ... and of the bracket's ``phi``: without it the fluence's response to the grid's sampling
+#: of a sharp edge (which the local ``-b q`` used to cancel) shows as a mottled rim. Best
+#: between 0.12 and 0.15 on the spot slabs at both 0.82 and 1.96 mm mean free paths (so it
+#: scales with the mean free path, not the node spacing; 0.25 is worse than none).
+FLUENCE_SMOOTHING_MFP = 0.125
 
 
 def _check(convention: str) -> None:
@@ -73,10 +79,12 @@ def exitant_bracket(phi_b: ArrayLike, q_b: ArrayLike, eta: float, convention: st
     return a * np.asarray(phi_b, dtype=np.float64) - b * np.asarray(q_b, dtype=np.float64)
 
 
-def flux_smoothing_length(kappa: ArrayLike) -> NDArray[np.float64]:
-    """The screening length (mm) over which the bracket's ``q`` is smoothed, per node and
-    channel: :data:`FLUX_SMOOTHING_MFP` transport mean free paths ``3 kappa`` (kappa in mm)."""
-    return FLUX_SMOOTHING_MFP * 3.0 * np.asarray(kappa, dtype=np.float64)
+def bracket_smoothing_lengths(kappa: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The screening lengths (mm) over which the bracket's ``phi`` and ``q`` are smoothed, per
+    node and channel: :data:`FLUENCE_SMOOTHING_MFP` and :data:`FLUX_SMOOTHING_MFP` transport mean
+    free paths ``3 kappa`` (kappa in mm)."""
+    mfp = 3.0 * np.asarray(kappa, dtype=np.float64)
+    return FLUENCE_SMOOTHING_MFP * mfp, FLUX_SMOOTHING_MFP * mfp
 
 
 def source_from_irradiance(E_t: ArrayLike, eta: float, convention: str) -> NDArray[np.float64]:

@@ -69,7 +69,7 @@ from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import (GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, screened_smoothing,
                            subdivide)
 from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, apply_edit
-from glsldiff.physics.exitance import exitant_bracket, flux_smoothing_length, source_from_irradiance
+from glsldiff.physics.exitance import bracket_smoothing_lengths, exitant_bracket, source_from_irradiance
 from glsldiff.physics.material import coefficients, optical_properties, regime
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
@@ -150,10 +150,10 @@ class Renderer:
         self._from_cache = False
         self._fem_system: LinearSystem | None = None
         self._load: NDArray | None = None
-        self._flux_q: NDArray | None = None
-        self._flux_kind: str | None = None        # the [options].flux that _flux_q was made for
-        self._smoother: Any = None                 # flux = "smoothed": q -> q smoothed along the surface
-        self._smoother_info: tuple[float, float, float] | None = None   # lambda min, max (mm), set-up s
+        self._flux_fields: tuple[NDArray, NDArray] | None = None   # (phi, q) of the exitant bracket
+        self._flux_kind: str | None = None        # the [options].flux that _flux_fields were made for
+        self._smoothers: Any = None                # flux = "smoothed": (phi, q) smoothing along the surface
+        self._smoother_info: tuple[float, float, float] | None = None   # q's lambda min, max (mm), set-up s
         self._editor: GpuMaterialEditor | None = None
         self._fem_reuse: tuple[list, NDArray] | None = None   # (prolongations, phi) kept across a tetrahedral edit
         self._history = MaterialHistory()
@@ -442,7 +442,7 @@ class Renderer:
         self._finish_pass2(pg, phi, rep, fem)
 
     def _finish_pass2(self, pg: Any, phi: NDArray, rep: SolveReport, fem: bool) -> None:
-        self._flux_q = None
+        self._flux_fields = None
         if fem:
             self._phi_b = self.surface_values(phi)
             self._phi_active = np.asarray(phi, dtype=np.float64)
@@ -552,7 +552,7 @@ class Renderer:
         geo, opts = self._geo, scene.options
         v, f, nrm = geo["vertices"], geo["faces"], geo["normals"]
         eta = scene.material.eta
-        B = exitant_bracket(self._phi_b, self._bracket_source(scene), eta, opts.exitant, self._boundary_C(scene))
+        B = exitant_bracket(*self._bracket_fields(scene), eta, opts.exitant, self._boundary_C(scene))
         ms = geo["interp"] @ B
         neg = ms < 0.0
         self._clamped = int(np.any(neg, axis=1).sum())
@@ -583,37 +583,40 @@ class Renderer:
         return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (scene.output.width, scene.output.height))
 
-    def _bracket_source(self, scene: Scene) -> NDArray[np.float64]:
-        """The ``q`` of the exitant bracket ``a phi - b q``: with ``[options].flux = "smoothed"``
-        (tetrahedral grids) the source smoothed along the surface over half a transport mean free
-        path (:func:`glsldiff.physics.exitance.flux_smoothing_length`; a hard light edge then
-        leaves no ring); with ``"boundary"`` the local source (the boundary condition's flux
-        ``(phi - q) / (2C)``); with ``"gradient"`` the ``q`` for which that expression equals the
-        outward flux ``-kappa dphi/dn`` of the solution's recovered gradient (volume-weighted mean
-        of the tetrahedra's gradients at each surface node)."""
+    def _bracket_fields(self, scene: Scene) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The ``(phi, q)`` of the exitant bracket ``a phi - b q`` per surface node. ``[options].flux =
+        "smoothed"`` (tetrahedral grids, the default): both smoothed along the surface, ``q`` over
+        half a transport mean free path and ``phi`` over an eighth
+        (:func:`glsldiff.physics.exitance.bracket_smoothing_lengths`): a hard light edge then leaves
+        no ring and no mottle; the local fields where no light enters through the surface (the
+        volume source). ``"boundary"``: the local fields (the boundary condition's flux ``(phi -
+        q) / (2C)``). ``"gradient"``: ``q`` such that that expression equals the outward flux
+        ``-kappa dphi/dn`` of the solution's recovered gradient (volume-weighted mean of the
+        tetrahedra's gradients at each surface node)."""
         flux = scene.options.flux
         if flux == "boundary" or not self._geo["fem"] or (flux == "smoothed" and not self._q.any()):
-            return self._q
-        if self._flux_kind != flux:          # the kept q is the other option's
-            self._flux_q, self._flux_kind = None, flux
-        if self._flux_q is None and flux == "smoothed":
+            return self._phi_b, self._q
+        if self._flux_kind != flux:          # the kept fields are the other option's
+            self._flux_fields, self._flux_kind = None, flux
+        if self._flux_fields is None and flux == "smoothed":
             pg = self._geo["pg"]
             key = _key(self._keys.get("geometry"), self._keys.get("material"))
             if self._keys.get("smoother") != key:
                 t0 = time.perf_counter()
-                lam = flux_smoothing_length(self._mat["kappa"][pg.surface_nodes])
-                self._smoother = screened_smoothing(pg.boundary_positions, pg.surface_triangles, lam)
-                self._smoother_info = (float(lam.min()), float(lam.max()), time.perf_counter() - t0)
+                lam_phi, lam_q = bracket_smoothing_lengths(self._mat["kappa"][pg.surface_nodes])
+                self._smoothers = tuple(screened_smoothing(pg.boundary_positions, pg.surface_triangles, lam)
+                                        for lam in (lam_phi, lam_q))
+                self._smoother_info = (float(lam_q.min()), float(lam_q.max()), time.perf_counter() - t0)
                 self._keys["smoother"] = key
-            self._flux_q = self._smoother(self._q)
-        elif self._flux_q is None:
+            self._flux_fields = (self._smoothers[0](self._phi_b), self._smoothers[1](self._q))
+        elif self._flux_fields is None:
             pg, geo = self._geo["pg"], self._geo["tetgeo"]
             full = np.zeros((len(pg.positions), 3))
             full[self._fem_active] = self._phi_active
             grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
             normal_flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
-            self._flux_q = self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux
-        return self._flux_q
+            self._flux_fields = (self._phi_b, self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux)
+        return self._flux_fields
 
     def _flux_note(self, scene: Scene) -> str:
         """Where the exitant bracket's flux came from, for the report."""
@@ -622,7 +625,8 @@ class Renderer:
             return "boundary (the lattice has no surface triangles to smooth on)"
         if flux == "smoothed" and self._smoother_info is not None and self._q is not None and self._q.any():
             lo, hi, sec = self._smoother_info
-            return f"smoothed over {lo:.3g}-{hi:.3g} mm along the surface (half a mean free path; set-up {sec:.2f} s)"
+            return (f"smoothed along the surface, q over {lo:.3g}-{hi:.3g} mm (half a mean free path), phi over "
+                    f"a quarter of that; set-up {sec:.2f} s")
         return flux
 
     def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:

@@ -95,8 +95,8 @@ silently ignored).
                               # diffusion already matches all orders front-lit: on adds ~20 % there
     source = "surface"        # surface (Marshak boundary source) | volume (first-collision source, fem only)
     unscattered = true        # area/environment light seen straight through the object (thin parts)
-    flux = "smoothed"         # exitant flux: smoothed (the Robin condition's, its q smoothed over half a mean
-                              # free path along the surface; fem/tetwild default) | boundary (the local
+    flux = "smoothed"         # exitant flux: smoothed (the Robin condition's, its q and phi smoothed along
+                              # the surface over 1/2 and 1/8 mean free path; fem/tetwild default) | boundary (the local
                               # Robin condition; the lattice's default) | gradient (the solution's, fem only)
 
     [cut]                     # tetwild only: TransCut's cut (glsldiff.grids.tetcut); one of plane / stroke
@@ -173,9 +173,9 @@ LIGHT_KEYS = ("type", "direction", "position", "irradiance", "intensity", "cone_
               "scale", "shadows", "image", "up", "fov_deg", "size", "radiance", "samples")
 SCHEMES = ("single", "hierarchical", "multigrid")
 #: Where pass 3 takes the outward flux of the exitant bracket from (``[options].flux``).
-#: smoothed: the Robin condition's flux with the bracket's q smoothed over half a transport mean free
-#: path along the surface (tetrahedral grids; the lattice takes boundary); boundary: the local
-#: Robin flux; gradient: the solution's recovered gradient.
+#: smoothed: the Robin condition's flux with the bracket's q and phi smoothed along the surface over
+#: a half and an eighth of a transport mean free path (tetrahedral grids; the lattice takes
+#: boundary); boundary: the local Robin flux; gradient: the solution's recovered gradient.
 FLUXES = ("smoothed", "boundary", "gradient")
 
 
