@@ -627,6 +627,8 @@ class Renderer:
             lo, hi, sec = self._smoother_info
             return (f"smoothed along the surface, q over {lo:.3g}-{hi:.3g} mm (half a mean free path), phi over "
                     f"a quarter of that; set-up {sec:.2f} s")
+        if flux == "smoothed" and self._geo["fem"]:
+            return "smoothed: no light enters through the surface here (volume source), so the local bracket"
         return flux
 
     def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:
