@@ -153,7 +153,8 @@ class Renderer:
         self._flux_fields: tuple[NDArray, NDArray] | None = None   # (phi, q) of the exitant bracket
         self._flux_kind: str | None = None        # the [options].flux that _flux_fields were made for
         self._smoothers: Any = None                # flux = "smoothed": (phi, q) smoothing along the surface
-        self._smoother_info: tuple[float, float, float] | None = None   # q's lambda min, max (mm), set-up s
+        self._smoother_info = ""                  # the smoothers' lengths and set-up time, for the report
+        self._flux_used = ""                      # what the last frame's bracket took its flux from (report)
         self._editor: GpuMaterialEditor | None = None
         self._fem_reuse: tuple[list, NDArray] | None = None   # (prolongations, phi) kept across a tetrahedral edit
         self._history = MaterialHistory()
@@ -595,6 +596,10 @@ class Renderer:
         tetrahedra's gradients at each surface node)."""
         flux = scene.options.flux
         if flux == "boundary" or not self._geo["fem"] or (flux == "smoothed" and not self._q.any()):
+            self._flux_used = (flux if flux != "smoothed" else
+                               "boundary (the lattice has no surface triangles to smooth on)" if not self._geo["fem"]
+                               else "smoothed: no light enters through the surface here (volume source), so the "
+                                    "local bracket")
             return self._phi_b, self._q
         if self._flux_kind != flux:          # the kept fields are the other option's
             self._flux_fields, self._flux_kind = None, flux
@@ -606,7 +611,9 @@ class Renderer:
                 lam_phi, lam_q = bracket_smoothing_lengths(self._mat["kappa"][pg.surface_nodes])
                 self._smoothers = tuple(screened_smoothing(pg.boundary_positions, pg.surface_triangles, lam)
                                         for lam in (lam_phi, lam_q))
-                self._smoother_info = (float(lam_q.min()), float(lam_q.max()), time.perf_counter() - t0)
+                self._smoother_info = (f"smoothed along the surface, q over {lam_q.min():.3g}-{lam_q.max():.3g} mm "
+                                       "(half a mean free path), phi over a quarter of that; set-up "
+                                       f"{time.perf_counter() - t0:.2f} s")
                 self._keys["smoother"] = key
             self._flux_fields = (self._smoothers[0](self._phi_b), self._smoothers[1](self._q))
         elif self._flux_fields is None:
@@ -616,20 +623,8 @@ class Renderer:
             grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
             normal_flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
             self._flux_fields = (self._phi_b, self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux)
+        self._flux_used = self._smoother_info if flux == "smoothed" else flux
         return self._flux_fields
-
-    def _flux_note(self, scene: Scene) -> str:
-        """Where the exitant bracket's flux came from, for the report."""
-        flux = scene.options.flux
-        if flux == "smoothed" and not self._geo["fem"]:
-            return "boundary (the lattice has no surface triangles to smooth on)"
-        if flux == "smoothed" and self._smoother_info is not None and self._q is not None and self._q.any():
-            lo, hi, sec = self._smoother_info
-            return (f"smoothed along the surface, q over {lo:.3g}-{hi:.3g} mm (half a mean free path), phi over "
-                    f"a quarter of that; set-up {sec:.2f} s")
-        if flux == "smoothed" and self._geo["fem"]:
-            return "smoothed: no light enters through the surface here (volume source), so the local bracket"
-        return flux
 
     def _surface_diffuse(self, scene: Scene) -> NDArray[np.float64]:
         """Per-vertex measured diffuse surface reflection ``rho_d / pi * E`` (Lambertian), with
@@ -787,7 +782,7 @@ class Renderer:
                              "largest value): grid not refined")
         through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
-                         f"source: {scene.options.source}; flux: {self._flux_note(scene)}; "
+                         f"source: {scene.options.source}; flux: {self._flux_used}; "
                          f"single scattering: {f'{self._ss_seconds:.2f} s' if scene.options.single_scattering else 'off'}; "
                          f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "
