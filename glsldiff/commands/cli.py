@@ -40,6 +40,7 @@ from glsldiff.mesh import load_mesh, sphere_mesh
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
+from glsldiff.physics.exitance import INCIDENCE
 from glsldiff.render.scene import (FLUXES, TETWILD_EDGES_PER_SIZE, CutSpec, MeshSpec, PolygridSpec, default_scene,
                                    example_names, example_scene, load_scene)
 from glsldiff.physics.collision import SOURCES
@@ -142,7 +143,7 @@ def _stroke_point(text: str) -> tuple[float, float]:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp, source=args.source,
-                    adapt=args.adapt, flux=args.flux)
+                    adapt=args.adapt, flux=args.flux, incidence=args.incidence)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
                 "eta != 1: surface reflection removed) and the dipole", rows)
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
@@ -347,6 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--flux", choices=FLUXES, default=None,
                    help="[options].flux of every case (default smoothed: the exitant bracket's source and fluence "
                    "smoothed along the surface over 1/2 and 1/8 mean free path; boundary: the local ones)")
+    p.add_argument("--incidence", choices=INCIDENCE, default=None,
+                   help="[options].incidence of every case (default marshak: the same surface source whatever the "
+                   "light's incidence; transport: the half-space's H-function per incidence)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)

@@ -27,21 +27,40 @@ along the surface over :data:`FLUX_SMOOTHING_MFP` mean free paths and ``phi`` ov
 :data:`FLUENCE_SMOOTHING_MFP` (:func:`glsldiff.mesh.smoothing.screened_smoothing`;
 :func:`bracket_smoothing_lengths` gives both in mm). The load of the diffusion keeps the local
 ``q``.
+
+The Marshak source puts the same light into the diffusion whatever direction it arrives
+from. Transport does not: light arriving at grazing incidence scatters out near where it
+entered, light arriving along the normal goes deeper and diffuses further (the 1-D oracle
+:mod:`glsldiff.oracle.slab_transport`: a 20 mm slab transmits 1.26x more of normally incident
+light than of diffuse light, the surface source the same for both). ``[options].incidence =
+"transport"`` (the default with the surface source) follows the half-space's exact transport
+(:mod:`glsldiff.physics.halfspace`) per beam of refracted cosine ``t``: the diffusion's load
+takes the share ``H(t) / <H>`` of the beam (:func:`deep_irradiance`; 1 on average over diffuse
+light, which the Marshak source was calibrated on), and the bracket gets the local term that
+makes a homogeneous half-space reflect towards the view cosine ``mu`` what transport does,
+``beta E (H(t) / ((mu + t) D(mu)) - H(t) / <H>)`` (:func:`local_bracket`; ``beta`` the
+half-space's own bracket per unit irradiance, :func:`halfspace_bracket`). ``"marshak"``: the
+same source for every incidence, as before.
 """
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
+from glsldiff.physics.halfspace import h_function, h_mean, reflected_share
 from glsldiff.physics.optics import boundary_constant, fdr
 
-__all__ = ["EXITANT", "FLUENCE_SMOOTHING_MFP", "FLUX_SMOOTHING_MFP", "bracket_smoothing_lengths",
-           "exitance_coefficients", "exitant_bracket", "source_from_irradiance"]
+__all__ = ["EXITANT", "FLUENCE_SMOOTHING_MFP", "FLUX_SMOOTHING_MFP", "INCIDENCE", "bracket_smoothing_lengths",
+           "deep_irradiance", "exitance_coefficients", "exitant_bracket", "halfspace_bracket", "local_bracket",
+           "source_from_irradiance"]
 
 EXITANT = ("p1", "arbree", "paper")
+#: How the surface source depends on the light's incidence (module docstring).
+INCIDENCE = ("transport", "marshak")
 #: The screening length of the bracket's ``q`` in transport mean free paths: chosen on a 10 mm
 #: slab under a hard-edged 6-degree spot (mean free path 0.82 mm; relative L2 against Monte
 #: Carlo 0.249 local -> 0.048, best between 0.45 and 0.55) and kept for the cases not used to
@@ -92,3 +111,52 @@ def source_from_irradiance(E_t: ArrayLike, eta: float, convention: str) -> NDArr
     _check(convention)
     E = np.array(E_t, dtype=np.float64)
     return E if convention == "paper" else 4.0 * E / (1.0 - float(fdr(eta)))
+
+
+Beams = Sequence[tuple[NDArray[np.float64], NDArray[np.float64]]]
+
+
+def _albedo(kappa: ArrayLike, mu: ArrayLike) -> NDArray[np.float64]:
+    """Reduced single-scattering albedo ``sigma_s' / sigma_t' = 1 - 3 kappa mu``."""
+    return np.clip(1.0 - 3.0 * np.asarray(kappa, dtype=np.float64) * np.asarray(mu, dtype=np.float64), 0.0, 1.0)
+
+
+def deep_irradiance(beams: Beams, kappa: ArrayLike, mu: ArrayLike) -> NDArray[np.float64]:
+    """``sum_k E_k H(t_k) / <H>`` per node and channel: the transmitted irradiance the
+    diffusion's load is made of under ``incidence = "transport"`` (module docstring). ``beams``:
+    ``(E (N, 3), t (N,))`` pairs, ``t`` the refracted cosine; ``kappa`` (mm), ``mu`` (mm^-1)
+    ``(N, 3)`` at the same nodes."""
+    a = _albedo(kappa, mu)
+    out = np.zeros_like(a)
+    mean = h_mean(a)
+    for E, t in beams:
+        out += np.asarray(E, dtype=np.float64) * h_function(a, np.asarray(t)[:, None]) / mean
+    return out
+
+
+def halfspace_bracket(kappa: ArrayLike, mu: ArrayLike, eta: float, convention: str,
+                      C: float | None = None) -> NDArray[np.float64]:
+    """The bracket ``B`` of a homogeneous half-space of the node's material under uniform light,
+    per unit transmitted irradiance (sr^-1): the diffusion's ``phi = q / (1 + 2 C sqrt(kappa mu))``
+    at the surface put into ``a phi - b q``."""
+    a, b = exitance_coefficients(eta, convention, C)
+    C = float(boundary_constant(eta)) if C is None else float(C)
+    q1 = float(source_from_irradiance(np.ones(1), eta, convention)[0])
+    root = np.sqrt(np.asarray(kappa, dtype=np.float64) * np.asarray(mu, dtype=np.float64))
+    return q1 * (a / (1.0 + 2.0 * C * root) - b)
+
+
+def local_bracket(beams: Beams, kappa: ArrayLike, mu: ArrayLike, view_cos: ArrayLike, beta: ArrayLike
+                  ) -> NDArray[np.float64]:
+    """The local term added to the bracket under ``incidence = "transport"`` (sr^-1 times the
+    irradiance's units), per node and channel: ``sum_k beta E_k (H(t_k) / ((mu + t_k) D(mu)) -
+    H(t_k) / <H>)`` with ``mu = view_cos`` ``(N,)`` (refracted) and ``beta`` from
+    :func:`halfspace_bracket`. Its sum over diffuse light is 0."""
+    a = _albedo(kappa, mu)
+    m = np.clip(np.asarray(view_cos, dtype=np.float64), 0.0, 1.0)[:, None]
+    out = np.zeros_like(a)
+    mean = h_mean(a)
+    for E, t in beams:
+        tt = np.asarray(t)[:, None]
+        out += np.asarray(E, dtype=np.float64) * (reflected_share(a, tt, m) - h_function(a, tt) / mean)
+    return np.asarray(beta, dtype=np.float64) * out

@@ -69,9 +69,10 @@ from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import (GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, screened_smoothing,
                            subdivide)
 from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, apply_edit
-from glsldiff.physics.exitance import bracket_smoothing_lengths, exitant_bracket, source_from_irradiance
+from glsldiff.physics.exitance import (bracket_smoothing_lengths, deep_irradiance, exitance_coefficients,
+                                       exitant_bracket, halfspace_bracket, local_bracket, source_from_irradiance)
 from glsldiff.physics.material import coefficients, optical_properties, regime
-from glsldiff.physics.optics import boundary_constant, moment_boundary_constant
+from glsldiff.physics.optics import boundary_constant, moment_boundary_constant, refracted_cosine
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
 from glsldiff.render.camera import scene_camera
 from glsldiff.render.collision import first_collision_load, surface_columns
@@ -145,6 +146,11 @@ class Renderer:
         self._mat: dict[str, Any] = {}
         self._E_t: NDArray | None = None
         self._q: NDArray | None = None
+        self._q_marshak: NDArray | None = None    # pass 1's load before the incidence split
+        self._beams: list = []                    # pass 1's beams (E (N, 3), refracted cosine (N,))
+        self._incidence: dict[str, Any] | None = None   # incidence = "transport": what the bracket's local term needs
+        self._incidence_used = ""                 # the report's incidence line
+        self._local_key: Any = None
         self._phi_b: NDArray | None = None
         self._solve_report: Any = None
         self._from_cache = False
@@ -345,7 +351,7 @@ class Renderer:
     def _pass1(self, scene: Scene) -> None:
         pg = self._geo["pg"]
         volume = scene.options.source == "volume"
-        beams: list | None = [] if volume else None
+        beams: list | None = [] if volume or self._transport(scene) else None
         E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, scene.lights,
                                    scene.material.eta, ctx=self.ctx, beams=beams,
                                    triangles=pg.surface_triangles if self._geo["fem"] else None)
@@ -360,7 +366,8 @@ class Renderer:
             raise InputError(f"{scene.source}: [[lights]]: no light reaches the object (the source is 0 at "
                              "every boundary node); check the lights' directions, positions, cones and "
                              "intensities")
-        self._q = np.zeros_like(q) if volume else q
+        self._q = self._q_marshak = np.zeros_like(q) if volume else q
+        self._beams = beams or []
         self._load = None
         if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
             t0 = time.perf_counter()
@@ -371,6 +378,60 @@ class Renderer:
             info.append({"light": "first-collision source", "beams": len(beams or ()),
                          "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         self._light_info = info
+
+    @staticmethod
+    def _transport(scene: Scene) -> bool:
+        """Whether the surface source follows the half-space's transport per incidence
+        (:mod:`glsldiff.physics.exitance`, ``[options].incidence``)."""
+        o = scene.options
+        return o.incidence == "transport" and o.source == "surface" and o.exitant != "paper"
+
+    def _boundary_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(kappa, mu)`` ``(n_boundary, 3)`` at the surface (boundary) nodes."""
+        pg = self._geo["pg"]
+        if self._geo["fem"]:
+            return self._mat["kappa"][pg.surface_nodes], self._mat["mu"][pg.surface_nodes]
+        return (self._mat["kappa"].reshape(-1, 3)[pg.lattice.boundary],
+                self._mat["mu"].reshape(-1, 3)[pg.lattice.boundary])
+
+    def _split_incidence(self, scene: Scene) -> None:
+        """The diffusion's load from pass 1's beams and the node material: each beam's share
+        ``H(t) / <H>`` under ``incidence = "transport"``, pass 1's Marshak source otherwise."""
+        self._q, self._incidence = self._q_marshak, None
+        o = scene.options
+        if not self._transport(scene):
+            self._incidence_used = ("marshak (the paper's convention)" if o.exitant == "paper" and o.source == "surface"
+                                    else "marshak" if o.source == "surface" else "- (volume source)")
+            return
+        kappa, mu = self._boundary_material()
+        eta = scene.material.eta
+        E = deep_irradiance(self._beams, kappa, mu)
+        self._q = source_from_irradiance(E, eta, o.exitant)
+        self._incidence = {"beta": halfspace_bracket(kappa, mu, eta, o.exitant, self._boundary_C(scene)),
+                           "kappa": kappa, "mu": mu}
+        self._local_key = None
+        lit = self._E_t.sum(axis=1) > 0
+        share = E.sum(axis=1)[lit] / self._E_t.sum(axis=1)[lit] if lit.any() else np.ones(1)
+        self._incidence_used = (f"transport (the load's share of each beam H(t) / <H>: {share.min():.2f}-"
+                                f"{share.max():.2f}; the bracket's local term follows the view)")
+
+    def _bracket_q(self, scene: Scene) -> NDArray[np.float64]:
+        """The ``q`` of the exitant bracket: the load, less the local term of ``incidence =
+        "transport"`` over ``b`` (it depends on the view: recomputed when the camera moves)."""
+        if self._incidence is None:
+            return self._q
+        pg = self._geo["pg"]
+        eye, _ = scene_camera(scene, self._geo["frame"])
+        key = tuple(np.round(np.asarray(eye, dtype=np.float64), 9))
+        if self._local_key != key:
+            d = np.asarray(eye, dtype=np.float64)[None, :] - pg.boundary_positions
+            cos = np.einsum("ij,ij->i", d, pg.normals) / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
+            view = np.where(cos > 0.0, refracted_cosine(scene.material.eta, np.clip(cos, 0.0, 1.0)), 1.0)
+            inc = self._incidence
+            local = local_bracket(self._beams, inc["kappa"], inc["mu"], view, inc["beta"])
+            b = exitance_coefficients(scene.material.eta, scene.options.exitant, self._boundary_C(scene))[1]
+            self._q_bracket, self._local_key, self._flux_fields = self._q - local / b, key, None
+        return self._q_bracket
 
     def _say(self, line: str) -> None:
         if self._status is not None:
@@ -600,7 +661,8 @@ class Renderer:
                                "boundary (the lattice has no surface triangles to smooth on)" if not self._geo["fem"]
                                else "smoothed: no light enters through the surface here (volume source), so the "
                                     "local bracket")
-            return self._phi_b, self._q
+            return self._phi_b, self._bracket_q(scene)
+        q_bracket = self._bracket_q(scene)        # before the cache check: a new view drops the cache
         if self._flux_kind != flux:          # the kept fields are the other option's
             self._flux_fields, self._flux_kind = None, flux
         if self._flux_fields is None and flux == "smoothed":
@@ -615,14 +677,15 @@ class Renderer:
                                        "(half a mean free path), phi over a quarter of that; set-up "
                                        f"{time.perf_counter() - t0:.2f} s")
                 self._keys["smoother"] = key
-            self._flux_fields = (self._smoothers[0](self._phi_b), self._smoothers[1](self._q))
+            self._flux_fields = (self._smoothers[0](self._phi_b), self._smoothers[1](q_bracket))
         elif self._flux_fields is None:
             pg, geo = self._geo["pg"], self._geo["tetgeo"]
             full = np.zeros((len(pg.positions), 3))
             full[self._fem_active] = self._phi_active
             grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
             normal_flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
-            self._flux_fields = (self._phi_b, self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux)
+            self._flux_fields = (self._phi_b, self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux
+                                 - (self._q - q_bracket))
         self._flux_used = self._smoother_info if flux == "smoothed" else flux
         return self._flux_fields
 
@@ -699,7 +762,8 @@ class Renderer:
         mat_key = _key(geo_key, replace(scene.material, reflectance=None), scene.paint,  # pass 3 alone: reflectance
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
         light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
-                         scene.options.source, mat_key if scene.options.source == "volume" else None)
+                         scene.options.source, scene.options.incidence,
+                         mat_key if scene.options.source == "volume" else None)
         solve_key = _key(mat_key, light_key, scene.options.tol, self._edit_version)
         edited = self._keys.get("edits", 0) != self._edit_version and "solve" in self._keys
         going_on = self._partial       # the last frame's pass 2 stopped at its sweep budget
@@ -729,6 +793,8 @@ class Renderer:
         new_mat = stage("material", "material", mat_key, lambda: self._material(scene), "material unchanged", None)
         new_light = stage("pass1", "light", light_key, lambda: self._pass1(scene),
                           "lights unchanged: incident light kept", "t1")
+        stage("incidence", "incidence", _key(light_key, mat_key), lambda: self._split_incidence(scene),
+              "lights and material unchanged: load kept", None)
         warm = not (new_geo or new_mat) and (new_light or edited or going_on)
         if new_geo or new_mat:
             self._partial = False
@@ -782,7 +848,7 @@ class Renderer:
                              "largest value): grid not refined")
         through = scene.options.unscattered and sees_through(scene.lights)
         rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
-                         f"source: {scene.options.source}; flux: {self._flux_used}; "
+                         f"source: {scene.options.source}; incidence: {self._incidence_used}; flux: {self._flux_used}; "
                          f"single scattering: {f'{self._ss_seconds:.2f} s' if scene.options.single_scattering else 'off'}; "
                          f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "

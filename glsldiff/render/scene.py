@@ -98,6 +98,9 @@ silently ignored).
     flux = "smoothed"         # exitant flux: smoothed (the Robin condition's, its q and phi smoothed along
                               # the surface over 1/2 and 1/8 mean free path; fem/tetwild default) | boundary (the local
                               # Robin condition; the lattice's default) | gradient (the solution's, fem only)
+    incidence = "marshak"     # surface source: marshak (the same whatever the incidence) | transport (the half-space's
+                              # H-function: grazing light mostly scatters out where it enters, normal light diffuses
+                              # further; front-lit sphere better, a spot's halo worse: README)
 
     [cut]                     # tetwild only: TransCut's cut (glsldiff.grids.tetcut); one of plane / stroke
     plane = [1, 0, 0, 50]     # n_x, n_y, n_z, d: removes n . x > d (mm, the scaled mesh's coordinates)
@@ -140,7 +143,7 @@ from glsldiff.grids.fem_grid import FEM_BYTES_PER_NODE, FEM_MAX_NODES
 from glsldiff.grids.polygrid import node_budget_problem
 from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
-from glsldiff.physics.exitance import EXITANT
+from glsldiff.physics.exitance import EXITANT, INCIDENCE
 from glsldiff.physics.collision import SOURCES
 from glsldiff.physics.lights import (KINDS, AreaLight, DirectionalLight, EnvironmentLight, Light, PointLight, ProjectorLight,
                                      SpotLight)
@@ -264,6 +267,7 @@ class OptionsSpec:
     source: str = "surface"
     unscattered: bool = True
     flux: str = "smoothed"           # lattice discretisations: "boundary" (no surface triangles to smooth on)
+    incidence: str = "marshak"       # the surface source per incidence: marshak | transport (Chandrasekhar)
 
 
 @dataclass(frozen=True)
@@ -671,7 +675,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                           t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False),
                           t.string("source", "surface", SOURCES), t.boolean("unscattered", True),
                           t.string("flux", "smoothed" if poly.discretisation in TETRAHEDRAL else "boundary",
-                                   FLUXES))
+                                   FLUXES), t.string("incidence", "marshak", INCIDENCE))
     if options.flux == "gradient" and poly.discretisation not in TETRAHEDRAL:
         t.fail("flux", "\"gradient\" (the flux of the solution's gradient) needs the tetrahedral grid; set "
                        "[polygrid] discretisation = \"fem\" (the default) or flux = \"boundary\"")

@@ -64,6 +64,7 @@ from glsldiff.render.camera import frame_camera
 from glsldiff.render.materials import node_material
 from glsldiff.render.renderer import Renderer
 from glsldiff.render.unscattered import sees_through
+from glsldiff.physics.exitance import INCIDENCE
 from glsldiff.render.scene import (FLUXES, CameraSpec, MaterialSpec, MeshSpec, OptionsSpec, OutputSpec, PolygridSpec,
                                    Scene, SpecularSpec)
 from glsldiff.validation.mitsuba import McCamera, render_scattering_orders, render_subsurface
@@ -102,6 +103,7 @@ class Case:
     discretisation: str = "fem"     # [polygrid].discretisation of the diffusion renderer (fem, tetwild, ...)
     edge_mm: float | None = None    # tetwild's target edge length, mm
     flux: str = "smoothed"          # [options].flux of the diffusion renderer
+    incidence: str = "marshak"      # [options].incidence of the diffusion renderer
     adapt: bool | str = "auto"      # fem: [polygrid].adapt (refinement under the light's sharp edges)
 
     @property
@@ -200,7 +202,8 @@ def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
                                        eta=case.eta, procedural=case.procedural),
                  lights=(_light(case),),
                  camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2),
-                 options=OptionsSpec(source=case.source, tol=1e-5 if case.light in LOCALIZED else 1e-4, flux=case.flux))
+                 options=OptionsSpec(source=case.source, tol=1e-5 if case.light in LOCALIZED else 1e-4, flux=case.flux,
+                                             incidence=case.incidence))
 
 
 def rmse(ours: NDArray, ref: NDArray, mask: NDArray) -> float:
@@ -342,7 +345,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     row: dict[str, Any] = {
         "case": case.name, "light": case.light if env else "directional", "eta": case.eta, "source": case.source,
         "albedo": case.sigma_s / (case.sigma_s + case.sigma_a), "material": case.procedural or "homogeneous",
-        "nodes": rep.nodes, "adapt": case.refines, "flux": case.flux, "pixels": int(inside.sum()),
+        "nodes": rep.nodes, "adapt": case.refines, "flux": case.flux, "incidence": case.incidence, "pixels": int(inside.sum()),
         "rmse_vs_mc_multiple": rmse(ours, multiple, inside),
         "rmse_vs_mc_all_scattering": rmse(ours, sub, inside),
         "mean_ratio": float(ours[inside].mean() / multiple[inside].mean()),
@@ -430,7 +433,7 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
         "case": case.name, "eta": case.eta, "source": case.source,
         "light": f"patch {case.patch_mm:g} mm" if case.light == "patch" else f"spot {case.patch_mm:g} deg",
         "albedo": case.sigma_s / st, "thickness_mm": _thickness(case), "nodes": rep.nodes,
-        "adapt": case.refines, "flux": case.flux, "pixels": int(every.sum()),
+        "adapt": case.refines, "flux": case.flux, "incidence": case.incidence, "pixels": int(every.sum()),
         "rel_l2": rmse(ours, sub, every), "power_ratio": float(ours.sum() / sub.sum()),
         "peak_ratio": _centre(ours, half) / peak_mc, "peak_mc": peak_mc,
         "mc_noise": _standard_error([p["subsurface"] for p in parts], every),
@@ -480,14 +483,15 @@ def _panels(path: Path, mc: NDArray, ours: NDArray, name: str, mc_title: str = "
 
 
 def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
-             source: str | None = None, adapt: bool | None = None, flux: str | None = None) -> list[dict[str, Any]]:
+             source: str | None = None, adapt: bool | None = None, flux: str | None = None,
+             incidence: str | None = None) -> list[dict[str, Any]]:
     """Run ``cases``; write validation.csv, and per case a PNG (diffusion | MC multiple scattering
     (eta = 1) or MC subsurface, all orders (eta != 1) | MC full image, surface reflection and
     background included), a PNG of panels (:func:`_panels`: MC, ours, difference, centre-row
     profile) and with eta = 1 one of the single scattering alone, the images as EXR and the
     environment map (if any). ``source`` (``"surface"`` or
-    ``"volume"``) overrides every case's diffusion source model and ``flux`` its
-    ``[options].flux``; ``adapt=True`` refines every fem case's grid under the light's sharp
+    ``"volume"``) overrides every case's diffusion source model, ``flux`` its
+    ``[options].flux`` and ``incidence`` its ``[options].incidence``; ``adapt=True`` refines every fem case's grid under the light's sharp
     edges (:mod:`glsldiff.grids.adapt`), ``False`` none (default: each case's own, ``"auto"``:
     the spot case)."""
     unknown = [c for c in cases if c not in CASES]
@@ -498,12 +502,15 @@ def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
         checks.choice(source, "source", SOURCES)
     if flux is not None:
         checks.choice(flux, "flux", FLUXES)
+    if incidence is not None:
+        checks.choice(incidence, "incidence", INCIDENCE)
     load_mitsuba("scalar_rgb")              # so does a missing Mitsuba
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in cases:
         case = CASES[name] if adapt is None else replace(CASES[name], adapt=adapt)
         case = case if flux is None else replace(case, flux=flux)
+        case = case if incidence is None else replace(case, incidence=incidence)
         case = case if source is None else replace(case, source=source)
         row, imgs = run_case(case, size, spp, folder=out)
         rows.append(row)
