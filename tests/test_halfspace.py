@@ -82,20 +82,29 @@ def test_split_keeps_diffuse_light_and_the_model_half_space():
     normal = [(np.ones((1, 3)), np.array([1.0]))]
     assert deep_irradiance(normal, kappa, mu)[0, 0] > 1.15
     assert local_bracket(normal, kappa, mu, np.array([1.0]), beta)[0, 0] < 0
+    # "local": the Marshak load; the local term alone follows the half-space's incidence and view
+    for view in (0.2, 1.0):
+        assert np.abs(local_bracket(beams, kappa, mu, np.array([view]), beta, deep=False)).max() < 3e-4 * beta.max()
+    grazing = [(np.ones((1, 3)), np.array([0.1]))]
+    a = 1.0 - 3.0 * kappa[0, 0] * mu[0, 0]
+    expect = beta[0, 0] * (h_function(a, 0.1) / (1.1 * float((2 * MU * W * h_function(a, MU) / (1.0 + MU)).sum())) - 1)
+    assert local_bracket(grazing, kappa, mu, np.array([1.0]), beta, deep=False)[0, 0] == pytest.approx(expect, rel=2e-3)
 
 
 def test_scene_option():
     base = {"mesh": {"source": "sphere"}, "lights": [{"type": "directional", "direction": [0, 0, 1],
                                                       "irradiance": [1, 1, 1]}]}
-    assert parse_scene(base).options.incidence == "marshak"
+    assert parse_scene(base).options.incidence == "local"
+    assert parse_scene({**base, "options": {"incidence": "marshak"}}).options.incidence == "marshak"
     assert parse_scene({**base, "options": {"incidence": "transport"}}).options.incidence == "transport"
     with pytest.raises(InputError, match=r"\[options\]\.incidence"):
         parse_scene({**base, "options": {"incidence": "lambert"}})
 
 
-@pytest.mark.parametrize("discretisation", ["fem", "conservative"])
-def test_renderer_transport_incidence(ctx, discretisation):
-    """Front-lit sphere seen from the side: with ``incidence = "transport"`` the grazing-lit band
+@pytest.mark.parametrize("discretisation, incidence", [("fem", "transport"), ("conservative", "transport"),
+                                                      ("fem", "local"), ("conservative", "local")])
+def test_renderer_incidence(ctx, discretisation, incidence):
+    """Front-lit sphere seen from the side: with ``incidence = "transport"`` or ``"local"`` the grazing-lit band
     near the terminator is brighter against the steeply lit side than with the Marshak source
     (Monte Carlo: 0.85x -> 1.15x from grazing to normal incidence with the Marshak source); the
     image stays finite and non-negative, the report says which was used, and a camera move
@@ -104,15 +113,15 @@ def test_renderer_transport_incidence(ctx, discretisation):
     scene = Scene(mesh=MeshSpec("sphere", 20.0), polygrid=PolygridSpec(n, 8, 2, discretisation),
                   lights=(DirectionalLight((0.0, 0.0, 1.0), (1.0, 1.0, 1.0)),), output=OutputSpec(48, 48),
                   camera=CameraSpec(position=(60.0, 0.0, 0.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)),
-                  options=OptionsSpec(flux="smoothed" if discretisation == "fem" else "boundary"))
+                  options=OptionsSpec(flux="smoothed" if discretisation == "fem" else "boundary", incidence="marshak"))
     scene = dataclasses.replace(scene, material=dataclasses.replace(scene.material, eta=1.0))   # index matched
     with Renderer(ctx) as r:
         old, _ = r.render(scene)
         new, rep = r.render(dataclasses.replace(scene, options=dataclasses.replace(scene.options,
-                                                                                   incidence="transport")))
-        assert any("incidence: transport" in line for line in rep.notes)
+                                                                                   incidence=incidence)))
+        assert any(f"incidence: {incidence}" in line for line in rep.notes)
         moved, rep2 = r.render(dataclasses.replace(scene, camera=CameraSpec(position=(40.0, 0.0, 45.0)),
-                                                   options=dataclasses.replace(scene.options, incidence="transport")))
+                                                   options=dataclasses.replace(scene.options, incidence=incidence)))
         assert not rep2.ran("pass2") and np.all(np.isfinite(moved)) and moved.min() >= 0.0
     assert np.all(np.isfinite(new)) and new.min() >= 0.0
     lum_o, lum_n = old.mean(axis=2), new.mean(axis=2)

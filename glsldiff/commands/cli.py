@@ -349,8 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="[options].flux of every case (default smoothed: the exitant bracket's source and fluence "
                    "smoothed along the surface over 1/2 and 1/8 mean free path; boundary: the local ones)")
     p.add_argument("--incidence", choices=INCIDENCE, default=None,
-                   help="[options].incidence of every case (default marshak: the same surface source whatever the "
-                   "light's incidence; transport: the half-space's H-function per incidence)")
+                   help="[options].incidence of every case (default local: the light reflected near where it entered "
+                   "follows the half-space's transport per incidence; transport: the load too; marshak: the same "
+                   "surface source whatever the incidence)")
     p.add_argument("--out", default="bench-out/validation")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)

@@ -40,7 +40,10 @@ light, which the Marshak source was calibrated on), and the bracket gets the loc
 makes a homogeneous half-space reflect towards the view cosine ``mu`` what transport does,
 ``beta E (H(t) / ((mu + t) D(mu)) - H(t) / <H>)`` (:func:`local_bracket`; ``beta`` the
 half-space's own bracket per unit irradiance, :func:`halfspace_bracket`). ``"marshak"``: the
-same source for every incidence, as before.
+same source for every incidence, as before. ``"local"``: the Marshak load, and the local term
+with the load's share 1 (``beta E (H(t) / ((mu + t) D(mu)) - 1)``): the half-space's exact
+dependence of the light reflected near where it entered on the incidence and the view, the
+diffusion's far field left as the Marshak source makes it.
 """
 from __future__ import annotations
 
@@ -60,7 +63,7 @@ __all__ = ["EXITANT", "FLUENCE_SMOOTHING_MFP", "FLUX_SMOOTHING_MFP", "INCIDENCE"
 
 EXITANT = ("p1", "arbree", "paper")
 #: How the surface source depends on the light's incidence (module docstring).
-INCIDENCE = ("transport", "marshak")
+INCIDENCE = ("marshak", "local", "transport")
 #: The screening length of the bracket's ``q`` in transport mean free paths: chosen on a 10 mm
 #: slab under a hard-edged 6-degree spot (mean free path 0.82 mm; relative L2 against Monte
 #: Carlo 0.249 local -> 0.048, best between 0.45 and 0.55) and kept for the cases not used to
@@ -146,17 +149,19 @@ def halfspace_bracket(kappa: ArrayLike, mu: ArrayLike, eta: float, convention: s
     return q1 * (a / (1.0 + 2.0 * C * root) - b)
 
 
-def local_bracket(beams: Beams, kappa: ArrayLike, mu: ArrayLike, view_cos: ArrayLike, beta: ArrayLike
-                  ) -> NDArray[np.float64]:
-    """The local term added to the bracket under ``incidence = "transport"`` (sr^-1 times the
-    irradiance's units), per node and channel: ``sum_k beta E_k (H(t_k) / ((mu + t_k) D(mu)) -
-    H(t_k) / <H>)`` with ``mu = view_cos`` ``(N,)`` (refracted) and ``beta`` from
-    :func:`halfspace_bracket`. Its sum over diffuse light is 0."""
+def local_bracket(beams: Beams, kappa: ArrayLike, mu: ArrayLike, view_cos: ArrayLike, beta: ArrayLike,
+                  deep: bool = True) -> NDArray[np.float64]:
+    """The local term added to the bracket (sr^-1 times the irradiance's units), per node and
+    channel: ``sum_k beta E_k (H(t_k) / ((mu + t_k) D(mu)) - s_k)`` with ``mu = view_cos``
+    ``(N,)`` (refracted), ``beta`` from :func:`halfspace_bracket` and ``s_k`` the beam's share in
+    the load: ``H(t_k) / <H>`` under ``incidence = "transport"`` (``deep``), 1 under ``"local"``
+    (the Marshak load). Its sum over diffuse light is 0."""
     a = _albedo(kappa, mu)
     m = np.clip(np.asarray(view_cos, dtype=np.float64), 0.0, 1.0)[:, None]
     out = np.zeros_like(a)
     mean = h_mean(a)
     for E, t in beams:
         tt = np.asarray(t)[:, None]
-        out += np.asarray(E, dtype=np.float64) * (reflected_share(a, tt, m) - h_function(a, tt) / mean)
+        share = h_function(a, tt) / mean if deep else 1.0
+        out += np.asarray(E, dtype=np.float64) * (reflected_share(a, tt, m) - share)
     return np.asarray(beta, dtype=np.float64) * out

@@ -382,9 +382,9 @@ class Renderer:
     @staticmethod
     def _transport(scene: Scene) -> bool:
         """Whether the surface source follows the half-space's transport per incidence
-        (:mod:`glsldiff.physics.exitance`, ``[options].incidence``)."""
+        (:mod:`glsldiff.physics.exitance`, ``[options].incidence`` "local" or "transport")."""
         o = scene.options
-        return o.incidence == "transport" and o.source == "surface" and o.exitant != "paper"
+        return o.incidence != "marshak" and o.source == "surface" and o.exitant != "paper"
 
     def _boundary_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(kappa, mu)`` ``(n_boundary, 3)`` at the surface (boundary) nodes."""
@@ -405,15 +405,18 @@ class Renderer:
             return
         kappa, mu = self._boundary_material()
         eta = scene.material.eta
-        E = deep_irradiance(self._beams, kappa, mu)
+        deep = o.incidence == "transport"
+        E = deep_irradiance(self._beams, kappa, mu) if deep else self._E_t
         self._q = source_from_irradiance(E, eta, o.exitant)
         self._incidence = {"beta": halfspace_bracket(kappa, mu, eta, o.exitant, self._boundary_C(scene)),
-                           "kappa": kappa, "mu": mu}
+                           "kappa": kappa, "mu": mu, "deep": deep}
         self._local_key = None
         lit = self._E_t.sum(axis=1) > 0
         share = E.sum(axis=1)[lit] / self._E_t.sum(axis=1)[lit] if lit.any() else np.ones(1)
         self._incidence_used = (f"transport (the load's share of each beam H(t) / <H>: {share.min():.2f}-"
-                                f"{share.max():.2f}; the bracket's local term follows the view)")
+                                f"{share.max():.2f}; the bracket's local term follows the view)" if deep else
+                                "local (the Marshak load; the bracket's local term follows the half-space's "
+                                "transport per incidence and view)")
 
     def _bracket_q(self, scene: Scene) -> NDArray[np.float64]:
         """The ``q`` of the exitant bracket: the load, less the local term of ``incidence =
@@ -428,7 +431,7 @@ class Renderer:
             cos = np.einsum("ij,ij->i", d, pg.normals) / np.maximum(np.linalg.norm(d, axis=1), 1e-300)
             view = np.where(cos > 0.0, refracted_cosine(scene.material.eta, np.clip(cos, 0.0, 1.0)), 1.0)
             inc = self._incidence
-            local = local_bracket(self._beams, inc["kappa"], inc["mu"], view, inc["beta"])
+            local = local_bracket(self._beams, inc["kappa"], inc["mu"], view, inc["beta"], inc["deep"])
             b = exitance_coefficients(scene.material.eta, scene.options.exitant, self._boundary_C(scene))[1]
             self._q_bracket, self._local_key, self._flux_fields = self._q - local / b, key, None
         return self._q_bracket
@@ -793,8 +796,8 @@ class Renderer:
         new_mat = stage("material", "material", mat_key, lambda: self._material(scene), "material unchanged", None)
         new_light = stage("pass1", "light", light_key, lambda: self._pass1(scene),
                           "lights unchanged: incident light kept", "t1")
-        stage("incidence", "incidence", _key(light_key, mat_key), lambda: self._split_incidence(scene),
-              "lights and material unchanged: load kept", None)
+        stage("incidence", "incidence", _key(light_key, mat_key, self._edit_version),   # edits change the albedo
+              lambda: self._split_incidence(scene), "lights and material unchanged: load kept", None)
         warm = not (new_geo or new_mat) and (new_light or edited or going_on)
         if new_geo or new_mat:
             self._partial = False

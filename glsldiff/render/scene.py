@@ -98,9 +98,10 @@ silently ignored).
     flux = "smoothed"         # exitant flux: smoothed (the Robin condition's, its q and phi smoothed along
                               # the surface over 1/2 and 1/8 mean free path; fem/tetwild default) | boundary (the local
                               # Robin condition; the lattice's default) | gradient (the solution's, fem only)
-    incidence = "marshak"     # surface source: marshak (the same whatever the incidence) | transport (the half-space's
-                              # H-function: grazing light mostly scatters out where it enters, normal light diffuses
-                              # further; front-lit sphere better, a spot's halo worse: README)
+    incidence = "local"       # surface source per incidence: local (the Marshak load; the light reflected near where
+                              # it entered follows the half-space's exact transport per incidence and view) |
+                              # transport (also the load: H(t) / <H> per beam; a spot's halo too bright: README) |
+                              # marshak (the same whatever the incidence)
 
     [cut]                     # tetwild only: TransCut's cut (glsldiff.grids.tetcut); one of plane / stroke
     plane = [1, 0, 0, 50]     # n_x, n_y, n_z, d: removes n . x > d (mm, the scaled mesh's coordinates)
@@ -267,7 +268,7 @@ class OptionsSpec:
     source: str = "surface"
     unscattered: bool = True
     flux: str = "smoothed"           # lattice discretisations: "boundary" (no surface triangles to smooth on)
-    incidence: str = "marshak"       # the surface source per incidence: marshak | transport (Chandrasekhar)
+    incidence: str = "local"         # the surface source per incidence: local | transport (Chandrasekhar) | marshak
 
 
 @dataclass(frozen=True)
@@ -675,7 +676,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
                           t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False),
                           t.string("source", "surface", SOURCES), t.boolean("unscattered", True),
                           t.string("flux", "smoothed" if poly.discretisation in TETRAHEDRAL else "boundary",
-                                   FLUXES), t.string("incidence", "marshak", INCIDENCE))
+                                   FLUXES), t.string("incidence", "local", INCIDENCE))
     if options.flux == "gradient" and poly.discretisation not in TETRAHEDRAL:
         t.fail("flux", "\"gradient\" (the flux of the solution's gradient) needs the tetrahedral grid; set "
                        "[polygrid] discretisation = \"fem\" (the default) or flux = \"boundary\"")

@@ -103,7 +103,7 @@ class Case:
     discretisation: str = "fem"     # [polygrid].discretisation of the diffusion renderer (fem, tetwild, ...)
     edge_mm: float | None = None    # tetwild's target edge length, mm
     flux: str = "smoothed"          # [options].flux of the diffusion renderer
-    incidence: str = "marshak"      # [options].incidence of the diffusion renderer
+    incidence: str = "local"        # [options].incidence of the diffusion renderer
     adapt: bool | str = "auto"      # fem: [polygrid].adapt (refinement under the light's sharp edges)
 
     @property
