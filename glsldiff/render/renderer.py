@@ -148,7 +148,7 @@ class Renderer:
         self._q: NDArray | None = None
         self._q_marshak: NDArray | None = None    # pass 1's load before the incidence split
         self._beams: list = []                    # pass 1's beams (E (N, 3), refracted cosine (N,))
-        self._incidence: dict[str, Any] | None = None   # incidence = "transport": what the bracket's local term needs
+        self._incidence: dict[str, Any] | None = None   # incidence "local"/"transport": what the local term needs
         self._incidence_used = ""                 # the report's incidence line
         self._local_key: Any = None
         self._phi_b: NDArray | None = None
@@ -395,8 +395,9 @@ class Renderer:
                 self._mat["mu"].reshape(-1, 3)[pg.lattice.boundary])
 
     def _split_incidence(self, scene: Scene) -> None:
-        """The diffusion's load from pass 1's beams and the node material: each beam's share
-        ``H(t) / <H>`` under ``incidence = "transport"``, pass 1's Marshak source otherwise."""
+        """The diffusion's load from pass 1's beams and the node material (each beam's share
+        ``H(t) / <H>`` under ``incidence = "transport"``, pass 1's Marshak source otherwise) and
+        what the bracket's local term needs (``"local"`` and ``"transport"``)."""
         self._q, self._incidence = self._q_marshak, None
         o = scene.options
         if not self._transport(scene):
@@ -420,7 +421,8 @@ class Renderer:
 
     def _bracket_q(self, scene: Scene) -> NDArray[np.float64]:
         """The ``q`` of the exitant bracket: the load, less the local term of ``incidence =
-        "transport"`` over ``b`` (it depends on the view: recomputed when the camera moves)."""
+        "local"`` or ``"transport"`` over ``b`` (it depends on the view: recomputed when the
+        camera moves)."""
         if self._incidence is None:
             return self._q
         pg = self._geo["pg"]
