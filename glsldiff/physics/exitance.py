@@ -33,14 +33,15 @@ from. Transport does not: light arriving at grazing incidence scatters out near 
 entered, light arriving along the normal goes deeper and diffuses further (the 1-D oracle
 :mod:`glsldiff.oracle.slab_transport`: a 20 mm slab transmits 1.26x more of normally incident
 light than of diffuse light, the surface source the same for both). ``[options].incidence =
-"transport"`` (the default with the surface source) follows the half-space's exact transport
+"transport"`` follows the half-space's exact transport
 (:mod:`glsldiff.physics.halfspace`) per beam of refracted cosine ``t``: the diffusion's load
 takes the share ``H(t) / <H>`` of the beam (:func:`deep_irradiance`; 1 on average over diffuse
 light, which the Marshak source was calibrated on), and the bracket gets the local term that
 makes a homogeneous half-space reflect towards the view cosine ``mu`` what transport does,
 ``beta E (H(t) / ((mu + t) D(mu)) - H(t) / <H>)`` (:func:`local_bracket`; ``beta`` the
 half-space's own bracket per unit irradiance, :func:`halfspace_bracket`). ``"marshak"``: the
-same source for every incidence, as before. ``"local"``: the Marshak load, and the local term
+same source for every incidence, as before. ``"local"`` (the default with the surface source):
+the Marshak load, and the local term
 with the load's share 1 (``beta E (H(t) / ((mu + t) D(mu)) - 1)``): the half-space's exact
 dependence of the light reflected near where it entered on the incidence and the view, the
 diffusion's far field left as the Marshak source makes it.
@@ -54,7 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.physics.halfspace import h_function, h_mean, reflected_share
+from glsldiff.physics.halfspace import d_function, h_function, h_mean
 from glsldiff.physics.optics import boundary_constant, fdr
 
 __all__ = ["EXITANT", "FLUENCE_SMOOTHING_MFP", "FLUX_SMOOTHING_MFP", "INCIDENCE", "bracket_smoothing_lengths",
@@ -81,13 +82,18 @@ def _check(convention: str) -> None:
         raise InputError(f"exitant convention {convention!r}; choose one of {', '.join(EXITANT)}")
 
 
+def _robin_constant(eta: float, C: float | None) -> float:
+    """``C``, by default :func:`glsldiff.physics.optics.boundary_constant` of ``eta``."""
+    return float(boundary_constant(eta)) if C is None else float(C)
+
+
 def exitance_coefficients(eta: float, convention: str, C: float | None = None) -> tuple[float, float]:
     """``(a, b)`` of the bracket ``B = a phi - b q`` (sr^-1); ``C`` defaults to
     ``boundary_constant(eta)`` (the ``paper`` bracket does not depend on it)."""
     _check(convention)
     if convention == "paper":
         return 1.0 / (2.0 * math.pi), 1.0 / (2.0 * math.pi)
-    C = float(boundary_constant(eta)) if C is None else float(C)
+    C = _robin_constant(eta, C)
     if convention == "p1":
         s = 4.0 * math.pi * eta * eta
         return (1.0 + 1.5 / C) / s, 1.5 / (C * s)
@@ -143,7 +149,7 @@ def halfspace_bracket(kappa: ArrayLike, mu: ArrayLike, eta: float, convention: s
     per unit transmitted irradiance (sr^-1): the diffusion's ``phi = q / (1 + 2 C sqrt(kappa mu))``
     at the surface put into ``a phi - b q``."""
     a, b = exitance_coefficients(eta, convention, C)
-    C = float(boundary_constant(eta)) if C is None else float(C)
+    C = _robin_constant(eta, C)
     q1 = float(source_from_irradiance(np.ones(1), eta, convention)[0])
     root = np.sqrt(np.asarray(kappa, dtype=np.float64) * np.asarray(mu, dtype=np.float64))
     return q1 * (a / (1.0 + 2.0 * C * root) - b)
@@ -159,9 +165,11 @@ def local_bracket(beams: Beams, kappa: ArrayLike, mu: ArrayLike, view_cos: Array
     a = _albedo(kappa, mu)
     m = np.clip(np.asarray(view_cos, dtype=np.float64), 0.0, 1.0)[:, None]
     out = np.zeros_like(a)
-    mean = h_mean(a)
+    mean = h_mean(a) if deep else None
+    D = d_function(a, m)                     # the view's part: once, not per beam
     for E, t in beams:
         tt = np.asarray(t)[:, None]
-        share = h_function(a, tt) / mean if deep else 1.0
-        out += np.asarray(E, dtype=np.float64) * (reflected_share(a, tt, m) - share)
+        H = h_function(a, tt)                # reflected_share(a, t, mu) = H / ((mu + t) D)
+        share = H / mean if deep else 1.0
+        out += np.asarray(E, dtype=np.float64) * (H / ((m + tt) * D) - share)
     return np.asarray(beta, dtype=np.float64) * out

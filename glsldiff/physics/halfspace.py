@@ -24,7 +24,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-__all__ = ["h_function", "h_mean", "reflected_share"]
+__all__ = ["d_function", "h_function", "h_mean", "reflected_share"]
 
 _N_ALBEDO = 129
 _N_MU = 129
@@ -89,8 +89,14 @@ def h_function(albedo: ArrayLike, mu: ArrayLike) -> NDArray[np.float64]:
 
 def h_mean(albedo: ArrayLike) -> NDArray[np.float64]:
     """``<H> = 2 int_0^1 H(mu) mu dmu``, the mean of ``H`` over diffuse (cosine-weighted) light."""
-    u_grid, M = _tables()[0], _tables()[4]
+    u_grid, _, _, _, M = _tables()
     return np.interp(np.sqrt(1.0 - np.clip(np.asarray(albedo, dtype=np.float64), 0.0, 1.0)), u_grid, M)
+
+
+def d_function(albedo: ArrayLike, mu: ArrayLike) -> NDArray[np.float64]:
+    """``D(mu) = 2 int_0^1 t H(t) / (mu + t) dt``: what diffuse light of unit irradiance reflects
+    towards ``mu``, over ``a H(mu) / (4 pi)``."""
+    return _bilinear(_tables()[3], albedo, mu)
 
 
 def reflected_share(albedo: ArrayLike, mu0: ArrayLike, mu: ArrayLike) -> NDArray[np.float64]:
@@ -99,5 +105,4 @@ def reflected_share(albedo: ArrayLike, mu0: ArrayLike, mu: ArrayLike) -> NDArray
     ``H(mu0) / ((mu + mu0) D(mu))`` with ``D(mu) = 2 int_0^1 t H(t) / (mu + t) dt``
     (1 on average over diffuse light, for every ``mu``)."""
     H0 = h_function(albedo, mu0)
-    D = _bilinear(_tables()[3], albedo, mu)
-    return H0 / ((np.asarray(mu, dtype=np.float64) + np.asarray(mu0, dtype=np.float64)) * D)
+    return H0 / ((np.asarray(mu, dtype=np.float64) + np.asarray(mu0, dtype=np.float64)) * d_function(albedo, mu))

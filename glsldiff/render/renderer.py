@@ -351,7 +351,7 @@ class Renderer:
     def _pass1(self, scene: Scene) -> None:
         pg = self._geo["pg"]
         volume = scene.options.source == "volume"
-        beams: list | None = [] if volume or self._transport(scene) else None
+        beams: list | None = [] if volume or self._splits_incidence(scene) else None
         E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, scene.lights,
                                    scene.material.eta, ctx=self.ctx, beams=beams,
                                    triangles=pg.surface_triangles if self._geo["fem"] else None)
@@ -380,7 +380,7 @@ class Renderer:
         self._light_info = info
 
     @staticmethod
-    def _transport(scene: Scene) -> bool:
+    def _splits_incidence(scene: Scene) -> bool:
         """Whether the surface source follows the half-space's transport per incidence
         (:mod:`glsldiff.physics.exitance`, ``[options].incidence`` "local" or "transport")."""
         o = scene.options
@@ -400,7 +400,7 @@ class Renderer:
         what the bracket's local term needs (``"local"`` and ``"transport"``)."""
         self._q, self._incidence = self._q_marshak, None
         o = scene.options
-        if not self._transport(scene):
+        if not self._splits_incidence(scene):
             self._incidence_used = ("marshak (the paper's convention)" if o.exitant == "paper" and o.source == "surface"
                                     else "marshak" if o.source == "surface" else "- (volume source)")
             return
@@ -419,14 +419,13 @@ class Renderer:
                                 "local (the Marshak load; the bracket's local term follows the half-space's "
                                 "transport per incidence and view)")
 
-    def _bracket_q(self, scene: Scene) -> NDArray[np.float64]:
+    def _bracket_q(self, scene: Scene, eye: NDArray[np.float64]) -> NDArray[np.float64]:
         """The ``q`` of the exitant bracket: the load, less the local term of ``incidence =
         "local"`` or ``"transport"`` over ``b`` (it depends on the view: recomputed when the
         camera moves)."""
         if self._incidence is None:
             return self._q
         pg = self._geo["pg"]
-        eye, _ = scene_camera(scene, self._geo["frame"])
         key = tuple(np.round(np.asarray(eye, dtype=np.float64), 9))
         if self._local_key != key:
             d = np.asarray(eye, dtype=np.float64)[None, :] - pg.boundary_positions
@@ -619,7 +618,8 @@ class Renderer:
         geo, opts = self._geo, scene.options
         v, f, nrm = geo["vertices"], geo["faces"], geo["normals"]
         eta = scene.material.eta
-        B = exitant_bracket(*self._bracket_fields(scene), eta, opts.exitant, self._boundary_C(scene))
+        eye, mvp = scene_camera(scene, geo["frame"])
+        B = exitant_bracket(*self._bracket_fields(scene, eye), eta, opts.exitant, self._boundary_C(scene))
         ms = geo["interp"] @ B
         neg = ms < 0.0
         self._clamped = int(np.any(neg, axis=1).sum())
@@ -638,7 +638,6 @@ class Renderer:
                 if isinstance(light, ProjectorLight):
                     tint[:, i] = projector_factor(light, v)
             self._vis, self._tint, self._keys["vis"] = vis, tint, vis_key
-        eye, mvp = scene_camera(scene, geo["frame"])
         ss = np.zeros_like(v)
         if opts.single_scattering:
             ss = self._single(scene, eye)
@@ -650,7 +649,7 @@ class Renderer:
         return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (scene.output.width, scene.output.height))
 
-    def _bracket_fields(self, scene: Scene) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    def _bracket_fields(self, scene: Scene, eye: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The ``(phi, q)`` of the exitant bracket ``a phi - b q`` per surface node. ``[options].flux =
         "smoothed"`` (tetrahedral grids, the default): both smoothed along the surface, ``q`` over
         half a transport mean free path and ``phi`` over an eighth
@@ -666,8 +665,8 @@ class Renderer:
                                "boundary (the lattice has no surface triangles to smooth on)" if not self._geo["fem"]
                                else "smoothed: no light enters through the surface here (volume source), so the "
                                     "local bracket")
-            return self._phi_b, self._bracket_q(scene)
-        q_bracket = self._bracket_q(scene)        # before the cache check: a new view drops the cache
+            return self._phi_b, self._bracket_q(scene, eye)
+        q_bracket = self._bracket_q(scene, eye)        # before the cache check: a new view drops the cache
         if self._flux_kind != flux:          # the kept fields are the other option's
             self._flux_fields, self._flux_kind = None, flux
         if self._flux_fields is None and flux == "smoothed":
@@ -675,7 +674,7 @@ class Renderer:
             key = _key(self._keys.get("geometry"), self._keys.get("material"))
             if self._keys.get("smoother") != key:
                 t0 = time.perf_counter()
-                lam_phi, lam_q = bracket_smoothing_lengths(self._mat["kappa"][pg.surface_nodes])
+                lam_phi, lam_q = bracket_smoothing_lengths(self._boundary_material()[0])
                 self._smoothers = tuple(screened_smoothing(pg.boundary_positions, pg.surface_triangles, lam)
                                         for lam in (lam_phi, lam_q))
                 self._smoother_info = (f"smoothed along the surface, q over {lam_q.min():.3g}-{lam_q.max():.3g} mm "
@@ -688,7 +687,7 @@ class Renderer:
             full = np.zeros((len(pg.positions), 3))
             full[self._fem_active] = self._phi_active
             grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
-            normal_flux = -self._mat["kappa"][pg.surface_nodes] * np.einsum("sjc,sj->sc", grad, pg.normals)
+            normal_flux = -self._boundary_material()[0] * np.einsum("sjc,sj->sc", grad, pg.normals)
             self._flux_fields = (self._phi_b, self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux
                                  - (self._q - q_bracket))
         self._flux_used = self._smoother_info if flux == "smoothed" else flux

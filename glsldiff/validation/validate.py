@@ -203,7 +203,7 @@ def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
                  lights=(_light(case),),
                  camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2),
                  options=OptionsSpec(source=case.source, tol=1e-5 if case.light in LOCALIZED else 1e-4, flux=case.flux,
-                                             incidence=case.incidence))
+                                     incidence=case.incidence))
 
 
 def rmse(ours: NDArray, ref: NDArray, mask: NDArray) -> float:
