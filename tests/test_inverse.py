@@ -261,8 +261,12 @@ def test_cli_synth_and_fit(tmp_path, capsys) -> None:
                  str(tmp_path / "m_truth.npz")]) == 0
     text = capsys.readouterr().out
     assert "figure-11 error E" in text and "|grad|" in text
+    assert "homogeneous fit sigma_a" in text and "within 1 % of its minimum" in text
     with np.load(out) as d:
         assert d["kappa"].shape == (5, 10, 10, 3) and np.all(d["kappa"] > 0)
+        rng, (k_h, m_h) = d["homogeneous_ranges"], d["homogeneous"][0]
+        assert rng.shape == (3, 4) and float(d["ranges_tolerance"]) == 0.01
+        assert rng[0, 0] <= m_h <= rng[0, 1] and rng[0, 2] <= 1.0 / (3.0 * k_h) - m_h <= rng[0, 3]
     assert (tmp_path / "mat_slices.png").stat().st_size > 0
     assert (tmp_path / "mat_trace.csv").stat().st_size > 0
     # the same fit with GLSL forward/adjoint solves

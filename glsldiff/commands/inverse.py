@@ -193,6 +193,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
                 f"nodes, method {options.method}, lambda {options.lam:g}, {options.backend} solves", table)
     for note in result.notes:
         print(note)
+    for c, f in enumerate(result.channels[:1] if result.shared else result.channels):
+        if f.ranges is not None:
+            print(("" if result.shared else f"channel {'RGB'[c]}: ") + f.ranges.describe())
     if E is not None:
         print(f"figure-11 error E vs the true material ({meas.lit_face} -> {meas.observed_face} pairs): {E:.5f}")
         print_table("recovered coefficients against the truth (interior nodes, mm^-1)",

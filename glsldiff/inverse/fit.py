@@ -32,6 +32,7 @@ from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, minimize
+from glsldiff.inverse.ranges import PROFILE_TOLERANCE, CoefficientRanges, profile_ranges
 from glsldiff.physics.exitance import EXITANT
 
 Array = NDArray[np.float64]
@@ -79,6 +80,7 @@ class ChannelFit:
     trace: Trace
     data: float  # final data term (normalised squared error)
     snapshots: list = field(default_factory=list)
+    ranges: CoefficientRanges | None = None  # how tightly the data pin the homogeneous material
 
     @property
     def converged(self) -> bool:
@@ -100,12 +102,14 @@ class FitResult:
     interrupted: bool = False  # Ctrl-C: the best material so far (see notes)
 
 
-def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: int) -> tuple[float, float, Trace]:
+def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: int
+                    ) -> tuple[float, float, Trace, CoefficientRanges]:
     """Best homogeneous (kappa, mu): two unknowns (paper: "quickly computed ... with
     user-specified initial values"). Least squares on ``(log kappa, log mu)`` with scipy's
     trust-region reflective solver; each Jacobian costs two extra solves with the factor
     of the residual's evaluation (:meth:`Factorized.tangent`), not extra factorisations.
-    The regulariser vanishes for a homogeneous volume."""
+    The regulariser vanishes for a homogeneous volume. Also returns how tightly the data pin
+    sigma_a and sigma_s' (:mod:`glsldiff.inverse.ranges`, from the final Jacobian)."""
     o = objective
     model = o.model
     if type(model) is not ForwardModel:  # e.g. the GLSL path: the two-unknown fit runs on the CPU
@@ -145,7 +149,8 @@ def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: 
     trace.converged = res.status > 0
     trace.iterations = int(res.njev or 0)
     trace.seconds = time.perf_counter() - t0
-    return math.exp(res.x[0]), math.exp(res.x[1]), trace
+    kappa, mu = math.exp(res.x[0]), math.exp(res.x[1])
+    return kappa, mu, trace, profile_ranges(np.asarray(res.jac), kappa, mu, 2.0 * float(res.cost))
 
 
 def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitOptions,
@@ -154,7 +159,7 @@ def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitO
     ``(n_boundary, M)``); ``snapshot_every`` keeps the material every that many iterations
     in ``ChannelFit.snapshots`` as ``(record, kappa, mu)``."""
     objective = Objective(model, Q, Y, W, lam=options.lam)
-    k_h, m_h, h_trace = fit_homogeneous(objective, options.kappa0, options.mu0, options.homogeneous_evals)
+    k_h, m_h, h_trace, ranges = fit_homogeneous(objective, options.kappa0, options.mu0, options.homogeneous_evals)
     mu_scale = max(m_h, 1e-2 / (3.0 * k_h))  # keep the mu variable O(1) even for mu_h -> 0 (1 % of sigma_t')
     problem = ScaledProblem(objective, k_h, mu_scale, options.method, options.max_evals,
                             options.max_seconds, callback, snapshot_every, options.parameterization)
@@ -162,7 +167,7 @@ def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitO
     z0 = problem.variables(np.full(n, k_h), np.full(n, m_h))
     z = minimize(problem, z0, stopval=STOP_FRACTION)
     kappa, mu = problem.material(z)
-    fit = ChannelFit(kappa, mu, (k_h, m_h), h_trace, problem.trace, problem.trace.best.data)
+    fit = ChannelFit(kappa, mu, (k_h, m_h), h_trace, problem.trace, problem.trace.best.data, ranges=ranges)
     fit.snapshots = [(rec, *problem.material(zs)) for rec, zs in problem.snapshots]
     return fit
 
@@ -227,5 +232,10 @@ def save_material(path: str | os.PathLike, result: FitResult) -> Path:
                   data_error=np.array([f.data for f in result.channels]),
                   converged=np.array([f.converged for f in result.channels]),
                   interrupted=result.interrupted,
-                  homogeneous=np.array([f.homogeneous for f in result.channels]))
+                  homogeneous=np.array([f.homogeneous for f in result.channels]),
+                  # per channel: sigma_a lo, hi, sigma_s' lo, hi [mm^-1] keeping the homogeneous data term
+                  # within ranges_tolerance of its minimum (glsldiff.inverse.ranges); NaN where not computed
+                  homogeneous_ranges=np.array([[*f.ranges.sigma_a_range, *f.ranges.sigma_s_range] if f.ranges
+                                               else [np.nan] * 4 for f in result.channels]),
+                  ranges_tolerance=PROFILE_TOLERANCE)
     return write_npz(path, **arrays)
