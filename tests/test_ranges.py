@@ -94,6 +94,17 @@ def test_describe_names_the_undetermined_coefficient() -> None:
     assert math.isinf(flat.sigma_a_range[1]) and "inf" in flat.describe()
 
 
+def test_an_unphysical_homogeneous_fit_has_no_ranges() -> None:
+    """The homogeneous fit runs in (log kappa, log mu) and can end where 3 kappa mu > 1 (the
+    high-absorption stiff case ends at kappa 0.77 mm, mu 4.67 /mm): no ranges, said so."""
+    r = profile_ranges(np.array([[1.0, 0.5], [0.2, 2.0]]), 0.7727, 4.665, 0.1)
+    assert r.sigma_s < 0 and not r.physical and r.determined == (False, False)
+    assert all(math.isnan(x) for x in (*r.sigma_a_range, *r.sigma_s_range))
+    line = r.describe()
+    assert "not a physical material" in line and "no ranges" in line and "\n" not in line
+    assert profile_ranges(np.array([[1.0, 0.5], [0.2, 2.0]]), 0.2, 0.01, 0.1).physical
+
+
 @pytest.mark.parametrize("jac,kappa,mu,tol", [(np.ones((4, 3)), 0.2, 0.01, 0.01),
                                               (np.full((4, 2), np.nan), 0.2, 0.01, 0.01),
                                               (np.ones((4, 2)), 0.0, 0.01, 0.01),

@@ -234,7 +234,8 @@ def save_material(path: str | os.PathLike, result: FitResult) -> Path:
                   interrupted=result.interrupted,
                   homogeneous=np.array([f.homogeneous for f in result.channels]),
                   # per channel: sigma_a lo, hi, sigma_s' lo, hi [mm^-1] keeping the homogeneous data term
-                  # within ranges_tolerance of its minimum (glsldiff.inverse.ranges); NaN where not computed
+                  # within ranges_tolerance of its minimum (glsldiff.inverse.ranges); NaN where not computed or the
+                  # homogeneous fit is not physical (sigma_s' < 0)
                   homogeneous_ranges=np.array([[*f.ranges.sigma_a_range, *f.ranges.sigma_s_range] if f.ranges
                                                else [np.nan] * 4 for f in result.channels]),
                   ranges_tolerance=PROFILE_TOLERANCE)

@@ -46,13 +46,24 @@ class CoefficientRanges:
     data: float
 
     @property
+    def physical(self) -> bool:
+        """Whether the homogeneous fit is a physical material (sigma_s' >= 0); its fit runs in
+        (log kappa, log mu) and may end where 3 kappa mu > 1, and then has no ranges (NaN)."""
+        return self.sigma_s >= 0.0
+
+    @property
     def determined(self) -> tuple[bool, bool]:
-        """Whether each range is narrower than the value itself (half-width < value)."""
-        return tuple(0.5 * (hi - lo) < v for v, (lo, hi) in
+        """Whether each range is narrower than the value itself (half-width < value); neither
+        is when the fit is not physical."""
+        return tuple(self.physical and 0.5 * (hi - lo) < v for v, (lo, hi) in
                      ((self.sigma_a, self.sigma_a_range), (self.sigma_s, self.sigma_s_range)))  # type: ignore
 
     def describe(self) -> str:
         """One line: both ranges and which coefficient the capture does not determine."""
+        if not self.physical:
+            return (f"homogeneous fit sigma_a {self.sigma_a:.4g} /mm, sigma_s' {self.sigma_s:.4g} /mm is not a "
+                    "physical material (sigma_s' < 0, i.e. 3 kappa mu > 1): no ranges; the measurements do not "
+                    "determine a homogeneous material")
         (a0, a1), (s0, s1) = self.sigma_a_range, self.sigma_s_range
         loose = [name for name, ok in zip(("sigma_a", "sigma_s'"), self.determined) if not ok]
         tail = (f"; the measurements do not determine {' or '.join(loose)} (its range is wider than its value)"
@@ -92,6 +103,8 @@ def profile_ranges(jac_log: NDArray[np.float64], kappa: float, mu: float, data: 
             return math.inf
         return math.sqrt(rise / c)
 
+    if ss < 0.0:   # not a physical material: no ranges (CoefficientRanges.physical)
+        return CoefficientRanges(sa, (math.nan, math.nan), ss, (math.nan, math.nan), float(tolerance), float(data))
     da, ds = half_width(0), half_width(1)
     return CoefficientRanges(sa, (max(sa - da, 0.0), sa + da), ss, (max(ss - ds, 0.0), ss + ds),
                              float(tolerance), float(data))
