@@ -162,7 +162,7 @@ def test_validate_cases_take_the_option_on_fem_only():
     from dataclasses import replace
 
     from glsldiff.validation.validate import CASES, _scene
-    fem = next(c for c in CASES.values() if c.discretisation == "fem" and c.mesh != "slab")
+    fem = next(c for c in CASES.values() if c.discretisation in (None, "fem") and c.mesh != "slab")
     tet = next(c for c in CASES.values() if c.discretisation == "tetwild")
     assert not _scene(fem, None, 16).refines and not fem.refines
     assert _scene(replace(fem, adapt=True), None, 16).refines

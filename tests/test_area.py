@@ -13,6 +13,9 @@ from glsldiff.physics.lights import AreaLight
 from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
 from glsldiff.render.pass1 import _sub_barycentrics, incident_light
 
+_x, _w = np.polynomial.legendre.leggauss(64)
+MU, W = 0.5 * (_x + 1.0), 0.5 * _w              # Gauss nodes on [0, 1]
+
 
 def corner_factor(a: float, b: float, c: float) -> float:
     """Form factor (x pi: the integral of cos cos / r^2) of an a x b rectangle to a parallel
@@ -58,12 +61,32 @@ def test_fresnel_beams_converge_and_a_point_on_the_emitter_sees_normal_incidence
     vals = [area_beams(AreaLight((0, 0, 0), (0, 0, 1), (4, 4), (1, 1, 1), samples=s), p, n, 1.4)[0].sum()
             for s in (4, 16, 32)]
     assert abs(vals[1] - vals[2]) < 1e-3 * vals[2] and abs(vals[0] - vals[2]) < 2e-3 * vals[2]
-    # just above a large emitter: a full hemisphere, each beam Fresnel-weighted near normal incidence
+    # just above a large emitter: one sub-rectangle fills the hemisphere; its light arrives from every
+    # direction, so it crosses with the cosine-weighted hemispherical mean of F_t (issue 41: it used to
+    # take F_t at its mean direction, normal incidence: 1 - R(1) = 0.972 at eta 1.4, against 0.917)
     g, t = area_beams(AreaLight((0, 0, -0.02), (0, 0, 1), (40, 40), (1, 1, 1)), [[-2.7, -2.76, 0.0]],
                       [[0, 0, -1.0]], 1.4)
+    gg, _ = form_factors(AreaLight((0, 0, -0.02), (0, 0, 1), (40, 40), (1, 1, 1)), [[-2.7, -2.76, 0.0]],
+                         [[0, 0, -1.0]])
     k = int(np.argmax(g[0]))
-    assert g[0, k] > 0.99 * math.pi * float(fresnel_transmittance(1.4, 1.0))
-    assert t[0, k] > 0.999
+    hemi = 2.0 * float((MU * W * fresnel_transmittance(1.4, MU)).sum())
+    assert g[0, k] / gg[0, k] == pytest.approx(hemi, rel=2e-3)
+    assert g[0].sum() / gg[0].sum() == pytest.approx(hemi, rel=3e-3)
+    assert 0.7 < t[0, k] < 0.95                     # refracted cosines spread over [sqrt(1 - 1/1.4^2), 1]
+
+
+def test_a_lambertian_light_touching_the_surface_crosses_with_the_hemispherical_fresnel_mean():
+    """Issue 41's defect: a 5 x 5 mm patch 0.02 mm below a slab (eta 1.3) put 0.983 of its light
+    through the boundary at each point above it (F_t at normal incidence, whatever the number of
+    samples); the cosine-weighted mean over the hemisphere is 0.939."""
+    light = AreaLight((0, 0, -0.02), (0, 0, 1), (5, 5), (1, 1, 1), samples=4)
+    p = np.stack([np.linspace(-1.5, 1.5, 7), np.linspace(-1.0, 1.2, 7), np.zeros(7)], axis=1)
+    n = np.tile([0.0, 0.0, -1.0], (7, 1))
+    g, _ = area_beams(light, p, n, 1.3)
+    gg, _ = form_factors(light, p, n)
+    hemi = 2.0 * float((MU * W * fresnel_transmittance(1.3, MU)).sum())
+    assert hemi == pytest.approx(0.939, abs=1e-3)
+    np.testing.assert_allclose(g.sum(axis=1) / gg.sum(axis=1), hemi, rtol=0.01)
     assert refracted_cosine(1.4, 0.0) == 0.0 and refracted_cosine(None, 0.3) == pytest.approx(0.3)
 
 

@@ -1,6 +1,8 @@
 """First-collision volume source: hat averages, loads, and ray casting."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy.integrate import quad
@@ -103,3 +105,30 @@ def test_tetrahedral_grid_loads_conserve_the_collided_light(mu0):
     entered = (A * E).sum() * (1.0 - np.exp(-st * 6.0 / mu0))
     assert load[:, 0].sum() == pytest.approx(albedo * entered, rel=0.01)
     assert load.min() >= 0.0
+
+
+def test_a_thin_slab_collides_its_light_at_every_depth():
+    """Issue 41's defect: each node took light only from its closest surface point, so in a
+    slab lit from one face the nodes nearer the unlit face got none and the conservation step put
+    that light on the lit surface nodes (a 1-D re-derivation: 0.90x of the power through a slab
+    came out). Now a node also takes the light entering on the far side of its column: in a 2 mm
+    slab (sigma_t' 1 /mm) lit on its top face the half nearer the unlit face gets its share,
+    (e^-1 - e^-2) / (1 - e^-2) = 0.269 of the collided light, and the load's mean depth is the
+    exact one, within 5 %."""
+    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.oracle.fem import tet_geometry
+    from glsldiff.render.collision import first_collision_load
+    g = build_fem_grid(box_mesh((30.0, 30.0, 2.0), origin=(-15.0, -15.0, -2.0)), n=2, cube_size=1.0)
+    st, albedo = 1.0, 0.98
+    kappa = np.full((len(g.positions), 3), 1.0 / (3.0 * st))
+    mu = np.full((len(g.positions), 3), (1.0 - albedo) * st)
+    top = g.normals[:, 2] > 0.999
+    E = np.where(top, 1.0, 0.0)
+    load = first_collision_load(g, kappa, mu, [(np.repeat(E[:, None], 3, axis=1), np.ones(len(E)))],
+                                tet_geometry(g).node_volumes)[:, 0]
+    inner = np.abs(g.positions[:, :2]).max(axis=1) < 10.0             # away from the slab's sides
+    depth = -g.positions[inner, 2]
+    share = load[inner][depth > 1.0].sum() / load[inner].sum()
+    assert share == pytest.approx((math.exp(-1) - math.exp(-2)) / (1 - math.exp(-2)), rel=0.05)
+    exact_mean = (1 - 3 * math.exp(-2)) / (1 - math.exp(-2))          # int z e^-z / int e^-z over [0, 2]
+    assert float((load[inner] * depth).sum() / load[inner].sum()) == pytest.approx(exact_mean, rel=0.05)

@@ -95,10 +95,11 @@ def test_scene_option():
     base = {"mesh": {"source": "sphere"}, "lights": [{"type": "directional", "direction": [0, 0, 1],
                                                       "irradiance": [1, 1, 1]}]}
     assert parse_scene(base).options.incidence == "local"
-    assert parse_scene({**base, "options": {"incidence": "marshak"}}).options.incidence == "marshak"
-    assert parse_scene({**base, "options": {"incidence": "transport"}}).options.incidence == "transport"
+    diffusion = {"model": "diffusion"}     # the incidence split belongs to the classical diffusion model
+    assert parse_scene({**base, "options": {**diffusion, "incidence": "marshak"}}).options.incidence == "marshak"
+    assert parse_scene({**base, "options": {**diffusion, "incidence": "transport"}}).options.incidence == "transport"
     with pytest.raises(InputError, match=r"\[options\]\.incidence"):
-        parse_scene({**base, "options": {"incidence": "lambert"}})
+        parse_scene({**base, "options": {**diffusion, "incidence": "lambert"}})
 
 
 @pytest.mark.parametrize("discretisation, incidence", [("fem", "transport"), ("conservative", "transport"),
@@ -113,7 +114,8 @@ def test_renderer_incidence(ctx, discretisation, incidence):
     scene = Scene(mesh=MeshSpec("sphere", 20.0), polygrid=PolygridSpec(n, 8, 2, discretisation),
                   lights=(DirectionalLight((0.0, 0.0, 1.0), (1.0, 1.0, 1.0)),), output=OutputSpec(48, 48),
                   camera=CameraSpec(position=(60.0, 0.0, 0.0), target=(0.0, 0.0, 0.0), up=(0.0, 1.0, 0.0)),
-                  options=OptionsSpec(flux="smoothed" if discretisation == "fem" else "boundary", incidence="marshak"))
+                  options=OptionsSpec(flux="smoothed" if discretisation == "fem" else "boundary", incidence="marshak",
+                                      model="diffusion"))
     scene = dataclasses.replace(scene, material=dataclasses.replace(scene.material, eta=1.0))   # index matched
     with Renderer(ctx) as r:
         old, _ = r.render(scene)

@@ -10,7 +10,7 @@ import logging
 import os
 import sys
 from dataclasses import replace
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -41,7 +41,7 @@ from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
 from glsldiff.render.renderer import Renderer
 from glsldiff.physics.exitance import INCIDENCE
-from glsldiff.render.scene import (FLUXES, TETWILD_EDGES_PER_SIZE, CutSpec, MeshSpec, PolygridSpec, default_scene,
+from glsldiff.render.scene import (FLUXES, MODELS, TETWILD_EDGES_PER_SIZE, CutSpec, MeshSpec, PolygridSpec, default_scene,
                                    example_names, example_scene, load_scene)
 from glsldiff.physics.collision import SOURCES
 from glsldiff.validation.validate import validate
@@ -69,6 +69,12 @@ def _status(line: str) -> None:
     print(line, file=sys.stderr, flush=True)
 
 
+def _warn(rep: Any) -> None:
+    """A render report's regime warnings, one line each on stderr."""
+    for line in rep.warnings:
+        print(f"WARNING: {line}", file=sys.stderr, flush=True)
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     out = check_output(args.out)   # before any work
     if args.scene and args.example:
@@ -80,6 +86,7 @@ def cmd_render(args: argparse.Namespace) -> int:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}")
         print("\n".join(rep.lines()))
+        _warn(rep)
         if args.check_grid:
             err, nodes, seconds = r.discretisation_error(scene)
             print(f"discretisation: exitance within {err.rel_rms:.2%} RMS (max {err.rel_max:.2%} of the largest) of "
@@ -118,6 +125,7 @@ def cmd_cut(args: argparse.Namespace) -> int:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}, cut")
         print("\n".join(rep.lines()))
+        _warn(rep)
         if not args.no_timing:
             kappa, mu = r.node_material
             pg = r.polygrid
@@ -143,7 +151,7 @@ def _stroke_point(text: str) -> tuple[float, float]:
 
 def cmd_validate(args: argparse.Namespace) -> int:
     rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp, source=args.source,
-                    adapt=args.adapt, flux=args.flux, incidence=args.incidence)
+                    adapt=args.adapt, flux=args.flux, incidence=args.incidence, model=args.model, progress=_status)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
                 "eta != 1: surface reflection removed) and the dipole", rows)
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
@@ -219,6 +227,7 @@ def cmd_tet(args: argparse.Namespace) -> int:
         with Renderer(status=_status) as r:
             img, rep = r.render(scene)
             print("\n".join(rep.lines()))
+            _warn(rep)
         exr, png, exposure = save(img, render_out, scene, rep)
         print(f"wrote {exr} (the default scene's light and veined marble on this mesh) and {png}")
     return 0
@@ -333,15 +342,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("validate", help="render validation scenes with diffusion and with Mitsuba 3 "
                                         "(pip install glsldiff[validation]); relative RMSE and times")
-    p.add_argument("--cases", nargs="+", default=["slab", "sphere", "sphere-albedo0.9", "sphere-veins",
-                                                  "sphere-constant", "sphere-eta1.3-constant", "sphere-sky",
-                                                  "sphere-eta1.3-sky"],
-                   help="validation cases (glsldiff.validation.validate.CASES)")
+    p.add_argument("--cases", nargs="+", default=["default"],
+                   help="validation cases (glsldiff.validation.validate.CASES) or groups: default (slab, sphere, "
+                   "veins, environment spheres), albedo (the front-lit sphere at albedo 0.3-0.99), backlit (slabs of "
+                   "2, 4, 8 mean free paths under a touching patch), rgb (skin, ketchup), localized, all")
     p.add_argument("--size", type=A.integer(8, 8192), default=64, help="image side, pixels")
     p.add_argument("--spp", type=A.integer(8), default=256, help="Monte Carlo samples per pixel (a power of two >= 8: "
                    "split into 2-4 renders of 4^k samples, all Mitsuba's low-discrepancy sampler takes)")
-    p.add_argument("--source", choices=SOURCES, default=None,
-                   help="diffusion source model for every case (default: each case's own; slab-patch: volume)")
+    p.add_argument("--model", choices=MODELS, default=None,
+                   help="[options].model of every case (default: the scene default, split, but where a case sets it)")
+    p.add_argument("--source", choices=("auto",) + SOURCES, default=None,
+                   help="[options].source of every case (default: each case's own, mostly the scene default)")
     p.add_argument("--adapt", action=argparse.BooleanOptionalAction, default=None,
                    help="refine the tetrahedra under the light's sharp edges in every case ([polygrid] adapt = true), "
                    "or in none (--no-adapt); default: each case's own (\"auto\": under the spot)")

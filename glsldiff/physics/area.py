@@ -16,7 +16,9 @@ the cosine-weighted mean direction of arrival: normal incidence for a point just
 sub-rectangle, where the direction of its centre would be grazing), which the first-collision volume source
 (:mod:`glsldiff.physics.collision`) attenuates along. As the sub-rectangles shrink the sum
 converges to the exact Fresnel-weighted integral; the form factors are exact at any size, so
-the plain irradiance (``eta=None``) is exact for an unoccluded rectangle.
+the plain irradiance (``eta=None``) is exact for an unoccluded rectangle. A sub-rectangle that
+fills a wide solid angle (a light touching the surface) takes ``F_t`` and ``t`` averaged over
+the directions it fills instead (:func:`area_beams`).
 """
 from __future__ import annotations
 
@@ -29,6 +31,13 @@ from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
 
 __all__ = ["sub_rectangles", "form_factors", "area_beams", "solid_angles"]
 
+#: Sub-rectangles of a form factor above this (sr) at a point get their Fresnel factor averaged over
+#: the directions they fill (:func:`area_beams`) ...
+WIDE_FORM_FACTOR = 0.05
+#: ... on this many cosine-weighted directions about the normal, where at least MIN_HITS of them
+#: hit the sub-rectangle (the mean direction's factor is right for narrower ones).
+FRESNEL_DIRECTIONS = 1024
+MIN_HITS = 16
 #: Beyond this many sub-rectangle diagonals, :func:`solid_angles` takes a sub-rectangle as a point.
 FAR_DIAGONALS = 4.0
 #: Points handled at once (memory: points x sub-rectangles x 4 corners x 3 floats).
@@ -97,16 +106,75 @@ def form_factors(light: AreaLight, points: ArrayLike, normals: ArrayLike
     return out, cos
 
 
+def _disk_directions(count: int) -> NDArray[np.float64]:
+    """``(count, 3)`` directions about +z, cosine-weighted (a Fibonacci spiral on the unit disk
+    lifted to the hemisphere): each stands for the same share of a Lambertian irradiance."""
+    k = np.arange(count) + 0.5
+    r = np.sqrt(k / count)
+    phi = k * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.clip(1.0 - r * r, 0.0, 1.0))], axis=1)
+
+
+def _fresnel_over_rectangle(corners: NDArray[np.float64], p: NDArray[np.float64], n: NDArray[np.float64],
+                            eta: float) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+    """Over the directions of :func:`_disk_directions` about each point's normal that hit its
+    sub-rectangle (``corners`` (M, 4, 3), points ``p``, normals ``n`` (M, 3)): the mean of
+    ``F_t(eta, cos)`` and of the refracted cosine weighted by it, and the number of hits."""
+    D = _disk_directions(FRESNEL_DIRECTIONS)
+    helper = np.where(np.abs(n[:, :1]) < 0.9, np.array([[1.0, 0.0, 0.0]]), np.array([[0.0, 1.0, 0.0]]))
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(n, u)
+    w = D[None, :, 0:1] * u[:, None] + D[None, :, 1:2] * v[:, None] + D[None, :, 2:3] * n[:, None]   # (M, D, 3)
+    c0 = corners[:, 0]
+    e1, e2 = corners[:, 1] - c0, corners[:, 3] - c0
+    plane = np.cross(e1, e2)
+    denom = np.einsum("mdj,mj->md", w, plane)
+    s = np.einsum("mj,mj->m", c0 - p, plane)[:, None] / np.where(np.abs(denom) > 1e-300, denom, np.inf)
+    x = p[:, None] + s[..., None] * w - c0[:, None]                                                    # on the plane
+    g11, g12, g22 = (np.einsum("mj,mj->m", a, b)[:, None] for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+    b1, b2 = np.einsum("mdj,mj->md", x, e1), np.einsum("mdj,mj->md", x, e2)
+    det = g11 * g22 - g12 * g12
+    a_, b_ = (g22 * b1 - g12 * b2) / det, (g11 * b2 - g12 * b1) / det
+    hit = (s > 0) & (a_ >= 0) & (a_ <= 1) & (b_ >= 0) & (b_ <= 1)
+    cos = D[:, 2][None, :]
+    ft = np.asarray(fresnel_transmittance(eta, np.broadcast_to(cos, hit.shape)))
+    count = hit.sum(axis=1)
+    f_sum = np.where(hit, ft, 0.0).sum(axis=1)
+    t_sum = np.where(hit, ft * refracted_cosine(eta, cos), 0.0).sum(axis=1)
+    mean_f = np.where(count > 0, f_sum / np.maximum(count, 1), 0.0)
+    mean_t = np.where(f_sum > 0, t_sum / np.maximum(f_sum, 1e-300), 0.0)
+    return mean_f, mean_t, count
+
+
 def area_beams(light: AreaLight, points: ArrayLike, normals: ArrayLike, eta: float | None
                ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``(scale (N, K), t (N, K))``: beam k's transmitted irradiance is ``scale[:, k] *
-    light.radiance`` (``F_t`` folded in unless ``eta`` is None) and ``t`` its refracted cosine."""
+    light.radiance`` (``F_t`` folded in unless ``eta`` is None) and ``t`` its refracted cosine.
+
+    ``F_t`` is taken at each sub-rectangle's mean direction of arrival, except where the
+    sub-rectangle fills a wide solid angle (form factor above :data:`WIDE_FORM_FACTOR`: a light
+    close to or touching the surface): there it is averaged over the directions it fills, each
+    weighted by its cosine (:data:`FRESNEL_DIRECTIONS` directions; a Lambertian light touching
+    the surface then crosses with the hemispherical average of ``F_t``, 0.939 at eta = 1.3, not
+    with ``F_t`` at normal incidence, 0.983), and ``t`` is the ``F_t``-weighted mean refracted
+    cosine of those directions."""
     p = checks.points(points)
     n = checks.unit_rows(normals, "normals", len(p))
     g, c = form_factors(light, p, n)
-    if eta is not None:
-        g = g * np.where(c > 0.0, np.asarray(fresnel_transmittance(eta, c)), 0.0)
-    return g, refracted_cosine(eta, c)
+    if eta is None:
+        return g, refracted_cosine(eta, c)
+    ft = np.where(c > 0.0, np.asarray(fresnel_transmittance(eta, c)), 0.0)
+    t = refracted_cosine(eta, c)
+    wide_p, wide_k = np.nonzero(g > WIDE_FORM_FACTOR)
+    if wide_p.size:
+        corners = sub_rectangles(light)
+        for s in range(0, wide_p.size, _CHUNK // 8):
+            ip, ik = wide_p[s:s + _CHUNK // 8], wide_k[s:s + _CHUNK // 8]
+            mf, mt, count = _fresnel_over_rectangle(corners[ik], p[ip], n[ip], float(eta))
+            ok = count >= MIN_HITS
+            ft[ip[ok], ik[ok]], t[ip[ok], ik[ok]] = mf[ok], mt[ok]
+    return g * ft, t
 
 
 def solid_angles(light: AreaLight, index: ArrayLike, points: ArrayLike) -> NDArray[np.float64]:

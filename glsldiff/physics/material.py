@@ -156,21 +156,24 @@ def validate_coefficients(kappa: ArrayLike, mu: ArrayLike,
 TRUSTED_ALBEDO = 0.95
 
 
-def regime(kappa: ArrayLike, mu: ArrayLike, h: float) -> str:
-    """One line saying where the diffusion model is trusted for the material at the nodes
-    (``kappa`` mm, ``mu`` mm^-1 per node and channel) on a grid of spacing ``h`` mm: the
-    albedo range and the share of nodes below :data:`TRUSTED_ALBEDO`, and the transport mean
-    free path ``1 / sigma_t'`` against ``h`` (the light's first-collision depth is resolved when
-    it is at least h)."""
+def regime(kappa: ArrayLike, mu: ArrayLike, h: float, model: str = "diffusion") -> str:
+    """One line on the material at the nodes (``kappa`` mm, ``mu`` mm^-1 per node and channel)
+    on a grid of spacing ``h`` mm: the albedo range and the transport mean free path ``1 /
+    sigma_t'`` against ``h``; for ``model = "diffusion"`` also the share of nodes below
+    :data:`TRUSTED_ALBEDO` (where its P1 exitance is not trusted) and that the light's
+    first-collision depth is smeared when the mean free path is below ``h`` (the split takes the
+    light near where it enters from exact half-space tables instead)."""
     k = np.asarray(kappa, dtype=np.float64)
     m = np.asarray(mu, dtype=np.float64)
     st = 1.0 / (3.0 * k)
     albedo = np.clip(1.0 - m / st, 0.0, 1.0)
-    low = float((albedo < TRUSTED_ALBEDO).reshape(len(albedo), -1).any(axis=1).mean())
     mfp = 1.0 / st
-    text = (f"regime: albedo {albedo.min():.3g}-{albedo.max():.3g}; "
-            f"{100 * low:.1f} % of nodes below {TRUSTED_ALBEDO} in some channel (diffusion off by up to ~30 % there); "
-            f"mean free path {mfp.min():.3g}-{mfp.max():.3g} mm vs node spacing {h:.3g} mm")
-    if mfp.min() < h:
+    text = f"regime: albedo {albedo.min():.3g}-{albedo.max():.3g}; "
+    if model == "diffusion":
+        low = float((albedo < TRUSTED_ALBEDO).reshape(len(albedo), -1).any(axis=1).mean())
+        text += (f"{100 * low:.1f} % of nodes below {TRUSTED_ALBEDO} in some channel (diffusion off by up to ~30 % "
+                 "there); ")
+    text += f"mean free path {mfp.min():.3g}-{mfp.max():.3g} mm vs node spacing {h:.3g} mm"
+    if model == "diffusion" and mfp.min() < h:
         text += " (finer than the grid: light entering and leaving within one spacing is smeared over it)"
     return text

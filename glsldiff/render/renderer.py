@@ -54,6 +54,7 @@ from typing import Any, Callable
 import moderngl
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial import cKDTree
 
 from glsldiff import gl
 from glsldiff.core import cache
@@ -72,10 +73,13 @@ from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, appl
 from glsldiff.physics.exitance import (bracket_smoothing_lengths, deep_irradiance, exitance_coefficients,
                                        exitant_bracket, halfspace_bracket, local_bracket, source_from_irradiance)
 from glsldiff.physics.material import coefficients, optical_properties, regime
+from glsldiff.physics.regime import regime_warnings
+from glsldiff.mesh.raycast import first_hits
+from glsldiff.mesh.inside import contains
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant, refracted_cosine
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
 from glsldiff.render.camera import scene_camera
-from glsldiff.render.collision import first_collision_load, surface_columns
+from glsldiff.render.collision import first_collision_load, node_columns, surface_columns
 from glsldiff.render.unscattered import sees_through, unscattered
 from glsldiff.render.editing import GpuMaterialEditor, MaterialHistory
 from glsldiff.render.materials import node_material, surface_reflectance
@@ -84,6 +88,8 @@ from glsldiff.render.report import RenderReport
 from glsldiff.render.scene import TETRAHEDRAL, Scene
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import single_scattering_frame
+from glsldiff.render.fluence import FluenceLattice
+from glsldiff.render.split_frame import SplitInputs, SplitResult, split_radiance
 from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.oracle.assembly import LinearSystem
@@ -104,6 +110,12 @@ SOLUTION_CACHE_VERSION = 2   # 2: the volume source solves with the Fresnel-mome
 
 
 # ---------------------------------------------------------------- the renderer
+#: The split takes the first-collision source and gathers the collided fluence where the grid
+#: resolves the transport mean free path: node spacing times sigma_t' at most this (a 1-D P1
+#: solve of the half-space gathers 0.98 of the converged value at 0.5, 0.93 at 1, 0.85 at 2).
+GATHER_MAX_H_SIGMA = 0.6
+#: Surface nodes whose thickness the regime check measures (a ray cast each, once per grid).
+THICKNESS_SAMPLES = 4000
 #: Pass 2's iteration budget on tetrahedra: multigrid-preconditioned CG takes 10-20 iterations
 #: on the scenes measured (bunny, cow, spheres, tile); a system it cannot solve in this many is
 #: reported as not converged instead of running the relaxations' 20,000-sweep budget.
@@ -166,6 +178,9 @@ class Renderer:
         self._history = MaterialHistory()
         self._edit_version = 0
         self._surface: tuple[Any, NDArray] | None = None
+        self._model_note = ""
+        #: validation: shade only the split's "single" or "multiple" scattering part (None: all of it)
+        self.split_part: str | None = None
 
     @property
     def mesh(self) -> Any:
@@ -339,6 +354,7 @@ class Renderer:
         self._fem_reuse = None
         self._drop_solver()
         self._history = MaterialHistory()     # a new material starts a new edit history
+        self._edited = False                  # the node material differs from the scene's (edits)
 
     def _drop_solver(self) -> None:
         if self._editor is not None:
@@ -348,10 +364,34 @@ class Renderer:
             self._solver.release()
             self._solver = None
 
+    def _effective(self, scene: Scene) -> Scene:
+        """``scene`` with its options made concrete for the current grid and material: the source
+        (``"auto"``: the split takes the first-collision volume source where the tetrahedral grid
+        resolves the transport mean free path, ``h sigma_t' <= GATHER_MAX_H_SIGMA`` at every node
+        and channel, else the Marshak surface source; diffusion: surface) and single scattering
+        (``"auto"``: the split marches it in 3-D with the volume source, takes the half-space's
+        closed form with the surface source; diffusion: off). A split with ``eta < 1`` (no
+        half-space tables) renders with the diffusion model, and the report says so."""
+        o = scene.options
+        self._model_note = ""
+        if o.split and scene.material.eta < 1.0:
+            self._model_note = (f"model: eta = {scene.material.eta:g} < 1 has no half-space tables; rendered with "
+                                "model = \"diffusion\"")
+            o = replace(o, model="diffusion", source="surface" if o.source == "auto" else o.source)
+        fem = bool(self._geo.get("fem"))
+        if o.source == "auto":
+            pg = self._geo["pg"]
+            h = pg.h if fem else pg.lattice.h
+            resolved = fem and h * float(np.max(1.0 / (3.0 * self._mat["kappa"]))) <= GATHER_MAX_H_SIGMA
+            o = replace(o, source="volume" if o.split and resolved else "surface")
+        if o.single_scattering == "auto":      # interactive frames (the viewer) take the split's closed form
+            o = replace(o, single_scattering=o.split and self.frame_sweeps is None)
+        return replace(scene, options=o)
+
     def _pass1(self, scene: Scene) -> None:
         pg = self._geo["pg"]
         volume = scene.options.source == "volume"
-        beams: list | None = [] if volume or self._splits_incidence(scene) else None
+        beams: list | None = [] if volume or scene.options.split or self._splits_incidence(scene) else None
         E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, scene.lights,
                                    scene.material.eta, ctx=self.ctx, beams=beams,
                                    triangles=pg.surface_triangles if self._geo["fem"] else None)
@@ -372,9 +412,12 @@ class Renderer:
         if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
             t0 = time.perf_counter()
             if "columns" not in self._geo:      # geometry only: once per grid, not per light
+                self._say("pass 1: the surface's columns and each node's place in them (once per grid)")
                 self._geo["columns"] = surface_columns(pg)
+                self._geo["node_columns"] = node_columns(pg, self._geo["columns"])
             self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams,
-                                              self._geo["tetgeo"].node_volumes, self._geo["columns"])
+                                              self._geo["tetgeo"].node_volumes, self._geo["columns"],
+                                              self._geo["node_columns"])
             info.append({"light": "first-collision source", "beams": len(beams or ()),
                          "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         self._light_info = info
@@ -384,7 +427,7 @@ class Renderer:
         """Whether the surface source follows the half-space's transport per incidence
         (:mod:`glsldiff.physics.exitance`, ``[options].incidence`` "local" or "transport")."""
         o = scene.options
-        return o.incidence != "marshak" and o.source == "surface" and o.exitant != "paper"
+        return not o.split and o.incidence != "marshak" and o.source == "surface" and o.exitant != "paper"
 
     def _boundary_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(kappa, mu)`` ``(n_boundary, 3)`` at the surface (boundary) nodes."""
@@ -401,7 +444,8 @@ class Renderer:
         self._q, self._incidence = self._q_marshak, None
         o = scene.options
         if not self._splits_incidence(scene):
-            self._incidence_used = ("marshak (the paper's convention)" if o.exitant == "paper" and o.source == "surface"
+            self._incidence_used = ("- (model split: exact local transport per beam)" if o.split else
+                                    "marshak (the paper's convention)" if o.exitant == "paper" and o.source == "surface"
                                     else "marshak" if o.source == "surface" else "- (volume source)")
             return
         kappa, mu = self._boundary_material()
@@ -509,6 +553,7 @@ class Renderer:
 
     def _finish_pass2(self, pg: Any, phi: NDArray, rep: SolveReport, fem: bool) -> None:
         self._flux_fields = None
+        self._solutions = getattr(self, "_solutions", 0) + 1     # pass 3's caches follow every new phi
         if fem:
             self._phi_b = self.surface_values(phi)
             self._phi_active = np.asarray(phi, dtype=np.float64)
@@ -562,14 +607,18 @@ class Renderer:
             raise InputError(f"the discretisation check needs a tetrahedral grid; this scene's is "
                              f"{scene.polygrid.discretisation!r} (set [polygrid] discretisation = \"fem\")")
         if scene.options.source == "volume":
-            raise InputError("the discretisation check does not carry the first-collision load yet; render with "
-                             "[options] source = \"surface\" to check the grid")
+            raise InputError("the discretisation check does not carry the first-collision load yet (the split takes "
+                             "it where the grid resolves the mean free path); render with [options] source = "
+                             "\"surface\" to check the grid")
 
     def discretisation_error(self, scene: Scene, channel: int = 1) -> tuple[RefinedError, int, float]:
         """How far the last frame's pass-2 answer is from the converged one: the same problem
         solved on the grid's 1:8 refinement (:class:`glsldiff.oracle.refined.RefinedComparison`;
         one colour ``channel``, exact CPU solves). Returns the comparison, the refined grid's
-        node count and the seconds it all took. Tetrahedral grids with the surface source only."""
+        node count and the seconds it all took. Tetrahedral grids with the surface source only
+        (``source = "auto"``: as the last frame resolved it)."""
+        if self._geo and self._mat:
+            scene = self._effective(scene)
         self.check_discretisation_scene(scene)
         t0 = time.perf_counter()
         rc = RefinedComparison(self.fem_problem(scene), channel)
@@ -619,14 +668,18 @@ class Renderer:
         v, f, nrm = geo["vertices"], geo["faces"], geo["normals"]
         eta = scene.material.eta
         eye, mvp = scene_camera(scene, geo["frame"])
-        B = exitant_bracket(*self._bracket_fields(scene, eye), eta, opts.exitant, self._boundary_C(scene))
-        ms = geo["interp"] @ B
-        neg = ms < 0.0
-        self._clamped = int(np.any(neg, axis=1).sum())
-        top = max(float(ms.max()), 1e-300)
-        self._clamped_depth = float(max(-ms.min(), 0.0) / top)
-        self._clamped_deep = int(np.any(ms < -0.01 * top, axis=1).sum())
-        ms = np.maximum(ms, 0.0)
+        if opts.split:      # the subsurface radiance is view-dependent and >= 0 by construction
+            ms = np.zeros_like(v)
+            self._clamped, self._clamped_depth, self._clamped_deep = 0, 0.0, 0
+        else:
+            B = exitant_bracket(*self._bracket_fields(scene, eye), eta, opts.exitant, self._boundary_C(scene))
+            ms = geo["interp"] @ B
+            neg = ms < 0.0
+            self._clamped = int(np.any(neg, axis=1).sum())
+            top = max(float(ms.max()), 1e-300)
+            self._clamped_depth = float(max(-ms.min(), 0.0) / top)
+            self._clamped_deep = int(np.any(ms < -0.01 * top, axis=1).sum())
+            ms = np.maximum(ms, 0.0)
         shader_lights = self._shader_lights(scene)
         vis_key = _key(self._keys.get("geometry"), scene.lights)     # the geometry key holds the cut too
         if self._keys.get("vis") != vis_key:
@@ -639,7 +692,10 @@ class Renderer:
                     tint[:, i] = projector_factor(light, v)
             self._vis, self._tint, self._keys["vis"] = vis, tint, vis_key
         ss = np.zeros_like(v)
-        if opts.single_scattering:
+        if opts.split:
+            sr = self._split_frame(scene, eye)
+            ss = {"single": sr.single, "multiple": sr.multiple}.get(self.split_part or "", sr.radiance)
+        elif opts.single_scattering:
             ss = self._single(scene, eye)
         if scene.material.reflectance is not None:
             ss = ss + self._surface_diffuse(scene)
@@ -712,16 +768,28 @@ class Renderer:
     def _medium(self, scene: Scene) -> Any:
         """The material for path integrals through the object: ``(sigma_a, sigma_s')`` RGB
         arrays (mm^-1) when homogeneous, else a function of points ``(M, 3)`` returning both
-        ``(M, 3)``, evaluated in the nodes' unit box."""
+        ``(M, 3)``, evaluated in the nodes' unit box; after edits, the edited node material at
+        the nearest node (and so for a block volume or a node material: their values exist at the
+        nodes only)."""
         pg = self._geo["pg"]
         lo, hi = pg.positions.min(axis=0), pg.positions.max(axis=0)
+        if getattr(self, "_edited", False) or scene.material.volume or scene.material.nodes:
+            nodes = np.flatnonzero(np.ones(len(pg.positions), bool) if self._geo["fem"]
+                                   else np.asarray(pg.active).reshape(-1))
+            tree = cKDTree(np.asarray(pg.positions).reshape(-1, 3)[nodes])
+            k_all, m_all = (self._mat[n].reshape(-1, 3)[nodes] for n in ("kappa", "mu"))
+
+            def edited(p: NDArray) -> tuple[NDArray, NDArray]:
+                _, i = tree.query(p)
+                return m_all[i], np.maximum(1.0 / (3.0 * k_all[i]) - m_all[i], 0.0)
+            return edited
 
         def material(p: NDArray) -> tuple[NDArray, NDArray]:
             kappa, mu, _ = node_material(scene, np.vstack([lo, hi, p]), pg)   # same unit box as the nodes
             kappa, mu = kappa[2:], mu[2:]
             return mu, np.maximum(1.0 / (3.0 * kappa) - mu, 0.0)
 
-        if scene.material.procedural or scene.material.volume or scene.material.nodes:
+        if scene.material.procedural:
             return material
         sa, ss = material(self._geo["vertices"][:1])
         return sa[0], ss[0]
@@ -729,7 +797,7 @@ class Renderer:
     def _unscattered(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
         """Per-vertex unscattered light seen through the object (:mod:`glsldiff.render.unscattered`),
         kept while the camera, lights, material and geometry stay the same."""
-        key = _key(self._keys.get("material"), self._keys.get("light"), tuple(np.round(eye, 9)))
+        key = _key(self._keys.get("material"), self._keys.get("light"), self._edit_version, tuple(np.round(eye, 9)))
         if self._keys.get("unscattered") != key:
             t0 = time.perf_counter()
             geo, medium = self._geo, self._medium(scene)
@@ -740,11 +808,59 @@ class Renderer:
             self._unsc_seconds = time.perf_counter() - t0
         return self._unsc
 
+    def _regime_warnings(self, scene: Scene) -> list[str]:
+        """The scene's ways out of what its model was validated on (:mod:`glsldiff.physics.regime`):
+        albedo, eta and thin parts, the object's thickness along the inward normal at up to
+        :data:`THICKNESS_SAMPLES` surface nodes (ray cast once per grid) over the transport mean
+        free path of their most transparent channel."""
+        geo, pg = self._geo, self._geo["pg"]
+        if "thickness" not in geo:
+            S = len(pg.boundary_positions)
+            pick = np.unique(np.linspace(0, S - 1, min(S, THICKNESS_SAMPLES)).astype(np.int64))
+            h = pg.h if geo["fem"] else pg.lattice.h
+            T, _ = first_hits(geo["mesh"], pg.boundary_positions[pick], -np.asarray(pg.normals)[pick], t_min=0.5 * h)
+            geo["thickness"] = (pick, T)
+        pick, T = geo["thickness"]
+        kappa, mu = self._boundary_material()
+        st_min = (1.0 / (3.0 * kappa[pick])).min(axis=1)
+        albedo = np.clip(1.0 - 3.0 * kappa * mu, 0.0, 1.0)
+        return regime_warnings("split" if scene.options.split else "diffusion", albedo, scene.material.eta,
+                               T * st_min)
+
+    def _split_frame(self, scene: Scene, eye: NDArray) -> SplitResult:
+        """The transport split's subsurface radiance per vertex (:mod:`glsldiff.render.split_frame`),
+        kept while the solution, the lights, the material and the camera stay the same."""
+        key = _key(self._keys.get("solve"), getattr(self, "_solutions", 0), self._keys.get("light"), self._edit_version,
+                   tuple(np.round(eye, 9)))
+        if self._keys.get("split") == key:
+            return self._split_result
+        geo, o = self._geo, scene.options
+        far = "gather" if o.source == "volume" else "surface"
+        fluence = None
+        if far == "gather":
+            pg = geo["pg"]
+            if "lattice" not in geo:
+                self._say("pass 3: sampling lattice of the tetrahedral grid for the gather (once per grid)")
+                geo["lattice"] = FluenceLattice(pg.positions, pg.tets)
+            full = np.zeros((len(pg.positions), 3))
+            full[self._fem_active] = self._phi_active
+            geo["lattice"].set_values(full)
+            fluence = geo["lattice"]
+        kappa, mu = self._boundary_material()
+        inp = SplitInputs(far=far, march=bool(o.single_scattering) or far == "gather", eta=scene.material.eta,
+                          C=self._boundary_C(scene), interp=geo["interp"], vertices=geo["vertices"],
+                          normals=geo["normals"], beams=self._beams, kappa=kappa, mu=mu, phi=self._phi_b,
+                          q=self._q, fluence=fluence, mesh=geo["mesh"], lights=scene.lights,
+                          medium=self._medium(scene))
+        self._split_result = split_radiance(inp, eye, self.ctx)
+        self._keys["split"] = key
+        return self._split_result
+
     def _single(self, scene: Scene, eye: NDArray) -> NDArray[np.float64]:
         """Per-vertex single scattering of every light, reflection and transmission
         (:mod:`glsldiff.render.single`), kept while the camera, lights, material and geometry
         stay the same; its time is the report's ``single`` seconds."""
-        key = _key(self._keys.get("material"), self._keys.get("light"), tuple(np.round(eye, 9)))
+        key = _key(self._keys.get("material"), self._keys.get("light"), self._edit_version, tuple(np.round(eye, 9)))
         if self._keys.get("single") != key:
             t0 = time.perf_counter()
             geo = self._geo
@@ -765,10 +881,6 @@ class Renderer:
                        else None)                                          # the refined grid follows the lights
         mat_key = _key(geo_key, replace(scene.material, reflectance=None), scene.paint,  # pass 3 alone: reflectance
                        scene.options.scheme, scene.options.precision, str(scene.base_dir))
-        light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
-                         scene.options.source, scene.options.incidence,
-                         mat_key if scene.options.source == "volume" else None)
-        solve_key = _key(mat_key, light_key, scene.options.tol, self._edit_version)
         edited = self._keys.get("edits", 0) != self._edit_version and "solve" in self._keys
         going_on = self._partial       # the last frame's pass 2 stopped at its sweep budget
         if going_on:
@@ -795,6 +907,12 @@ class Renderer:
             self._keys.pop("light", None)
             self._keys.pop("solve", None)
         new_mat = stage("material", "material", mat_key, lambda: self._material(scene), "material unchanged", None)
+        scene = self._effective(scene)       # the model's concrete source and single scattering
+        volume = scene.options.source == "volume"
+        light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
+                         scene.options.source, scene.options.incidence, scene.options.model,
+                         (mat_key, self._edit_version) if volume else None)   # the volume load follows the material
+        solve_key = _key(mat_key, light_key, scene.options.tol, self._edit_version)
         new_light = stage("pass1", "light", light_key, lambda: self._pass1(scene),
                           "lights unchanged: incident light kept", "t1")
         stage("incidence", "incidence", _key(light_key, mat_key, self._edit_version),   # edits change the albedo
@@ -851,13 +969,31 @@ class Renderer:
                              f"adapt: the source is linear along every surface edge (to {ADAPT_TOL:.0%} of its "
                              "largest value): grid not refined")
         through = scene.options.unscattered and sees_through(scene.lights)
-        rep.notes.append(f"material: {self._mat['info'].get('material')}; exitant: {scene.options.exitant}; "
-                         f"source: {scene.options.source}; incidence: {self._incidence_used}; flux: {self._flux_used}; "
-                         f"single scattering: {f'{self._ss_seconds:.2f} s' if scene.options.single_scattering else 'off'}; "
+        if scene.options.split:
+            sr = self._split_result
+            rep.notes.append(f"{sr.info}; {sr.seconds:.2f} s")
+            model = f"model: split; source: {scene.options.source}; "
+            rep.model = (f"split ({'gather' if scene.options.source == 'volume' else 'surface'} far field, single "
+                         f"scattering {'3-D march' if scene.options.single_scattering else 'closed form'})")
+        else:
+            rep.model = f"diffusion ({scene.options.source} source, {scene.options.exitant})"
+            model = (f"model: diffusion; exitant: {scene.options.exitant}; source: {scene.options.source}; incidence: "
+                     f"{self._incidence_used}; flux: {self._flux_used}; single scattering: "
+                     f"{f'{self._ss_seconds:.2f} s' if scene.options.single_scattering else 'off'}; ")
+        if self._model_note:
+            rep.notes.append(self._model_note)
+        rep.notes.append(f"material: {self._mat['info'].get('material')}; {model}"
                          f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "
                          f"{'off' if scene.material.reflectance is None else scene.material.reflectance}")
-        rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], pg.h if self._geo["fem"] else pg.lattice.h))
+        rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], pg.h if self._geo["fem"] else pg.lattice.h,
+                                scene.options.model))
+        rep.warnings = self._regime_warnings(scene)
+        eye = scene_camera(scene, self._geo["frame"])[0]
+        if bool(contains(self._geo["mesh"], eye[None, :])[0]):
+            rep.warnings.append(f"the camera at ({eye[0]:.4g}, {eye[1]:.4g}, {eye[2]:.4g}) mm is inside the object: "
+                                "the image shows the inside of its surface, which no validated case covers (light "
+                                "reaching a camera inside the medium is not modelled); move [camera].position out")
         for info in getattr(self, "_light_info", []):
             rep.notes.append("light: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                                                    for k, v in info.items()))
@@ -917,6 +1053,7 @@ class Renderer:
         if history or self._history.counts[0] == 0:
             self._history.push(*before)
         self._edit_version += 1
+        self._edited = True
         return replace(result, seconds=time.perf_counter() - t0)
 
     def _set_edited_material(self, kappa: NDArray, mu: NDArray) -> None:
@@ -951,6 +1088,7 @@ class Renderer:
             return False
         self._set_edited_material(*got)
         self._edit_version += 1
+        self._edited = True
         return True
 
     def save_material(self, path: str | Any) -> Any:

@@ -21,7 +21,9 @@ class RenderReport:
     clamped_depth: float = 0.0      # the most negative exitance before clamping / the largest exitance
     clamped_deep: int = 0           # vertices clamped from below -1 % of the largest exitance
     image_size: tuple[int, int] = (0, 0)
+    model: str = ""                 # the model that rendered the frame (split / diffusion, and how)
     notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)   # outside what was validated: one line each (stderr)
 
     def ran(self, name: str) -> bool:
         return any(p["pass"] == name and p["ran"] for p in self.passes)

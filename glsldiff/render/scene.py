@@ -90,18 +90,24 @@ silently ignored).
     scheme = "hierarchical"   # single | hierarchical | multigrid
     tol = 1e-4
     precision = "fp32"        # fp32 | fp16 | paper
-    exitant = "p1"            # p1 (P1 radiance, Marshak source) | arbree (TransCut eq. 3) | paper (net flux)
-    single_scattering = false # every light, reflection and transmission (glsldiff.render.single); the
-                              # diffusion already matches all orders front-lit: on adds ~20 % there
-    source = "surface"        # surface (Marshak boundary source) | volume (first-collision source, fem only)
+    model = "split"           # split (default: unscattered + exact single scattering + the exact multiple
+                              # scattering of the local half-space, corrected by the diffusion's far field;
+                              # never negative, every albedo: glsldiff.physics.split) | diffusion (classical
+                              # diffusion with the P1 exitance of the keys marked "diffusion only")
+    single_scattering = "auto" # auto (split: the 3-D march where the grid resolves the mean free path, else the
+                              # half-space's closed form; diffusion: off) | true (the 3-D march, every light,
+                              # reflection and transmission: glsldiff.render.single) | false (split: the closed form)
+    source = "auto"           # auto (split: volume on tetrahedra that resolve the mean free path, else surface;
+                              # diffusion: surface) | surface (Marshak boundary source) | volume (first-collision
+                              # source, tetrahedra only)
     unscattered = true        # area/environment light seen straight through the object (thin parts)
-    flux = "smoothed"         # exitant flux: smoothed (the Robin condition's, its q and phi smoothed along
-                              # the surface over 1/2 and 1/8 mean free path; fem/tetwild default) | boundary (the local
-                              # Robin condition; the lattice's default) | gradient (the solution's, fem only)
-    incidence = "local"       # surface source per incidence: local (the Marshak load; the light reflected near where
-                              # it entered follows the half-space's exact transport per incidence and view) |
-                              # transport (also the load: H(t) / <H> per beam; a spot's halo too bright: README) |
-                              # marshak (the same whatever the incidence)
+    exitant = "p1"            # diffusion only: p1 (P1 radiance, Marshak source) | arbree (TransCut eq. 3) | paper
+    flux = "smoothed"         # diffusion only: exitant flux: smoothed (the Robin condition's, its q and phi smoothed
+                              # along the surface over 1/2 and 1/8 mean free path; fem/tetwild default) | boundary
+                              # (the local Robin condition; the lattice's default) | gradient (the solution's, fem only)
+    incidence = "local"       # diffusion only: surface source per incidence: local (the Marshak load; the light
+                              # reflected near where it entered follows the half-space's exact transport per
+                              # incidence and view) | transport (also the load: H(t) / <H> per beam) | marshak
 
     [cut]                     # tetwild only: TransCut's cut (glsldiff.grids.tetcut); one of plane / stroke
     plane = [1, 0, 0, 50]     # n_x, n_y, n_z, d: removes n . x > d (mm, the scaled mesh's coordinates)
@@ -181,6 +187,9 @@ SCHEMES = ("single", "hierarchical", "multigrid")
 #: a half and an eighth of a transport mean free path (tetrahedral grids; the lattice takes
 #: boundary); boundary: the local Robin flux; gradient: the solution's recovered gradient.
 FLUXES = ("smoothed", "boundary", "gradient")
+#: ``[options].model``: the transport split (:mod:`glsldiff.physics.split`; the default) or classical
+#: diffusion with its P1 exitance (:mod:`glsldiff.physics.exitance`; Wang et al.'s model).
+MODELS = ("split", "diffusion")
 
 
 @dataclass(frozen=True)
@@ -263,12 +272,19 @@ class OptionsSpec:
     scheme: str = "hierarchical"
     tol: float = 1e-4
     precision: str = "fp32"
-    exitant: str = "p1"
-    single_scattering: bool = False
-    source: str = "surface"
+    exitant: str = "p1"              # model = "diffusion" only
+    single_scattering: bool | str = "auto"   # "auto": the model's (split: always; diffusion: off) | true | false
+    source: str = "auto"             # auto (split: volume where the grid resolves the mean free path; diffusion:
+                                     # surface) | surface | volume
     unscattered: bool = True
-    flux: str = "smoothed"           # lattice discretisations: "boundary" (no surface triangles to smooth on)
-    incidence: str = "local"         # the surface source per incidence: local | transport (Chandrasekhar) | marshak
+    flux: str = "smoothed"           # model = "diffusion" only; lattice discretisations: "boundary"
+    incidence: str = "local"         # model = "diffusion" only: local | transport (Chandrasekhar) | marshak
+    model: str = "split"             # split (exact local transport + the diffusion's far field) | diffusion
+
+    @property
+    def split(self) -> bool:
+        """The transport split (:mod:`glsldiff.physics.split`) renders the scene."""
+        return self.model == "split"
 
 
 @dataclass(frozen=True)
@@ -671,12 +687,21 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     s = _Table(src, "specular", data.get("specular", {}), _keys(SpecularSpec))
     specular = SpecularSpec(s.number("rho_s", 0.04, 0.0, hi=1.0), s.number("alpha", 0.2, 0.0, lo_open=True, hi=1.0))
     t = _Table(src, "options", data.get("options", {}), _keys(OptionsSpec))
+    single = t.data.get("single_scattering", "auto")
+    if single != "auto" and not isinstance(single, bool):
+        t.fail("single_scattering", f"must be true, false or \"auto\", got {single!r}")
+    model = t.string("model", "split", MODELS)
+    if model == "split":
+        for key in ("exitant", "incidence", "flux"):
+            if t.has(key):
+                t.fail(key, "applies to model = \"diffusion\" only (the split's exitance is exact local transport "
+                            "plus the diffusion's far field); remove it or set model = \"diffusion\"")
     options = OptionsSpec(t.string("scheme", "hierarchical", SCHEMES), t.number("tol", 1e-4, 0.0, lo_open=True, hi=0.1),
                           t.string("precision", "fp32", ("fp32", "fp16", "paper")),
-                          t.string("exitant", "p1", EXITANT), t.boolean("single_scattering", False),
-                          t.string("source", "surface", SOURCES), t.boolean("unscattered", True),
+                          t.string("exitant", "p1", EXITANT), single,
+                          t.string("source", "auto", ("auto",) + SOURCES), t.boolean("unscattered", True),
                           t.string("flux", "smoothed" if poly.discretisation in TETRAHEDRAL else "boundary",
-                                   FLUXES), t.string("incidence", "local", INCIDENCE))
+                                   FLUXES), t.string("incidence", "local", INCIDENCE), model)
     if options.flux == "gradient" and poly.discretisation not in TETRAHEDRAL:
         t.fail("flux", "\"gradient\" (the flux of the solution's gradient) needs the tetrahedral grid; set "
                        "[polygrid] discretisation = \"fem\" (the default) or flux = \"boundary\"")

@@ -48,7 +48,7 @@ how finely an entry point is placed.
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -63,7 +63,7 @@ from glsldiff.physics.sh import fibonacci_directions, sh_evaluate
 from glsldiff.physics.single import henyey_greenstein
 from glsldiff.render.shadows import DepthRenderer
 
-__all__ = ["single_scattering_frame", "SAMPLES", "ENV_DIRECTIONS", "GRID", "REACH"]
+__all__ = ["scattering_frame", "single_scattering_frame", "SAMPLES", "ENV_DIRECTIONS", "GRID", "REACH"]
 
 Array = NDArray[np.float64]
 SAMPLES = 16          # nodes along each refracted view ray
@@ -170,11 +170,25 @@ def single_scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Arr
 
     ``medium``: ``(sigma_a, sigma_s')`` RGB arrays (mm^-1) or a callable of points ``(M, 3)``
     returning both ``(M, 3)``; ``renderer`` renders the lights' depth maps of ``mesh``."""
+    return scattering_frame(mesh, vertices, normals, eye, eta, lights, medium, renderer, shadow_map_size,
+                            samples, g)[0]
+
+
+def scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Array, eta: float,
+                     lights: Sequence[Light], medium: Any, renderer: DepthRenderer,
+                     shadow_map_size: int = 1024, samples: int = SAMPLES, g: float = 0.0,
+                     fluence: Callable[[Array], Array] | None = None) -> tuple[Array, Array]:
+    """``(single, gathered)``, each ``(V, 3)``: :func:`single_scattering_frame`, and with
+    ``fluence`` (a callable of points ``(M, 3)`` returning the collided fluence ``(M, 3)``) the
+    light it scatters once more towards the eye along the same refracted view rays, ``F_t(mu_o) /
+    eta^2 sum_k W_k sigma_s(x_k) e^{-tau_o(x_k)} phi(x_k) / (4 pi)`` (isotropic: the transport
+    split's gather, :mod:`glsldiff.physics.split`); zeros without it."""
     v = np.asarray(vertices, dtype=np.float64)
     n = np.asarray(normals, dtype=np.float64)
     out = np.zeros((len(v), 3))
-    if len(v) == 0 or not lights:
-        return out
+    gathered = np.zeros((len(v), 3))
+    if len(v) == 0 or (not lights and fluence is None):
+        return out, gathered
     mv = np.asarray(mesh.vertices, dtype=np.float64)
     med = _Medium(medium, mv.min(axis=0), mv.max(axis=0), g)
     w_o = np.asarray(eye, dtype=np.float64) - v
@@ -182,7 +196,7 @@ def single_scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Arr
     mu_o = np.einsum("ij,ij->i", n, w_o)
     idx = np.flatnonzero(mu_o > 0.0)
     if idx.size == 0:
-        return out
+        return out, gathered
     beams = [_Beams(lt, renderer, shadow_map_size) for lt in lights]
     d, _ = refract(-w_o[idx], n[idx], 1.0 / eta)                             # view ray, propagating in
     _, st0 = med(v[idx])
@@ -214,9 +228,13 @@ def single_scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Arr
         for bl in beams:
             for b in range(len(bl)):
                 incoming += _beam(bl, b, x, st_x, up, mesh, med, eta, g)
-        L = (W[..., None] * sig_s * np.exp(-tau_o) * incoming.reshape(m, samples, 3)).sum(axis=1)
+        weight = W[..., None] * sig_s * np.exp(-tau_o)
+        L = (weight * incoming.reshape(m, samples, 3)).sum(axis=1)
         out[idx[sl]] = f_o[sl, None] * L
-    return out
+        if fluence is not None:
+            phi = np.maximum(fluence(x), 0.0).reshape(m, samples, 3)
+            gathered[idx[sl]] = f_o[sl, None] * (weight * phi).sum(axis=1) / (4.0 * np.pi)
+    return out, gathered
 
 
 def _beam(bl: _Beams, b: int, x: Array, st_x: Array, up: Array, mesh: Any, med: _Medium, eta: float,

@@ -46,7 +46,7 @@ import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -65,8 +65,8 @@ from glsldiff.render.materials import node_material
 from glsldiff.render.renderer import Renderer
 from glsldiff.render.unscattered import sees_through
 from glsldiff.physics.exitance import INCIDENCE
-from glsldiff.render.scene import (FLUXES, CameraSpec, MaterialSpec, MeshSpec, OptionsSpec, OutputSpec, PolygridSpec,
-                                   Scene, SpecularSpec)
+from glsldiff.render.scene import (FLUXES, MODELS, CameraSpec, MaterialSpec, MeshSpec, OptionsSpec, OutputSpec, PolygridSpec,
+                                   Scene, SpecularSpec, default_cubes)
 from glsldiff.validation.mitsuba import McCamera, render_scattering_orders, render_subsurface
 from glsldiff.validation.mitsuba_scene import load_mitsuba
 
@@ -78,38 +78,70 @@ LOCALIZED = ("patch", "spot")
 SPOT_DISTANCE_MM = 100.0
 
 
+Coefficient = float | tuple[float, float, float]
+
+
+def _rgb(x: Coefficient) -> tuple[float, float, float]:
+    return tuple(float(v) for v in x) if isinstance(x, tuple) else (float(x),) * 3   # type: ignore[return-value]
+
+
 @dataclass(frozen=True)
 class Case:
-    """One validation scene: lengths in mm, coefficients in mm^-1 (grey)."""
+    """One validation scene: lengths in mm, coefficients in mm^-1 (grey, or RGB tuples).
+
+    The renderer's options below default to ``None``: the scene's own default (what ``glsldiff
+    render`` does with a scene that does not set them). A case that sets any of them is an
+    extra row, "tuned", and the table's ``options`` column names what it sets."""
 
     name: str
     mesh: str                       # "sphere" or "slab" or a sample name
     size_mm: float
-    sigma_a: float
-    sigma_s: float                  # sigma_s' (isotropic phase in Mitsuba)
+    sigma_a: Coefficient
+    sigma_s: Coefficient            # sigma_s' (isotropic phase in Mitsuba)
     light: tuple[float, float, float] | str   # towards a directional light, a name in ENVIRONMENTS, or "patch"
     camera_dir: tuple[float, float, float]
     procedural: str | None = None
-    n: int = 8
-    cubes: int = 64
     eta: float = 1.0                # relative index of refraction of the boundary
     thickness_mm: float | None = None   # slab thickness (default size_mm / 3)
     patch_mm: float = 4.0           # side of the "patch" light: a diffuse square against the slab's back face;
                                     # full cone angle of the "spot" light, 100 mm in front of the slab (degrees)
     view_mm: float | None = None    # half-width of the field seen (default: the object framed)
     spp_factor: int = 1             # Monte Carlo samples per pixel: this times the command's spp
-    source: str = "surface"         # [options].source of the diffusion renderer
     volume_mm: float | None = None  # voxel size of Mitsuba's copy of a procedural material (default 48 cells)
-    discretisation: str = "fem"     # [polygrid].discretisation of the diffusion renderer (fem, tetwild, ...)
+    pixels: int | None = None       # image side (default: the command's --size)
+    # the renderer's options; None = the scene default
+    n: int | None = None
+    cubes: int | None = None
+    discretisation: str | None = None
     edge_mm: float | None = None    # tetwild's target edge length, mm
-    flux: str = "smoothed"          # [options].flux of the diffusion renderer
-    incidence: str = "local"        # [options].incidence of the diffusion renderer
-    adapt: bool | str = "auto"      # fem: [polygrid].adapt (refinement under the light's sharp edges)
+    adapt: bool | str | None = None
+    model: str | None = None
+    source: str | None = None
+    flux: str | None = None
+    incidence: str | None = None
+    single_scattering: bool | str | None = None
+    tol: float | None = None
+
+    #: The option fields, in the order the ``options`` column lists them.
+    OPTIONS = ("n", "cubes", "discretisation", "edge_mm", "adapt", "model", "source", "flux", "incidence",
+               "single_scattering", "tol")
+
+    @property
+    def options(self) -> str:
+        """``"defaults"``, or the options this case sets (``"n=2 cubes=15000 source=volume"``)."""
+        given = [f"{k}={getattr(self, k)}" for k in self.OPTIONS if getattr(self, k) is not None]
+        return " ".join(given) if given else "defaults"
+
+    @property
+    def albedo(self) -> str:
+        """The reduced albedo per channel, as text (one number when grey)."""
+        a = [s / (s + sa) for s, sa in zip(_rgb(self.sigma_s), _rgb(self.sigma_a))]
+        return f"{a[0]:.3g}" if len(set(a)) == 1 else "/".join(f"{x:.3g}" for x in a)
 
     @property
     def refines(self) -> bool:
         """The diffusion grid is refined under the light's sharp edges (:meth:`PolygridSpec.refines`)."""
-        return PolygridSpec(discretisation=self.discretisation, adapt=self.adapt).refines((_light(self),))
+        return _polygrid(self).refines((_light(self),))
 
     def __post_init__(self) -> None:
         if isinstance(self.light, str) and self.light not in ENVIRONMENTS + LOCALIZED:
@@ -124,28 +156,57 @@ class Case:
 
 _SPHERE = Case("sphere", "sphere", 20.0, 0.005, 1.0, (1.0, 0.3, 0.6), (0.0, 0.0, 1.0))
 #: Issue 18's localized case: a 5 mm slab back-lit by a 4 x 4 mm diffuse patch, seen from the front.
-_PATCH = Case("slab-patch", "slab", 40.0, 0.02, 1.2, "patch", (0.0, 0.0, 1.0), n=2, cubes=15000, eta=1.4,
-              thickness_mm=5.0, view_mm=12.0, spp_factor=64, source="volume")
+_PATCH = Case("slab-patch", "slab", 40.0, 0.02, 1.2, "patch", (0.0, 0.0, 1.0), eta=1.4, thickness_mm=5.0,
+              view_mm=12.0, spp_factor=64)
+#: Back-lit slabs of a few transport mean free paths: 20 x 20 mm, sigma_s' 1, sigma_a 0.01 /mm, eta 1.3,
+#: a 5 x 5 mm Lambertian patch touching the back face, seen from the front over +-8 mm.
+_BACKLIT = Case("slab-backlit", "slab", 20.0, 0.01, 1.0, "patch", (0.0, 0.0, 1.0), eta=1.3, patch_mm=5.0,
+                view_mm=8.0, pixels=32, spp_factor=128)
 #: Camera directions of the environment cases: the sky's zenith (+z) at the image's left.
 _ENV_VIEW = {"constant": (0.0, 0.0, 1.0), "sky": (1.0, 0.0, 0.0)}
+#: The front-lit sphere's albedos (sigma_s' 1 /mm, sigma_a = (1 - a) / a).
+ALBEDOS = (0.3, 0.5, 0.7, 0.8, 0.9, 0.95, 0.99)
+#: Back-lit slab thicknesses, transport mean free paths.
+BACKLIT_MFP = (2, 4, 8)
 CASES = {c.name: c for c in (
-    Case("slab", "slab", 60.0, 0.005, 1.0, (0.0, 0.0, 1.0), (0.0, 0.35, 1.0), n=8, cubes=36),
+    Case("slab", "slab", 60.0, 0.005, 1.0, (0.0, 0.0, 1.0), (0.0, 0.35, 1.0)),
     _SPHERE,
-    replace(_SPHERE, name="sphere-albedo0.9", sigma_a=0.11),
+    *(replace(_SPHERE, name=f"sphere-albedo{a:g}", sigma_a=round((1.0 - a) / a, 6)) for a in ALBEDOS),
+    replace(_SPHERE, name="sphere-skin", sigma_a=(0.032, 0.17, 0.48), sigma_s=(0.74, 0.88, 1.01)),
+    replace(_SPHERE, name="sphere-ketchup", sigma_a=(0.061, 0.97, 1.45), sigma_s=(0.18, 0.07, 0.03)),
     replace(_SPHERE, name="sphere-veins", procedural="veins"),
-    Case("bunny-veins", "bunny", 60.0, 0.005, 1.0, (-0.4, 0.7, 0.6), (0.0, 0.2, 1.0), procedural="veins", n=4,
-         cubes=120),
+    Case("bunny-veins", "bunny", 60.0, 0.005, 1.0, (-0.4, 0.7, 0.6), (0.0, 0.2, 1.0), procedural="veins"),
     Case("bunny-veins-tetwild", "bunny", 60.0, 0.005, 1.0, (-0.4, 0.7, 0.6), (0.0, 0.2, 1.0), procedural="veins",
          discretisation="tetwild", edge_mm=1.5),
     *(replace(_SPHERE, name=f"sphere{'-eta1.3' if eta != 1.0 else ''}-{env}", light=env, eta=eta,
               camera_dir=_ENV_VIEW[env]) for eta in (1.0, 1.3) for env in ENVIRONMENTS),
     _PATCH,
-    replace(_PATCH, name="slab-patch-surface", source="surface"),
-    replace(_PATCH, name="slab-spot", light="spot", patch_mm=6.0, eta=1.0, thickness_mm=10.0, source="surface",
-            spp_factor=4),
+    replace(_PATCH, name="slab-patch-tuned", n=2, cubes=15000, source="volume", model="diffusion", tol=1e-5),
+    *(replace(_BACKLIT, name=f"slab-backlit-{m}mfp", thickness_mm=round(m / 1.01, 4)) for m in BACKLIT_MFP),
+    replace(_PATCH, name="slab-spot", light="spot", patch_mm=6.0, eta=1.0, thickness_mm=10.0, spp_factor=4),
     replace(_PATCH, name="slab-patch-eta1", eta=1.0, spp_factor=16),
     replace(_PATCH, name="slab-inclusion", eta=1.0, procedural="sphere", spp_factor=16, volume_mm=0.2),
 )}
+#: Named groups of cases for ``--cases``.
+GROUPS = {
+    "default": ("slab", "sphere", "sphere-veins", "sphere-constant", "sphere-eta1.3-constant", "sphere-sky",
+                "sphere-eta1.3-sky"),
+    "albedo": tuple(f"sphere-albedo{a:g}" for a in ALBEDOS),
+    "backlit": tuple(f"slab-backlit-{m}mfp" for m in BACKLIT_MFP),
+    "rgb": ("sphere-skin", "sphere-ketchup"),
+    "localized": ("slab-patch", "slab-patch-tuned", "slab-spot", "slab-patch-eta1", "slab-inclusion"),
+}
+
+
+def expand_cases(names: Sequence[str]) -> list[str]:
+    """Case names, with group names (:data:`GROUPS`, and ``all``) expanded, in order, once each."""
+    out: list[str] = []
+    for name in names:
+        group = tuple(CASES) if name == "all" else GROUPS.get(name, (name,))
+        out.extend(n for n in group if n not in out)
+    return out
+
+
 #: Samples per pixel of each of the two Monte Carlo renders of the unscattered light alone.
 UNSCATTERED_SPP = 8192
 #: Where the patch light sits below the slab's back face, mm (Mitsuba needs a gap between them).
@@ -192,18 +253,33 @@ def _light(case: Case) -> Light:
     return DirectionalLight(case.light, (1.0, 1.0, 1.0))
 
 
+def _polygrid(case: Case) -> PolygridSpec:
+    """The case's ``[polygrid]``: the scene default with the options the case sets."""
+    disc = case.discretisation or PolygridSpec().discretisation
+    if disc == "tetwild":
+        return PolygridSpec(discretisation="tetwild", edge_mm=case.edge_mm, adapt=False)
+    n = case.n if case.n is not None else PolygridSpec().n if disc == "fem" else 8
+    cubes = case.cubes if case.cubes is not None else default_cubes(disc, n)
+    levels = 1 if disc == "fem" else (3 if n >= 8 else (2 if n >= 6 else 1))
+    adapt = (case.adapt if case.adapt is not None else PolygridSpec().adapt) if disc == "fem" else False
+    return PolygridSpec(n, cubes, levels, disc, adapt=adapt)
+
+
+def _options(case: Case) -> OptionsSpec:
+    """The case's ``[options]``: the scene default with the options the case sets."""
+    given = {k: getattr(case, k) for k in ("model", "source", "flux", "incidence", "single_scattering", "tol")
+             if getattr(case, k) is not None}
+    return replace(OptionsSpec(), **given)
+
+
 def _scene(case: Case, mesh_path: str | None, size: int) -> Scene:
-    poly = (PolygridSpec(discretisation="tetwild", edge_mm=case.edge_mm) if case.discretisation == "tetwild" else
-            PolygridSpec(case.n, case.cubes, 3 if case.n >= 8 else (2 if case.n >= 6 else 1), case.discretisation,
-                         adapt=case.adapt if case.discretisation == "fem" else False))
     return Scene(mesh=MeshSpec(mesh_path or case.mesh, case.size_mm),
-                 polygrid=poly,
-                 material=MaterialSpec(preset=None, sigma_a=(case.sigma_a,) * 3, sigma_s_prime=(case.sigma_s,) * 3,
+                 polygrid=_polygrid(case),
+                 material=MaterialSpec(preset=None, sigma_a=_rgb(case.sigma_a), sigma_s_prime=_rgb(case.sigma_s),
                                        eta=case.eta, procedural=case.procedural),
                  lights=(_light(case),),
                  camera=CameraSpec(fov_deg=30.0), output=OutputSpec(size, size), specular=SpecularSpec(0.0, 0.2),
-                 options=OptionsSpec(source=case.source, tol=1e-5 if case.light in LOCALIZED else 1e-4, flux=case.flux,
-                                     incidence=case.incidence))
+                 options=_options(case))
 
 
 def rmse(ours: NDArray, ref: NDArray, mask: NDArray) -> float:
@@ -254,7 +330,7 @@ def _mc_render(case: Case, mesh: Any, cam: Any, spp: int, seed: int,
     """Mitsuba images of one case: ``"subsurface"`` (all scattering orders) and ``"full"``;
     with eta = 1 also the scattering orders ``"single"`` and ``"multiple"``, else
     ``"reflection"`` (module docstring); and the seconds taken."""
-    sa, ss = (None, None) if volume else ((case.sigma_a,) * 3, (case.sigma_s,) * 3)
+    sa, ss = (None, None) if volume else (_rgb(case.sigma_a), _rgb(case.sigma_s))
     args = (mesh, sa, ss, case.eta, cam, _light(case), spp, seed, volume)
     if case.eta != 1.0:
         images, info = render_subsurface(*args)
@@ -285,6 +361,7 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
     ``validation_<case>_environment.exr``."""
     env = case.light in ENVIRONMENTS
     localized = case.light in LOCALIZED
+    size = case.pixels or size
     with tempfile.TemporaryDirectory() as tmp:
         mesh_path = _slab_file(Path(tmp), case.size_mm, _thickness(case)) if case.mesh == "slab" else None
         if env and folder is not None:   # the map both renderers get, for the record
@@ -314,10 +391,20 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
             if localized and sees_through(scene.lights):   # the unscattered term alone: the frame without it
                 dark, _ = r.render(replace(scene, options=replace(scene.options, unscattered=False)))
                 ours_unscattered = ours - dark
-            t0 = time.perf_counter()                  # single scattering: the frame with it, minus without
-            lit, _ = r.render(replace(scene, options=replace(scene.options, single_scattering=True)))
+            t0 = time.perf_counter()
+            split = scene.options.split
+            if split:                                 # the split's own parts: single, and two or more orders
+                bare = replace(scene, options=replace(scene.options, unscattered=False))
+                r.split_part = "single"
+                ours_single, _ = r.render(bare)
+                r.split_part = "multiple"
+                ours_multiple, _ = r.render(bare)
+                r.split_part = None
+            else:                                     # single scattering: the frame with it, minus without
+                lit, _ = r.render(replace(scene, options=replace(scene.options, single_scattering=True)))
+                ours_single = lit - ours
+                ours_multiple = ours - ours_unscattered
             single_s = time.perf_counter() - t0
-            ours_single = lit - ours
             pg, mesh = r.polygrid, r.mesh
             volume = _volume(scene, pg, case.volume_mm) if case.procedural else None
     cam = McCamera(tuple(eye), tuple(target), tuple(up), fov, size, size)
@@ -329,9 +416,10 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
         row, images = _localized_row(case, rep, ours, ours_unscattered, ours_s, parts, mc, sum(seconds), mesh, cam,
                                      seed, renders * each, volume)
         every = np.ones(ours.shape[:2], dtype=bool)
-        row.update(_single_columns(ours, ours_single, single_s, parts, mc, every))
-        row["power_ratio_with_single"] = float((ours + ours_single).sum() / mc["subsurface"].sum())
-        row["peak_ratio_with_single"] = _centre(ours + ours_single, _peak_half(case, size)) / row["peak_mc"]
+        row.update(_single_columns(ours - ours_single if split else ours, ours_single, single_s, parts, mc, every))
+        with_single = ours if split else ours + ours_single
+        row["power_ratio_with_single"] = float(with_single.sum() / mc["subsurface"].sum())
+        row["peak_ratio_with_single"] = _centre(with_single, _peak_half(case, size)) / row["peak_mc"]
         images["diffusion_single"] = ours_single
         if "single" in mc:
             images["mc_single"] = mc["single"]
@@ -343,28 +431,30 @@ def run_case(case: Case, size: int = 64, spp: int = 256, seed: int = 0,
         raise InputError(f"case {case.name}: the object covers too few pixels ({int(inside.sum())}) to compare")
     sub_sum = max(float(sub[inside].sum()), 1e-30)
     row: dict[str, Any] = {
-        "case": case.name, "light": case.light if env else "directional", "eta": case.eta, "source": case.source,
-        "albedo": case.sigma_s / (case.sigma_s + case.sigma_a), "material": case.procedural or "homogeneous",
-        "nodes": rep.nodes, "adapt": case.refines, "flux": case.flux, "incidence": case.incidence, "pixels": int(inside.sum()),
-        "rmse_vs_mc_multiple": rmse(ours, multiple, inside),
+        "case": case.name, "options": case.options, "model": rep.model, "light": case.light if env else "directional",
+        "eta": case.eta, "albedo": case.albedo, "material": case.procedural or "homogeneous",
+        "nodes": rep.nodes, "adapt": case.refines, "pixels": int(inside.sum()),
         "rmse_vs_mc_all_scattering": rmse(ours, sub, inside),
-        "mean_ratio": float(ours[inside].mean() / multiple[inside].mean()),
         "mean_ratio_all_scattering": float(ours[inside].mean() / sub[inside].mean()),
+        "rmse_vs_mc_multiple": rmse(ours_multiple, multiple, inside),
+        "mean_ratio": float(ours_multiple[inside].mean() / multiple[inside].mean()),
         "mc_noise": _standard_error([p["subsurface"] for p in parts], inside),
         "single_share": float(single[inside].sum()) / sub_sum,
         "surface_share": 1.0 - sub_sum / max(float(mc["full"][inside].sum()), 1e-30),
         "diffusion_s": ours_s, "t1_t2_t3_ms": "/".join(f"{rep.seconds.get(k, 0) * 1e3:.0f}" for k in ("t1", "t2", "t3")),
         "mc_s": sum(seconds), "spp": renders * each, "solver_residual": rep.solver.residual if rep.solver else math.nan,
-        **_single_columns(ours, ours_single, single_s, parts, mc, inside),
+        **_single_columns(ours_multiple, ours_single, single_s, parts, mc, inside),
     }
     if case.mesh == "slab" and not env:
         c = size // 2
         patch = (slice(c - 2, c + 3), slice(c - 2, c + 3))
-        rho = float(np.asarray(dipole_total_reflectance(case.sigma_a, case.sigma_s, case.eta)))
-        row["centre_diffusion"] = float(ours[patch].mean())
+        rho = float(np.mean(dipole_total_reflectance(np.asarray(_rgb(case.sigma_a)), np.asarray(_rgb(case.sigma_s)),
+                                                     case.eta)))
+        row["centre_diffusion"] = float(ours_multiple[patch].mean())
         row["centre_mc_multiple"] = float(multiple[patch].mean())
         row["centre_dipole"] = rho * 1.0 * abs(case.light[2]) / np.linalg.norm(case.light) / math.pi
-    images = {"diffusion": ours, "mc_subsurface": sub, "mc_full": mc["full"], "diffusion_single": ours_single}
+    images = {"diffusion": ours, "mc_subsurface": sub, "mc_full": mc["full"], "diffusion_single": ours_single,
+              "diffusion_multiple": ours_multiple}
     if "multiple" in mc:
         images["mc_multiple"], images["mc_single"] = multiple, single
     return row, images
@@ -416,12 +506,12 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
 
     sub = mc["subsurface"]
     every = np.ones(sub.shape[:2], dtype=bool)
-    st = case.sigma_a + case.sigma_s
+    st = tuple(a + b for a, b in zip(_rgb(case.sigma_a), _rgb(case.sigma_s)))
     t0 = time.perf_counter()   # nothing scatters: a path survives with probability exp(-tau), so many samples
     if case.light == "patch":
         straight = None if volume is None else {**volume, "sigma_a": volume["sigma_a"] + volume["sigma_s"],
                                                 "sigma_s": np.zeros_like(volume["sigma_s"])}
-        halves = [render_mitsuba(mesh, (st,) * 3, (0.0,) * 3, case.eta, cam, _light(case), UNSCATTERED_SPP,
+        halves = [render_mitsuba(mesh, st, (0.0,) * 3, case.eta, cam, _light(case), UNSCATTERED_SPP,
                                  seed + 99 + k, straight)[0] for k in range(2)]
     else:                      # a point light is never seen through the object
         halves = [np.zeros_like(sub)] * 2
@@ -430,10 +520,10 @@ def _localized_row(case: Case, rep: Any, ours: NDArray, ours_unscattered: NDArra
     half = _peak_half(case, sub.shape[0])
     peak_mc = _centre(sub, half)
     row: dict[str, Any] = {
-        "case": case.name, "eta": case.eta, "source": case.source,
+        "case": case.name, "options": case.options, "model": rep.model, "eta": case.eta,
         "light": f"patch {case.patch_mm:g} mm" if case.light == "patch" else f"spot {case.patch_mm:g} deg",
-        "albedo": case.sigma_s / st, "thickness_mm": _thickness(case), "nodes": rep.nodes,
-        "adapt": case.refines, "flux": case.flux, "incidence": case.incidence, "pixels": int(every.sum()),
+        "albedo": case.albedo, "thickness_mm": _thickness(case), "nodes": rep.nodes,
+        "adapt": case.refines, "pixels": int(every.sum()),
         "rel_l2": rmse(ours, sub, every), "power_ratio": float(ours.sum() / sub.sum()),
         "peak_ratio": _centre(ours, half) / peak_mc, "peak_mc": peak_mc,
         "mc_noise": _standard_error([p["subsurface"] for p in parts], every),
@@ -484,34 +574,40 @@ def _panels(path: Path, mc: NDArray, ours: NDArray, name: str, mc_title: str = "
 
 def validate(cases: Sequence[str], out: Path, size: int = 64, spp: int = 256,
              source: str | None = None, adapt: bool | None = None, flux: str | None = None,
-             incidence: str | None = None) -> list[dict[str, Any]]:
-    """Run ``cases``; write validation.csv, and per case a PNG (diffusion | MC multiple scattering
-    (eta = 1) or MC subsurface, all orders (eta != 1) | MC full image, surface reflection and
-    background included), a PNG of panels (:func:`_panels`: MC, ours, difference, centre-row
-    profile) and with eta = 1 one of the single scattering alone, the images as EXR and the
-    environment map (if any). ``source`` (``"surface"`` or
-    ``"volume"``) overrides every case's diffusion source model, ``flux`` its
-    ``[options].flux`` and ``incidence`` its ``[options].incidence``; ``adapt=True`` refines every fem case's grid under the light's sharp
-    edges (:mod:`glsldiff.grids.adapt`), ``False`` none (default: each case's own, ``"auto"``:
-    the spot case)."""
+             incidence: str | None = None, model: str | None = None,
+             progress: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
+    """Run ``cases`` (names or :data:`GROUPS`, :func:`expand_cases`); write validation.csv, and
+    per case a PNG (diffusion | MC multiple scattering (eta = 1) or MC subsurface, all orders
+    (eta != 1) | MC full image, surface reflection and background included), a PNG of panels
+    (:func:`_panels`: MC, ours, difference, centre-row profile) and with eta = 1 one of the
+    single scattering alone, the images as EXR and the environment map (if any). Every case
+    renders with the scene defaults but for the options it sets itself (:class:`Case`); the
+    overrides ``model``, ``source``, ``flux``, ``incidence`` and ``adapt`` set that option in
+    every case (the rows' ``options`` column then names it). ``progress`` receives a line
+    before each case."""
+    cases = expand_cases(cases)
     unknown = [c for c in cases if c not in CASES]
     if unknown:
-        raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}")
+        raise InputError(f"unknown validation case {unknown[0]!r}; valid: {', '.join(CASES)}, or a group: "
+                         f"{', '.join(GROUPS)}, all")
     mc_split(spp)                           # a bad sample count fails before any rendering
     if source is not None:                  # so does a bad source model
-        checks.choice(source, "source", SOURCES)
+        checks.choice(source, "source", ("auto",) + SOURCES)
     if flux is not None:
         checks.choice(flux, "flux", FLUXES)
     if incidence is not None:
         checks.choice(incidence, "incidence", INCIDENCE)
+    if model is not None:
+        checks.choice(model, "model", MODELS)
     load_mitsuba("scalar_rgb")              # so does a missing Mitsuba
     out.mkdir(parents=True, exist_ok=True)
     rows = []
-    for name in cases:
-        case = CASES[name] if adapt is None else replace(CASES[name], adapt=adapt)
-        case = case if flux is None else replace(case, flux=flux)
-        case = case if incidence is None else replace(case, incidence=incidence)
-        case = case if source is None else replace(case, source=source)
+    overrides = {k: v for k, v in (("adapt", adapt), ("flux", flux), ("incidence", incidence), ("source", source),
+                                   ("model", model)) if v is not None}
+    for k, name in enumerate(cases):
+        case = replace(CASES[name], **overrides)
+        if progress is not None:
+            progress(f"validate: case {name} ({k + 1} of {len(cases)}; options: {case.options})")
         row, imgs = run_case(case, size, spp, folder=out)
         rows.append(row)
         middle = imgs.get("mc_multiple", imgs["mc_subsurface"])

@@ -1,0 +1,134 @@
+"""Pass 3 of the transport split (``[options].model = "split"``, :mod:`glsldiff.physics.split`):
+the subsurface radiance per render-mesh vertex towards the eye.
+
+Inputs per boundary node (pass 1 and 2): the beams (transmitted irradiance, refracted cosine),
+the material, the fluence; for the gather far field (first-collision source) the collided
+fluence at every node. Per vertex (the boundary values interpolated by the renderer's
+surface-interpolation matrix):
+
+* ``M``: the exact multiple scattering of the local half-space (adding-doubling tables);
+* single scattering: the half-space's closed form, or the 3-D march along the refracted view
+  ray (:func:`glsldiff.render.single.scattering_frame`), which with the gather model also
+  gathers the collided fluence (:class:`glsldiff.render.fluence.FluenceLattice`);
+* the diffusion model's ``X`` and ``X_loc`` and its far-field factor, combined with ``M`` by
+  :func:`glsldiff.physics.split.combine`.
+
+The result, without unscattered light, goes to the shader as a view-dependent term (the
+tables hold the exit Fresnel factor).
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import moderngl
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff.physics.adding_doubling import halfspace_tables
+from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
+from glsldiff.physics.split import (combine, external_beams, gathered_halfspace, local_multiple, local_single,
+                                    marshak_halfspace)
+from glsldiff.render.fluence import FluenceLattice
+from glsldiff.render.shadows import DepthRenderer
+from glsldiff.render.single import scattering_frame
+
+__all__ = ["SplitInputs", "SplitResult", "split_radiance", "FAR_MODELS"]
+
+Array = NDArray[np.float64]
+#: The split's far-field models: the gathered collided fluence (first-collision source) or the
+#: Marshak fluence's outgoing flux.
+FAR_MODELS = ("gather", "surface")
+
+
+@dataclass
+class SplitInputs:
+    """What the split needs of a frame. Per boundary node ``(S, ...)``: ``beams`` (transmitted
+    irradiance ``(S, 3)``, refracted cosine ``(S,)``), ``kappa`` (mm) and ``mu`` (mm^-1)
+    ``(S, 3)``, ``phi`` the fluence ``(S, 3)``, ``q`` the Marshak source ``(S, 3)`` (surface
+    far field). ``interp`` ``(V, S)`` maps them to the render vertices."""
+
+    far: str
+    march: bool
+    eta: float
+    C: float
+    interp: Any
+    vertices: Array
+    normals: Array
+    beams: Sequence[tuple[Array, Array]]
+    kappa: Array
+    mu: Array
+    phi: Array
+    q: Array | None = None
+    fluence: FluenceLattice | None = None     # gather: the collided fluence at any point
+    mesh: Any = None                           # the march: the mesh its rays and depth maps use
+    lights: Sequence[Any] = ()
+    medium: Any = None
+
+
+@dataclass
+class SplitResult:
+    """``radiance`` ``(V, 3)`` and its parts (single, multiple), seconds and a report line."""
+
+    radiance: Array
+    single: Array
+    multiple: Array
+    seconds: float
+    info: str = ""
+    parts: dict[str, float] = field(default_factory=dict)
+
+
+def _at_vertices(interp: Any, beams: Sequence[tuple[Array, Array]]) -> list[tuple[Array, Array]]:
+    """Beams at the vertices: irradiance interpolated, refracted cosine irradiance-weighted."""
+    out = []
+    for E, t in beams:
+        Ev = np.asarray(interp @ E)
+        w = np.asarray(interp @ E.sum(axis=1))
+        tw = np.asarray(interp @ (E.sum(axis=1) * t))
+        out.append((Ev, np.where(w > 0, tw / np.maximum(w, 1e-300), 0.0)))
+    return out
+
+
+def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = None) -> SplitResult:
+    """The split's subsurface radiance per vertex (module docstring), for the camera at ``eye``."""
+    t0 = time.perf_counter()
+    v, n = inp.vertices, inp.normals
+    w_o = np.asarray(eye, dtype=np.float64)[None, :] - v
+    nu_o = np.clip(np.einsum("ij,ij->i", w_o, n) / np.maximum(np.linalg.norm(w_o, axis=1), 1e-300), 0.0, 1.0)
+    facing = nu_o > 0.0
+    eta = float(inp.eta)
+    tables = halfspace_tables(eta)
+    kv = np.asarray(inp.interp @ inp.kappa)
+    mv = np.asarray(inp.interp @ inp.mu)
+    albedo = np.clip(1.0 - 3.0 * kv * mv, 0.0, 1.0)
+    albedo[albedo < 1e-12] = 0.0           # a pure absorber (round-off of 1 - 3 kappa mu): no scattering at all
+    beams_t = _at_vertices(inp.interp, inp.beams)
+    ext = external_beams(beams_t, eta)
+    M = local_multiple(tables, albedo, ext, nu_o)
+    gathered = None
+    if inp.march:
+        with DepthRenderer(ctx, inp.mesh) as depth:
+            single, gathered = scattering_frame(inp.mesh, v, n, eye, eta, inp.lights, inp.medium, depth,
+                                                fluence=inp.fluence if inp.far == "gather" else None)
+    else:
+        single = local_single(eta, albedo, ext, nu_o)
+    if inp.far == "gather":
+        if gathered is None:
+            raise ValueError("the gather far field needs the 3-D march (march=True)")
+        t_o = refracted_cosine(eta, nu_o)
+        f_o = np.asarray(fresnel_transmittance(eta, nu_o)) / (eta * eta) * facing
+        X, X_loc = gathered, gathered_halfspace(beams_t, kv, mv, t_o, f_o, eta, inp.C)
+        c_far: Any = 1.0
+    else:
+        X = np.asarray(inp.interp @ np.maximum(inp.phi, 0.0))
+        X_loc = np.asarray(inp.interp @ marshak_halfspace(inp.q, inp.kappa, inp.mu, inp.C))
+        c_far = albedo * tables.escape(albedo, nu_o[:, None]) / (2.0 * inp.C)
+    multiple = combine(M, X, X_loc, c_far) * facing[:, None]
+    single = single * facing[:, None]
+    lit = X_loc.sum(axis=1) > 0
+    info = (f"model split: single scattering {'3-D march' if inp.march else 'half-space closed form'}; multiple "
+            f"scattering exact for the local half-space (adding-doubling, eta {eta:g}) with the far field of the "
+            f"{'first-collision diffusion gathered along the view rays' if inp.far == 'gather' else 'Marshak diffusion'}"
+            f" ({int(lit.sum()):,} of {len(v):,} vertices lit)")
+    return SplitResult(single + multiple, single, multiple, time.perf_counter() - t0, info)
