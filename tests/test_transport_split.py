@@ -207,3 +207,63 @@ def test_render_prints_warnings_on_stderr(tmp_path, capsys):
     assert main(["render", str(scene), "-o", str(tmp_path / "k.exr")]) == 0
     err = capsys.readouterr().err
     assert [line for line in err.splitlines() if line.startswith("WARNING: albedo down to 0.0203 (GB")]
+
+
+def test_combine_with_the_diffusion_sensitivity():
+    """With ``w = 1`` a departure of the Marshak fluence from the half-space changes the radiance
+    at the diffusion's own rate ``c_far`` on both sides of ``X = X_loc``; with ``w = 0`` at the
+    relative rate ``M / X_loc``; never negative, 0 where the grid holds nothing."""
+    M, Xl, c, eps = 2.0, 4.0, 1.5, 1e-4
+    for X in (Xl * (1 - eps), Xl * (1 + eps)):
+        assert (combine(M, X, Xl, c, 1.0) - M) / (X - Xl) == pytest.approx(c, rel=2e-3)
+        assert (combine(M, X, Xl, c, 0.0) - M) / (X - Xl) == pytest.approx(M / Xl, rel=2e-3)
+    assert combine(M, 0.0, Xl, c, 1.0) == 0.0
+    rng = np.random.default_rng(1)
+    vals = combine(rng.uniform(0, 3, 1000), rng.uniform(0, 10, 1000), rng.uniform(0, 5, 1000),
+                   rng.uniform(0, 2, 1000), rng.uniform(0, 1, 1000))
+    assert np.all(vals >= 0) and np.all(np.isfinite(vals))
+
+
+@pytest.mark.parametrize("albedo, expected", [(0.995, (0.9, 1.0)), (0.9, (0.6, 0.9)), (0.5, (0.0, 0.0))])
+def test_diffusion_weight_follows_how_well_diffusion_reproduces_the_half_space(albedo, expected):
+    """``w = B_loc / (M + single)``: the P1 radiance of the Marshak half-space over the exact one
+    (eta 1, normal light and view): about 1 near albedo 1, less below, 0 where the P1 exitance is
+    negative (albedo < 2/3)."""
+    from glsldiff.physics.exitance import halfspace_bracket
+    from glsldiff.physics.optics import boundary_constant
+    from glsldiff.physics.split import diffusion_weight
+    t = halfspace_tables(1.0)
+    kappa, mu = np.full((1, 3), 1.0 / 3.0), np.full((1, 3), 1.0 - albedo)
+    M, S = t.multiple(albedo, 1.0, 1.0), t.single_reflection(albedo, 1.0, 1.0)
+    B = halfspace_bracket(kappa, mu, 1.0, "p1", float(boundary_constant(1.0)))
+    w = float(diffusion_weight(np.full((1, 3), M), np.full((1, 3), S), B)[0, 0])
+    assert expected[0] <= w <= expected[1]
+
+
+def test_collided_halfspace_against_the_numerical_solution():
+    """The first-collision diffusion's surface fluence below a lit half-space, closed form against
+    the finite-difference solution of the same 1-D problem."""
+    from glsldiff.physics.split import collided_halfspace
+    for a, t, C in [(0.99, 1.0, 1.2), (0.6, 0.5, 2.3), (0.3, 0.8, 1.0)]:
+        L, n = 30.0, 30000
+        z = np.linspace(0.0, L, n)
+        h = z[1] - z[0]
+        k, m = 1.0 / 3.0, 1.0 - a
+        V = np.full(n, h)
+        V[0] = V[-1] = h / 2
+        main = np.full(n, 2 * k / h)
+        main[0] = main[-1] = k / h
+        main += m * V
+        main[0] += 1.0 / (2.0 * C)
+        A = sp.diags([np.full(n - 1, -k / h), main, np.full(n - 1, -k / h)], [-1, 0, 1]).tocsc()
+        phi0 = spl.spsolve(A, V * a * np.exp(-z / t) / t)[0]
+        ours = collided_halfspace([(np.ones((1, 3)), np.array([t]))], np.full((1, 3), k), np.full((1, 3), m), C)
+        assert float(ours[0, 0]) == pytest.approx(phi0, rel=2e-3)
+
+
+def test_gather_share():
+    from glsldiff.physics.split import GATHER_DISTANCE, gather_share
+    lo, hi = GATHER_DISTANCE
+    g = gather_share(np.array([[0.0], [lo], [0.5 * (lo + hi)], [hi], [100.0]]), (5, 3))
+    np.testing.assert_allclose(g[:, 0], [1.0, 1.0, 0.5, 0.0, 0.0])
+    assert np.all(gather_share(None, (2, 3)) == 1.0)

@@ -114,6 +114,9 @@ SOLUTION_CACHE_VERSION = 2   # 2: the volume source solves with the Fresnel-mome
 #: resolves the transport mean free path: node spacing times sigma_t' at most this (a 1-D P1
 #: solve of the half-space gathers 0.98 of the converged value at 0.5, 0.93 at 1, 0.85 at 2).
 GATHER_MAX_H_SIGMA = 0.6
+#: Surface nodes with more than this share of the largest transmitted irradiance count as lit (the
+#: split's gather far field measures each node's distance to them).
+LIT_SHARE = 1e-3
 #: Surface nodes whose thickness the regime check measures (a ray cast each, once per grid).
 THICKNESS_SAMPLES = 4000
 #: Pass 2's iteration budget on tetrahedra: multigrid-preconditioned CG takes 10-20 iterations
@@ -847,10 +850,18 @@ class Renderer:
             geo["lattice"].set_values(full)
             fluence = geo["lattice"]
         kappa, mu = self._boundary_material()
+        thick = None
+        if far == "gather":            # each surface node's distance to where light enters, mean free paths
+            pg = geo["pg"]
+            Et = self._E_t.sum(axis=1)
+            lit = Et > LIT_SHARE * max(float(Et.max()), 1e-300)
+            d = (cKDTree(pg.boundary_positions[lit]).query(pg.boundary_positions)[0] if lit.any()
+                 else np.full(len(Et), 1e30))
+            thick = d[:, None] / (3.0 * kappa)
         inp = SplitInputs(far=far, march=bool(o.single_scattering) or far == "gather", eta=scene.material.eta,
                           C=self._boundary_C(scene), interp=geo["interp"], vertices=geo["vertices"],
                           normals=geo["normals"], beams=self._beams, kappa=kappa, mu=mu, phi=self._phi_b,
-                          q=self._q, fluence=fluence, mesh=geo["mesh"], lights=scene.lights,
+                          q=self._q, source_distance_mfp=thick, fluence=fluence, mesh=geo["mesh"], lights=scene.lights,
                           medium=self._medium(scene))
         self._split_result = split_radiance(inp, eye, self.ctx)
         self._keys["split"] = key

@@ -28,8 +28,9 @@ from numpy.typing import NDArray
 
 from glsldiff.physics.adding_doubling import halfspace_tables
 from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
-from glsldiff.physics.split import (combine, external_beams, gathered_halfspace, local_multiple, local_single,
-                                    marshak_halfspace)
+from glsldiff.physics.exitance import halfspace_bracket
+from glsldiff.physics.split import (collided_halfspace, combine, diffusion_weight, external_beams, gather_share,
+                                    gathered_halfspace, local_multiple, local_single, marshak_halfspace)
 from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import scattering_frame
@@ -61,6 +62,7 @@ class SplitInputs:
     mu: Array
     phi: Array
     q: Array | None = None
+    source_distance_mfp: Array | None = None   # gather: each node's distance to lit surface, mean free paths (S, 3)
     fluence: FluenceLattice | None = None     # gather: the collided fluence at any point
     mesh: Any = None                           # the march: the mesh its rays and depth maps use
     lights: Sequence[Any] = ()
@@ -118,13 +120,30 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
             raise ValueError("the gather far field needs the 3-D march (march=True)")
         t_o = refracted_cosine(eta, nu_o)
         f_o = np.asarray(fresnel_transmittance(eta, nu_o)) / (eta * eta) * facing
-        X, X_loc = gathered, gathered_halfspace(beams_t, kv, mv, t_o, f_o, eta, inp.C)
+        X_g, X_g_loc = gathered, gathered_halfspace(beams_t, kv, mv, t_o, f_o, eta, inp.C)
+        # the deep field's exitance of the same collided fluence: the Robin condition's flux phi / (2C)
+        # over the exit angles as a deep field leaves (better where the light comes from several mean
+        # free paths away: the unlit face of a thick slab lit from behind)
+        esc = tables.escape(albedo, nu_o[:, None]) / (2.0 * inp.C)
+        # (it counts the once-scattered light too, which the march has: taken out, never below 0)
+        X_p = np.maximum(np.asarray(inp.interp @ np.maximum(inp.phi, 0.0)) * esc - single, 0.0)
+        X_p_loc = np.maximum(collided_halfspace(beams_t, kv, mv, inp.C) * esc - local_single(eta, albedo, ext, nu_o),
+                             0.0)
+        g = gather_share(np.asarray(inp.interp @ inp.source_distance_mfp) if inp.source_distance_mfp is not None
+                         else None, X_g.shape)
+        X, X_loc = g * X_g + (1.0 - g) * X_p, g * X_g_loc + (1.0 - g) * X_p_loc
         c_far: Any = 1.0
     else:
         X = np.asarray(inp.interp @ np.maximum(inp.phi, 0.0))
         X_loc = np.asarray(inp.interp @ marshak_halfspace(inp.q, inp.kappa, inp.mu, inp.C))
         c_far = albedo * tables.escape(albedo, nu_o[:, None]) / (2.0 * inp.C)
-    multiple = combine(M, X, X_loc, c_far) * facing[:, None]
+    w: Any = 0.0
+    if inp.far == "surface":       # departures of the Marshak fluence count as the diffusion's exitance does
+        Et = sum((E for E, _ in beams_t), np.zeros_like(kv))
+        B_loc = (halfspace_bracket(kv, mv, eta, "p1", inp.C) * Et
+                 * np.asarray(fresnel_transmittance(eta, nu_o))[:, None])
+        w = diffusion_weight(M, single, B_loc)
+    multiple = combine(M, X, X_loc, c_far, w) * facing[:, None]
     single = single * facing[:, None]
     lit = X_loc.sum(axis=1) > 0
     info = (f"model split: single scattering {'3-D march' if inp.march else 'half-space closed form'}; multiple "
