@@ -196,6 +196,12 @@ def test_regime_warnings_name_the_cause_and_what_was_measured(ctx):
     assert len(thin) == 1 and "% of the surface is thinner than 2 transport mean free paths" in thin[0]
     inside = warnings(dataclasses.replace(ok, camera=CameraSpec(position=(0.0, 0.0, 1.0), target=(0.0, 0.0, -5.0))))
     assert any(w.startswith("the camera at (0, 0, 1) mm is inside the object") for w in inside)
+    assert warnings(_sphere(0.3, sigma_s=0.6)) == []                       # the validated floor itself
+    coarse = dataclasses.replace(ok, mesh=MeshSpec("sphere", 60.0),          # h sigma_t' > 0.6: not resolved
+                                 options=dataclasses.replace(ok.options, source="volume"))
+    forced = warnings(coarse)
+    assert len(forced) == 1 and forced[0].startswith('source = "volume" on a grid coarser than the mean free path')
+    assert warnings(dataclasses.replace(coarse, options=ok.options)) == []   # "auto" picks the surface source
 
 
 def test_render_prints_warnings_on_stderr(tmp_path, capsys):

@@ -54,10 +54,11 @@ def regime_warnings(model: str, albedo: ArrayLike, eta: float, thickness_mfp: Ar
     v = VALIDATED[model]
     out = []
     a = np.asarray(albedo, dtype=np.float64)
-    if a.size and float(a.min()) < v.albedo_min:
-        low = float((a < v.albedo_min).reshape(len(a), -1).any(axis=1).mean()) if a.ndim > 1 else 1.0
+    floor = v.albedo_min - 1e-6          # the validated albedo itself, up to round-off, is in
+    if a.size and float(a.min()) < floor:
+        low = float((a < floor).reshape(len(a), -1).any(axis=1).mean()) if a.ndim > 1 else 1.0
         channels = "".join(c for c, col in zip("RGB", a.reshape(-1, a.shape[-1]).T if a.ndim > 1 else [a])
-                           if float(np.min(col)) < v.albedo_min)
+                           if float(np.min(col)) < floor)
         out.append(f"albedo down to {a.min():.3g} ({channels or 'grey'}; {100 * low:.0f} % of nodes) is below the "
                    f"validated {v.albedo_min:g} of model {model}; measured there: {v.albedo_edge}")
     if not v.eta[0] <= eta <= v.eta[1]:

@@ -827,8 +827,16 @@ class Renderer:
         kappa, mu = self._boundary_material()
         st_min = (1.0 / (3.0 * kappa[pick])).min(axis=1)
         albedo = np.clip(1.0 - 3.0 * kappa * mu, 0.0, 1.0)
-        return regime_warnings("split" if scene.options.split else "diffusion", albedo, scene.material.eta,
-                               T * st_min)
+        out = regime_warnings("split" if scene.options.split else "diffusion", albedo, scene.material.eta,
+                              T * st_min)
+        h = pg.h if geo["fem"] else pg.lattice.h
+        hs = h * float(np.max(1.0 / (3.0 * self._mat["kappa"])))
+        if scene.options.split and scene.options.source == "volume" and hs > GATHER_MAX_H_SIGMA:
+            out.append(f"source = \"volume\" on a grid coarser than the mean free path (node spacing x sigma_t' up "
+                       f"to {hs:.2g}, resolved below {GATHER_MAX_H_SIGMA:g}): the gathered far field reads low there "
+                       "(1-D: 0.93 of the converged value at 1, 0.85 at 2); leave [options].source to \"auto\" or "
+                       "give [polygrid] cubes more")
+        return out
 
     def _split_frame(self, scene: Scene, eye: NDArray) -> SplitResult:
         """The transport split's subsurface radiance per vertex (:mod:`glsldiff.render.split_frame`),

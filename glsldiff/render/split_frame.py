@@ -144,7 +144,7 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
                  * np.asarray(fresnel_transmittance(eta, nu_o))[:, None])
         w = diffusion_weight(M, single, B_loc)
     multiple = combine(M, X, X_loc, c_far, w) * facing[:, None]
-    single = single * facing[:, None]
+    single = np.maximum(single, 0.0) * facing[:, None]       # (round-off of the march's sums)
     lit = X_loc.sum(axis=1) > 0
     info = (f"model split: single scattering {'3-D march' if inp.march else 'half-space closed form'}; multiple "
             f"scattering exact for the local half-space (adding-doubling, eta {eta:g}) with the far field of the "
