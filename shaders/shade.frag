@@ -59,5 +59,5 @@ void main() {
         float f = u_rho_s * exp(-t2 / (u_alpha * u_alpha)) / (4.0 * 3.14159265 * u_alpha * u_alpha * sqrt(ci * co));
         L += f * ci * E * v_vis[i];
     }
-    f_color = vec4(L, 1.0);
+    f_color = vec4(max(L, vec3(0.0)), 1.0);   // non-negative vertex values; interpolation round-off (-1e-14) is not light
 }
