@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spl
+from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
 from glsldiff.oracle.slab_transport import slab_monte_carlo
@@ -69,13 +70,14 @@ def test_thin_slab_against_photon_transport_with_fresnel():
             assert ours == pytest.approx(mc.scattered[face, b], rel=0.03, abs=3 * mc.scattered_err[face, b])
 
 
-def _collided_gather_numerically(a: float, t: float, t_o: float, C: float, n: int = 20000) -> float:
-    """The 1-D collided diffusion below a half-space (finite differences, 30 mean free paths) and
-    its gather towards inside cosine ``t_o``, by quadrature (sigma_t' = 1)."""
+def _collided_fluence_1d(a: float, t: float, C: float, n: int) -> tuple[NDArray, NDArray]:
+    """The 1-D first-collision diffusion below a half-space lit at refracted cosine ``t``
+    (sigma_t' = 1 /mm, albedo ``a``, Robin constant ``C``): finite differences over 30 mean free
+    paths of ``n`` nodes; (depths, fluence)."""
     L = 30.0
     z = np.linspace(0.0, L, n)
     h = z[1] - z[0]
-    k, m, ss = 1.0 / 3.0, 1.0 - a, a
+    k, m = 1.0 / 3.0, 1.0 - a
     V = np.full(n, h)
     V[0] = V[-1] = h / 2
     main = np.full(n, 2 * k / h)
@@ -83,7 +85,15 @@ def _collided_gather_numerically(a: float, t: float, t_o: float, C: float, n: in
     main += m * V
     main[0] += 1.0 / (2.0 * C)
     A = sp.diags([np.full(n - 1, -k / h), main, np.full(n - 1, -k / h)], [-1, 0, 1]).tocsc()
-    phi = spl.spsolve(A, V * ss * np.exp(-z / t) / t)
+    return z, spl.spsolve(A, V * a * np.exp(-z / t) / t)
+
+
+def _collided_gather_numerically(a: float, t: float, t_o: float, C: float, n: int = 20000) -> float:
+    """The 1-D collided diffusion below a half-space (:func:`_collided_fluence_1d`) and its gather
+    towards inside cosine ``t_o``, by quadrature (sigma_t' = 1)."""
+    z, phi = _collided_fluence_1d(a, t, C, n)
+    h = z[1] - z[0]
+    ss = a
     w = np.exp(-z / t_o) * h
     w[0] *= 0.5
     w[-1] *= 0.5
@@ -251,18 +261,8 @@ def test_collided_halfspace_against_the_numerical_solution():
     the finite-difference solution of the same 1-D problem."""
     from glsldiff.physics.split import collided_halfspace
     for a, t, C in [(0.99, 1.0, 1.2), (0.6, 0.5, 2.3), (0.3, 0.8, 1.0)]:
-        L, n = 30.0, 30000
-        z = np.linspace(0.0, L, n)
-        h = z[1] - z[0]
+        phi0 = _collided_fluence_1d(a, t, C, 30000)[1][0]
         k, m = 1.0 / 3.0, 1.0 - a
-        V = np.full(n, h)
-        V[0] = V[-1] = h / 2
-        main = np.full(n, 2 * k / h)
-        main[0] = main[-1] = k / h
-        main += m * V
-        main[0] += 1.0 / (2.0 * C)
-        A = sp.diags([np.full(n - 1, -k / h), main, np.full(n - 1, -k / h)], [-1, 0, 1]).tocsc()
-        phi0 = spl.spsolve(A, V * a * np.exp(-z / t) / t)[0]
         ours = collided_halfspace([(np.ones((1, 3)), np.array([t]))], np.full((1, 3), k), np.full((1, 3), m), C)
         assert float(ours[0, 0]) == pytest.approx(phi0, rel=2e-3)
 

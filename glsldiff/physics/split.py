@@ -58,8 +58,8 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.physics.adding_doubling import HalfspaceTables
 from glsldiff.physics.optics import fresnel_transmittance
 
-__all__ = ["ExternalBeam", "collided_halfspace", "combine", "diffusion_weight", "external_beams", "gather_share", "gathered_halfspace", "local_multiple", "local_single",
-           "marshak_halfspace", "outside_cosine"]
+__all__ = ["ExternalBeam", "collided_halfspace", "combine", "diffusion_weight", "external_beams", "gather_share",
+           "gathered_halfspace", "local_multiple", "local_single", "marshak_halfspace", "outside_cosine"]
 
 Array = NDArray[np.float64]
 #: A beam at the surface: external irradiance ``(N, 3)`` and outside cosine ``(N,)``.

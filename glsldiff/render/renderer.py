@@ -386,13 +386,18 @@ class Renderer:
             o = replace(o, model="diffusion", source="surface" if o.source == "auto" else o.source)
         fem = bool(self._geo.get("fem"))
         if o.source == "auto":
-            pg = self._geo["pg"]
-            h = pg.h if fem else pg.lattice.h
-            resolved = fem and h * float(np.max(1.0 / (3.0 * self._mat["kappa"]))) <= GATHER_MAX_H_SIGMA
+            resolved = fem and self._h_sigma_t() <= GATHER_MAX_H_SIGMA
             o = replace(o, source="volume" if o.split and resolved else "surface")
         if o.single_scattering == "auto":      # interactive frames (the viewer) take the split's closed form
             o = replace(o, single_scattering=o.split and self.frame_sweeps is None)
         return replace(scene, options=o)
+
+    def _h_sigma_t(self) -> float:
+        """The grid's node spacing (mm) times the largest sigma_t' (mm^-1) of the node material:
+        below :data:`GATHER_MAX_H_SIGMA` the grid resolves the transport mean free path."""
+        pg = self._geo["pg"]
+        h = pg.h if self._geo["fem"] else pg.lattice.h
+        return h * float(np.max(1.0 / (3.0 * self._mat["kappa"])))
 
     def _pass1(self, scene: Scene) -> None:
         pg = self._geo["pg"]
@@ -832,8 +837,7 @@ class Renderer:
         albedo = np.clip(1.0 - 3.0 * kappa * mu, 0.0, 1.0)
         out = regime_warnings("split" if scene.options.split else "diffusion", albedo, scene.material.eta,
                               T * st_min)
-        h = pg.h if geo["fem"] else pg.lattice.h
-        hs = h * float(np.max(1.0 / (3.0 * self._mat["kappa"])))
+        hs = self._h_sigma_t()
         if scene.options.split and scene.options.source == "volume" and hs > GATHER_MAX_H_SIGMA:
             out.append(f"source = \"volume\" on a grid coarser than the mean free path (node spacing x sigma_t' up "
                        f"to {hs:.2g}, resolved below {GATHER_MAX_H_SIGMA:g}): the gathered far field reads low there "
@@ -860,15 +864,16 @@ class Renderer:
             full[self._fem_active] = self._phi_active
             geo["lattice"].set_values(full)
             fluence = geo["lattice"]
+            light = self._keys.get("light")
+            if getattr(self, "_lit_distance", (None,))[0] != light:   # mm, once per lighting, not per camera
+                Et = self._E_t.sum(axis=1)
+                lit = Et > LIT_SHARE * max(float(Et.max()), 1e-300)
+                d = (cKDTree(pg.boundary_positions[lit]).query(pg.boundary_positions)[0] if lit.any()
+                     else np.full(len(Et), 1e30))
+                self._lit_distance = (light, d)
         kappa, mu = self._boundary_material()
-        thick = None
-        if far == "gather":            # each surface node's distance to where light enters, mean free paths
-            pg = geo["pg"]
-            Et = self._E_t.sum(axis=1)
-            lit = Et > LIT_SHARE * max(float(Et.max()), 1e-300)
-            d = (cKDTree(pg.boundary_positions[lit]).query(pg.boundary_positions)[0] if lit.any()
-                 else np.full(len(Et), 1e30))
-            thick = d[:, None] / (3.0 * kappa)
+        # gather: each surface node's distance to where light enters, in mean free paths
+        thick = self._lit_distance[1][:, None] / (3.0 * kappa) if far == "gather" else None
         inp = SplitInputs(far=far, march=bool(o.single_scattering) or far == "gather", eta=scene.material.eta,
                           C=self._boundary_C(scene), interp=geo["interp"], vertices=geo["vertices"],
                           normals=geo["normals"], beams=self._beams, kappa=kappa, mu=mu, phi=self._phi_b,
