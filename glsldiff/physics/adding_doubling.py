@@ -28,9 +28,13 @@ reflection ``R`` and the transmission ``T`` (the same from either side for a hom
   (``R_inf``'s first order, ``R1_ij = (a w_i / 2) mu_i / (mu_i + mu_j)``, with no internal
   reflection: what :mod:`glsldiff.render.single` computes) is taken out, so
   :func:`HalfspaceTables.multiple` is the light scattered two or more times.
-* The escape distribution (:meth:`HalfspaceTables.escape`): the shape of the radiance a deep,
-  diffusive field sends out through the boundary, per unit flux leaving: what crosses a slab
-  of ``ESCAPE_DEPTH`` mean free paths lit from below, its higher angular modes decayed.
+* The escape distribution (:meth:`HalfspaceTables.escape`): the shape of the radiance a
+  diffusive field sends out through the boundary, per unit flux leaving, for light that entered
+  ``d`` mean free paths away: the scattered light crossing a slab of depth ``d`` (both faces
+  smooth boundaries) lit diffusely from outside the far face, for ``d`` in
+  :data:`ESCAPE_DEPTHS`. Its higher angular modes decay with ``d``: at ``d = 2`` the exit is
+  more forward than a deep field's (normal exit 9 % brighter per unit flux at albedo 0.99, eta
+  1.3); from ``d = 16`` on it is the deep field's.
 
 Radiance leaving at ``nu_i`` per unit irradiance arriving at ``nu_j`` is the flux matrix over
 ``2 pi nu_i w_i``. Tables are on ``A_GRID`` albedos uniform in ``u = sqrt(1 - a)`` (as
@@ -49,7 +53,8 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.core.errors import InputError
 from glsldiff.physics.optics import fresnel_transmittance
 
-__all__ = ["HalfspaceTables", "halfspace_tables", "slab_operators", "slab_transport", "N_OUT", "A_GRID"]
+__all__ = ["HalfspaceTables", "halfspace_tables", "slab_operators", "slab_transport", "N_OUT", "A_GRID",
+           "ESCAPE_DEPTHS"]
 
 #: Outside cosine nodes (Gauss-Legendre on (0, 1)).
 N_OUT = 24
@@ -60,8 +65,9 @@ A_GRID = 33
 #: Optical depth of the thin starting layer and of the half-space (doublings from one to the other).
 _DTAU0 = 2.0 ** -14
 _DEPTH = 2.0 ** 22
-#: Depth (mean free paths) of the slab whose transmission gives the escape distribution.
-ESCAPE_DEPTH = 16.0
+#: Depths (mean free paths) of the slabs whose transmission gives the escape distribution; the
+#: last one stands for every larger depth (the deep field's shape).
+ESCAPE_DEPTHS = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0)
 
 
 @dataclass(frozen=True)
@@ -142,6 +148,34 @@ def slab_operators(albedo: float, depths: ArrayLike, eta: float = 1.0) -> dict[f
     return out
 
 
+def _boundaries(ang: _Angles) -> tuple[NDArray, NDArray]:
+    """The smooth boundary: ``Tb`` (inside bins x outside nodes) the transmission of outside
+    flux into the medium (and, transposed, out of it), ``Rb`` (inside bins) the internal
+    reflection."""
+    n_in, n_out = len(ang.mu), len(ang.nu)
+    Tb = np.zeros((n_in, n_out))
+    Tb[ang.n_tir + np.arange(n_out), np.arange(n_out)] = ang.ft
+    Rb = np.ones(n_in)
+    Rb[ang.n_tir:] = 1.0 - ang.ft
+    return Tb, Rb
+
+
+def _bounded_slab(ang: _Angles, Rl: NDArray, Tl: NDArray, depth: float) -> tuple[NDArray, NDArray]:
+    """Flux matrices (outside node -> outside node) of a layer ``(Rl, Tl)`` of ``depth`` mean free
+    paths between two smooth boundaries: the scattered light leaving the lit face (``R``) and
+    the far face (``T``, the unscattered beam and its internal reflections taken out)."""
+    Tb, Rb = _boundaries(ang)
+    I = np.eye(len(ang.mu))
+    # the slab with the far boundary below it, for light from above (inside): reflection, transmission out
+    R_sb = Rl + Tl @ np.linalg.solve(I - Rb[:, None] * Rl, Rb[:, None] * Tl)
+    T_sb = Tb.T @ np.linalg.solve(I - Rl * Rb[None, :], Tl)
+    down = np.linalg.solve(I - Rb[:, None] * R_sb, Tb)                # down-going below the top boundary
+    straight = np.zeros(len(ang.mu))
+    straight[ang.n_tir:] = np.exp(-float(depth) / ang.mu[ang.n_tir:])
+    beam = np.linalg.solve(I - np.diag(Rb * straight) @ np.diag(Rb * straight), np.diag(straight) @ Tb)
+    return Tb.T @ (R_sb @ down), T_sb @ down - Tb.T @ beam
+
+
 def slab_transport(albedo: float, depth: float, eta: float = 1.0) -> tuple[NDArray, NDArray, NDArray]:
     """A homogeneous slab of ``depth`` mean free paths between two smooth boundaries of relative
     index ``eta`` (outside on both faces): ``(nu, R, T)``, the outside nodes and the scattered
@@ -149,24 +183,7 @@ def slab_transport(albedo: float, depth: float, eta: float = 1.0) -> tuple[NDArr
     the unscattered beam) at ``nu[i]`` per unit irradiance arriving at ``nu[j]``. The exact 1-D
     oracle of thin slabs (the specular surface reflection is left out)."""
     ang = _angles(eta)
-    n_in, n_out = len(ang.mu), len(ang.nu)
-    Tb = np.zeros((n_in, n_out))
-    Tb[ang.n_tir + np.arange(n_out), np.arange(n_out)] = ang.ft
-    Rb = np.ones(n_in)
-    Rb[ang.n_tir:] = 1.0 - ang.ft
-    Rl, Tl = slab_operators(albedo, [depth], eta)[float(depth)]
-    I = np.eye(n_in)
-    # the slab with the far boundary below it, for light from above (inside): reflection, transmission out
-    R_sb = Rl + Tl @ np.linalg.solve(I - Rb[:, None] * Rl, Rb[:, None] * Tl)
-    T_sb = Tb.T @ np.linalg.solve(I - Rl * Rb[None, :], Tl)
-    down = np.linalg.solve(I - Rb[:, None] * R_sb, Tb)                # down-going below the top boundary
-    R = Tb.T @ (R_sb @ down)
-    T = T_sb @ down
-    straight = np.zeros(n_in)
-    straight[ang.n_tir:] = np.exp(-float(depth) / ang.mu[ang.n_tir:])
-    # the unscattered beam and its internal reflections, taken out of T
-    beam = np.linalg.solve(I - np.diag(Rb * straight) @ np.diag(Rb * straight), np.diag(straight) @ Tb)
-    T = T - Tb.T @ beam
+    R, T = _bounded_slab(ang, *slab_operators(albedo, [depth], eta)[float(depth)], depth)
     to_radiance = 1.0 / (2.0 * np.pi * ang.nu * ang.w_out)
     return ang.nu, to_radiance[:, None] * R, to_radiance[:, None] * T
 
@@ -175,11 +192,11 @@ def slab_transport(albedo: float, depth: float, eta: float = 1.0) -> tuple[NDArr
 class HalfspaceTables:
     """Half-space tables for one ``eta`` (module docstring): ``total[k, i, j]`` and
     ``single[k, i, j]`` radiance (sr^-1) leaving at outside cosine ``nu[i]`` per unit irradiance
-    arriving at ``nu[j]`` for albedo ``a(u[k])``; ``escape_table[k, i]`` (sr^-1) the far field's
+    arriving at ``nu[j]`` for albedo ``a(u[k])``; ``escape_table`` (sr^-1) the far field's
     radiance per unit emergent flux. ``nu`` is the quadrature nodes with 0 and 1 added (values
     there extended linearly through the two nearest nodes); every table holds its values over
     ``F_t(eta, nu)`` of each cosine (smooth where ``F_t`` falls to 0 at grazing angles; the
-    lookups multiply it back)."""
+    lookups multiply it back). ``escape_table[k, d, i]`` per depth ``ESCAPE_DEPTHS[d]``."""
 
     eta: float
     u: NDArray[np.float64]
@@ -228,9 +245,25 @@ class HalfspaceTables:
         """The once-scattered part (sr^-1), as :meth:`multiple`."""
         return self._lookup(self.single, albedo, nu_out, nu_in)
 
-    def escape(self, albedo: ArrayLike, nu_out: ArrayLike) -> NDArray[np.float64]:
-        """The far field's radiance (sr^-1) leaving at ``nu_out`` per unit flux leaving."""
-        return self._lookup(self.escape_table, albedo, nu_out)
+    def escape(self, albedo: ArrayLike, nu_out: ArrayLike, depth_mfp: ArrayLike | None = None) -> NDArray[np.float64]:
+        """The far field's radiance (sr^-1) leaving at ``nu_out`` per unit flux leaving, for light
+        that entered ``depth_mfp`` transport mean free paths away (module docstring; clamped to
+        :data:`ESCAPE_DEPTHS`, linear between them; None: a deep field), broadcast."""
+        if depth_mfp is None:
+            return self._lookup(self.escape_table[:, -1], albedo, nu_out)
+        a, x, d = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (albedo, nu_out, depth_mfp)))
+        fu = np.sqrt(1.0 - np.clip(a, 0.0, 1.0)) * (len(self.u) - 1)
+        k = np.clip(np.floor(fu).astype(np.int64), 0, len(self.u) - 2)
+        p = np.interp(d, ESCAPE_DEPTHS, np.arange(len(ESCAPE_DEPTHS), dtype=np.float64))
+        j = np.clip(np.floor(p).astype(np.int64), 0, len(ESCAPE_DEPTHS) - 2)
+        x = np.clip(x, 0.0, 1.0)
+        i = np.clip(np.searchsorted(self.nu, x) - 1, 0, len(self.nu) - 2)
+        weights = (fu - k, p - j, (x - self.nu[i]) / (self.nu[i + 1] - self.nu[i]))
+        out = np.zeros(a.shape)
+        for corner in np.ndindex(2, 2, 2):       # trilinear in sqrt(1 - albedo), depth and cosine
+            w = np.prod([f if c else 1.0 - f for c, f in zip(corner, weights)], axis=0)
+            out += w * self.escape_table[k + corner[0], j + corner[1], i + corner[2]]
+        return out * np.asarray(fresnel_transmittance(self.eta, x))
 
 
 def _linear_ends(table: NDArray[np.float64], nu: NDArray[np.float64], dims: int) -> NDArray[np.float64]:
@@ -255,31 +288,28 @@ def halfspace_tables(eta: float) -> HalfspaceTables:
         raise InputError(f"eta = {eta!r}: the half-space tables need a relative index >= 1")
     ang = _angles(eta)
     n_in, n_out = len(ang.mu), len(ang.nu)
-    Tb = np.zeros((n_in, n_out))
-    Tb[ang.n_tir + np.arange(n_out), np.arange(n_out)] = ang.ft          # outside -> inside bins
-    Rb = np.ones(n_in)
-    Rb[ang.n_tir:] = 1.0 - ang.ft                                        # internal reflection
+    Tb, Rb = _boundaries(ang)                                            # outside -> inside bins, internal reflection
     to_radiance = 1.0 / (2.0 * np.pi * ang.nu * ang.w_out)              # outside flux -> radiance
+    diffuse = 2.0 * ang.nu * ang.w_out                                   # unit Lambertian irradiance per node
     u = np.linspace(0.0, 1.0, A_GRID)
     total = np.zeros((A_GRID, n_out, n_out))
     single = np.zeros_like(total)
-    escape = np.zeros((A_GRID, n_out))
+    escape = np.zeros((A_GRID, len(ESCAPE_DEPTHS), n_out))
     I = np.eye(n_in)
     mu, w = ang.mu, ang.w
     for k, uk in enumerate(u):
         a = 1.0 - uk * uk
-        ops = slab_operators(min(a, 1.0 - 1e-9), [ESCAPE_DEPTH, _DEPTH], eta)
+        ops = slab_operators(min(a, 1.0 - 1e-9), [*ESCAPE_DEPTHS, _DEPTH], eta)
         R_inf = ops[_DEPTH][0]
         R1 = 0.5 * a * w[:, None] * mu[:, None] / (mu[:, None] + mu[None, :])
         up = np.linalg.solve(I - R_inf * Rb[None, :], R_inf @ Tb)
         total[k] = to_radiance[:, None] * (Tb.T @ up)
         single[k] = to_radiance[:, None] * (Tb.T @ R1 @ Tb)
-        R_L, T_L = ops[ESCAPE_DEPTH]
-        rising = np.linalg.solve(I - R_L * Rb[None, :], T_L @ (0.5 * w))   # isotropic flux from below
-        flux = Tb.T @ rising
-        total_flux = flux.sum()
-        escape[k] = to_radiance * flux / total_flux if total_flux > 0 else to_radiance / n_out
+        for d, depth in enumerate(ESCAPE_DEPTHS):                       # the far face of a diffusely lit slab
+            flux = _bounded_slab(ang, *ops[depth], depth)[1] @ diffuse
+            total_flux = flux.sum()
+            escape[k, d] = to_radiance * flux / total_flux if total_flux > 0 else to_radiance / n_out
     f2 = ang.ft[:, None] * ang.ft[None, :]
     nu = np.concatenate([[0.0], ang.nu, [1.0]])
     return HalfspaceTables(eta, u, nu, _linear_ends(total / f2, ang.nu, 2), _linear_ends(single / f2, ang.nu, 2),
-                           _linear_ends(escape / ang.ft[None, :], ang.nu, 1))
+                           np.moveaxis(_linear_ends(np.moveaxis(escape / ang.ft, 2, 1), ang.nu, 1), 1, 2))

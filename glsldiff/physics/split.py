@@ -203,14 +203,15 @@ def gather_share(distance_mfp: ArrayLike | None, shape: tuple[int, ...]) -> Arra
     scattered once more along the view ray) is exact where the fluence is; but within a mean free
     path of the exit face the diffusion's fluence has the wrong shape (the Milne boundary layer),
     and the gather weights that layer most; where the light comes from far away, the deep
-    field's exitance (the Robin condition's flux, spread as a deep field leaves a half-space)
-    uses only the field's asymptotic form. Measured against Monte Carlo on 20 x 20 mm slabs
-    back-lit by a touching 5 mm patch (eta 1.3, albedo 0.99; relative L2 / power / peak): 2 mean
-    free paths thick, gather 0.037 / 0.94 / 1.00 against the deep field's 0.092 / 1.09 / 1.08
-    (it also counts the once-scattered light the march adds); 8 thick, gather 0.089 / 1.06 / 1.11
-    (too peaked), deep field 0.049 / 1.02 / 0.96. On a front-lit sphere (lit points and those
-    near its terminator: near the light) the gather is the better one: relative RMSE 0.082
-    against 0.12."""
+    field's exitance (the Robin condition's flux, spread over the exit angles of light that
+    crossed the point's distance to the lit surface, :meth:`HalfspaceTables.escape`) uses only
+    the field's asymptotic form. Measured against Monte Carlo on 20 x 20 mm slabs back-lit by a
+    touching 5 mm patch (eta 1.3, albedo 0.99; relative L2 / power / peak): 2 mean free paths
+    thick, gather 0.037 / 0.94 / 1.00, the deep field 0.040 / 1.03 / 1.02 (0.092 / 1.09 / 1.08
+    with a deep field's exit angles at every distance); 4 thick, gather 0.084 / 1.02 / 1.09, deep
+    field 0.053 / 1.03 / 0.97; 8 thick, gather 0.089 / 1.06 / 1.11 (too peaked), deep field
+    0.049 / 1.02 / 0.96. On a front-lit sphere (lit points and those near its terminator: near
+    the light) the gather is the better one: relative RMSE 0.082 against 0.12."""
     if distance_mfp is None:
         return np.ones(shape)
     lo, hi = GATHER_DISTANCE

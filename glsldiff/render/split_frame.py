@@ -121,16 +121,17 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
         t_o = refracted_cosine(eta, nu_o)
         f_o = np.asarray(fresnel_transmittance(eta, nu_o)) / (eta * eta) * facing
         X_g, X_g_loc = gathered, gathered_halfspace(beams_t, kv, mv, t_o, f_o, eta, inp.C)
+        dist = (np.asarray(inp.interp @ inp.source_distance_mfp) if inp.source_distance_mfp is not None
+                else None)
         # the deep field's exitance of the same collided fluence: the Robin condition's flux phi / (2C)
-        # over the exit angles as a deep field leaves (better where the light comes from several mean
-        # free paths away: the unlit face of a thick slab lit from behind)
-        esc = tables.escape(albedo, nu_o[:, None]) / (2.0 * inp.C)
+        # over the exit angles of light that entered that far away (better where the light comes from
+        # several mean free paths away: the unlit face of a thick slab lit from behind)
+        esc = tables.escape(albedo, nu_o[:, None], dist) / (2.0 * inp.C)
         # (it counts the once-scattered light too, which the march has: taken out, never below 0)
         X_p = np.maximum(np.asarray(inp.interp @ np.maximum(inp.phi, 0.0)) * esc - single, 0.0)
         X_p_loc = np.maximum(collided_halfspace(beams_t, kv, mv, inp.C) * esc - local_single(eta, albedo, ext, nu_o),
                              0.0)
-        g = gather_share(np.asarray(inp.interp @ inp.source_distance_mfp) if inp.source_distance_mfp is not None
-                         else None, X_g.shape)
+        g = gather_share(dist, X_g.shape)
         X, X_loc = g * X_g + (1.0 - g) * X_p, g * X_g_loc + (1.0 - g) * X_p_loc
         c_far: Any = 1.0
     else:
