@@ -125,6 +125,9 @@ PROBES = [
     ("kappa ~ 3e5 mm (sigma_s' = 1e-6/mm)", lambda d: ["render", scene(d, sp=1e-6), "-o", "r.exr"]),
     ("irradiance 1e38", lambda d: ["render", scene(d, e=1e38), "-o", "r.exr"]),
     ("zero source", lambda d: ["render", scene(d, e=0.0), "-o", "r.exr"]),
+    # issue 44: tracebacks
+    ("render -o r.exr, r.png a folder", lambda d: (d.joinpath("r.png").mkdir(), ["render", scene(d), "-o", "r.exr"])[1]),
+    ("fit --max-seconds 1e-9", lambda d: ["fit", synth(d, "8", "8", "4", "2"), "-o", "f.npz", "--max-seconds", "1e-9"]),
     # first run
     ("bare glsldiff", lambda d: []),
     ("validate without Mitsuba (if absent)", lambda d: ["validate", "--out", "v"]),

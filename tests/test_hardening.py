@@ -100,6 +100,19 @@ def test_exr_and_png_are_a_pair_with_umask_permissions(tmp_path, monkeypatch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.exr", "a.png"]
 
 
+def test_png_beside_the_exr_that_is_a_folder(tmp_path, capsys):
+    """``render -o r.exr`` where ``r.png`` is a folder: refused before any work (one line, exit
+    2, nothing written); and the pair writer itself replaces nothing when one destination is a
+    folder (no EXR without its PNG)."""
+    (tmp_path / "r.png").mkdir()
+    _one_error_line(capsys, main(["render", "-o", str(tmp_path / "r.exr")]), "r.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.png"]
+    img = np.ones((4, 4, 3), dtype=np.float32)
+    with pytest.raises(InputError, match="is a folder; nothing was written"):
+        io.write_exr_png(tmp_path / "r.exr", img, io.tonemap(img, 1.0))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.png"] and not any((tmp_path / "r.png").iterdir())
+
+
 def test_bare_command_prints_help(capsys):
     assert main([]) == 0
     out = capsys.readouterr().out
@@ -129,6 +142,19 @@ def test_interrupted_fit_keeps_the_best_material(tmp_path, capsys):
     assert np.all(np.isfinite(result.kappa)) and np.all(result.kappa > 0)
     statuses = [f.trace.status for f in result.channels]
     assert "interrupted" in statuses, statuses
+
+
+def test_fit_with_a_time_budget_spent_at_once_keeps_its_start(tmp_path, capsys):
+    """``fit --max-seconds 1e-9``: the budget is spent before the first evaluation; the starting
+    material is evaluated, kept and written, not a traceback ("min() arg is an empty sequence")."""
+    meas = _measurements(tmp_path, capsys)
+    out = tmp_path / "mat.npz"
+    code = main(["fit", str(meas), "-o", str(out), "--max-seconds", "1e-9"])
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err and code in (0, 1), captured.err
+    assert out.is_file()
+    with np.load(out) as m:
+        assert np.all(np.isfinite(m["kappa"])) and np.all(m["kappa"] > 0)
 
 
 def test_fit_command_saves_on_ctrl_c(tmp_path, capsys, monkeypatch):

@@ -55,6 +55,10 @@ def atomic_paths(paths: Sequence[str | os.PathLike], suffixes: Sequence[str] | N
             os.close(fd)
             tmps.append(tmp)
         yield [Path(t) for t in tmps]
+        for dest in dests:           # all or none: a destination that is a folder fails before any rename
+            if dest.is_dir():
+                raise InputError(f"output {str(dest)!r} is a folder; nothing was written (remove it or choose "
+                                 "another name)")
         mode = 0o666 & ~_umask()
         for tmp in tmps:
             os.chmod(tmp, mode)
@@ -230,25 +234,30 @@ def write_csv(path: str | os.PathLike, rows: Sequence[Mapping[str, object]]) -> 
     return Path(path)
 
 
-def check_output(path: str | os.PathLike, suffixes: Sequence[str] = (), note: str = "") -> Path:
+def check_output(path: str | os.PathLike, suffixes: Sequence[str] = (), note: str = "",
+                 beside: Sequence[str] = ()) -> Path:
     """Refuse an output path that cannot be written, before any work is done.
 
     The folder must exist, the path must not be a folder, an existing file must be writable,
     and when ``suffixes`` are given the name must end in one of them (``note`` says why, e.g.
-    what is written beside it). The check creates and removes a file in the folder, so a
-    folder that refuses new files (read-only mounts, /proc) fails here, not after the work.
+    what is written beside it). ``beside``: suffixes of the files written next to it under the
+    same name (``(".png",)`` for an EXR's PNG), checked the same way. The check creates and
+    removes a file in the folder, so a folder that refuses new files (read-only mounts, /proc)
+    fails here, not after the work.
     """
     p = Path(path)
     if suffixes and p.suffix.lower() not in suffixes:
         why = f" ({note})" if note else ""
         raise InputError(f"output {str(p)!r}: must end in {' or '.join(suffixes)}{why}")
     parent = p.parent if str(p.parent) else Path(".")
-    if p.is_dir():
-        raise InputError(f"output {str(p)!r} is a folder; give a file name")
+    for q in dict.fromkeys([p, *(p.with_suffix(b) for b in beside)]):
+        also = "" if q == p else f" (written beside {str(p)!r})"
+        if q.is_dir():
+            raise InputError(f"output {str(q)!r}{also} is a folder; give another file name")
+        if q.exists() and not os.access(q, os.W_OK):
+            raise InputError(f"output {str(q)!r}{also}: the existing file is not writable")
     if not parent.is_dir():
         raise InputError(f"output {str(p)!r}: folder {str(parent)!r} does not exist; create it first")
-    if p.exists() and not os.access(p, os.W_OK):
-        raise InputError(f"output {str(p)!r}: the existing file is not writable")
     try:
         fd, probe = tempfile.mkstemp(prefix=".glsldiff-write-test-", dir=parent)
         os.close(fd)

@@ -123,7 +123,8 @@ class ScaledProblem:
 
     def _evaluate(self, z: Array, grad: Array | None) -> float:
         tr = self.trace
-        if len(tr.records) >= self.max_evals or time.perf_counter() - self._t0 > self.max_seconds:
+        # the starting point is always evaluated, so a spent budget still has a best point to keep
+        if tr.records and (len(tr.records) >= self.max_evals or time.perf_counter() - self._t0 > self.max_seconds):
             tr.status = "budget spent"
             if self.stop is None:
                 raise Budget

@@ -14,7 +14,7 @@ from glsldiff.render.scene import Scene
 
 def check_output(path: str | os.PathLike) -> Path:
     """Refuse an output path that cannot be written, before any work (see :func:`glsldiff.core.io.check_output`)."""
-    return io.check_output(path, (".exr",), "a tone-mapped .png is written beside it")
+    return io.check_output(path, (".exr",), "a tone-mapped .png is written beside it", beside=(".png",))
 
 
 def auto_exposure(img: NDArray) -> float:
