@@ -128,6 +128,24 @@ PROBES = [
     # issue 44: tracebacks
     ("render -o r.exr, r.png a folder", lambda d: (d.joinpath("r.png").mkdir(), ["render", scene(d), "-o", "r.exr"])[1]),
     ("fit --max-seconds 1e-9", lambda d: ["fit", synth(d, "8", "8", "4", "2"), "-o", "f.npz", "--max-seconds", "1e-9"]),
+    # issue 44: misleading or silent
+    ("demo --size 3 3 3", lambda d: ["demo", "--size", "3", "3", "3"]),
+    ("tet --light 0 0 0", lambda d: ["tet", "sphere", "--light", "0", "0", "0"]),
+    ("scene path is a folder", lambda d: (d.joinpath("sc").mkdir(), ["render", "sc", "-o", "r.exr"])[1]),
+    ("preset plus sigma_s_prime", lambda d: ["render", scene(d, extra='preset = "marble"'), "-o", "r.exr"]),
+    ("light inside the object", lambda d: (d.joinpath("s.toml").write_text(SCENE.format(
+        size=20, n=4, sp=1.0, e=1.0, extra="").replace('type = "directional"\ndirection = [0, 0, 1]\nirradiance = [1.0, 1.0, 1.0]',
+                                                     'type = "point"\nposition = [0, 0, 0]')), ["render", "s.toml", "-o", "r.exr"])[1]),
+    ("point light with a direction", lambda d: (d.joinpath("s.toml").write_text(SCENE.format(
+        size=20, n=4, sp=1.0, e=1.0, extra="").replace('type = "directional"', 'type = "point"\nposition = [0, 0, 50]')),
+        ["render", "s.toml", "-o", "r.exr"])[1]),
+    ("OBJ face names vertex 99 of 4", lambda d: (d.joinpath("t.obj").write_text(
+        "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 99\n"), ["tet", "t.obj"])[1]),
+    ("block volume h_mm = 1e6", lambda d: (np.savez(d / "v.npz", kappa=np.full((2, 2, 2, 3), 0.3),
+        mu=np.full((2, 2, 2, 3), 0.01), h_mm=1e6), ["render", scene(d, extra='volume = "v.npz"'), "-o", "r.exr"])[1]),
+    ("edit --set mu -1", lambda d: (synth(d, "8", "8", "4", "2"), ["edit", str(d / "m_truth.npz"), "--set", "mu", "-1",
+                                                                  "-o", "e.npz"])[1]),
+    ("cut --stroke -500,-500", lambda d: ["cut", "--stroke", "-500,-500", "-o", "c.exr"]),
     # first run
     ("bare glsldiff", lambda d: []),
     ("validate without Mitsuba (if absent)", lambda d: ["validate", "--out", "v"]),

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import sys
 from dataclasses import replace
 from typing import Any, Sequence
@@ -53,6 +54,10 @@ def _add_gl(p: argparse.ArgumentParser) -> None:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    regions = demo.DemoConfig.regions
+    if min(args.size[:2]) < regions:
+        raise InputError(f"--size: NX and NY must be >= {regions} (the back face is lit in {regions} x {regions} "
+                         f"regions), got {args.size[0]} {args.size[1]}")
     cfg = demo.DemoConfig(nx=args.size[0], ny=args.size[1], nz=args.size[2], h=args.h,
                           tol=args.tol, precision=args.precision, out=check_output_folder(args.out), seed=args.seed)
     rows = demo.run(cfg, progress=not args.quiet)
@@ -207,6 +212,10 @@ def cmd_polygrid(args: argparse.Namespace) -> int:
 
 
 def cmd_tet(args: argparse.Namespace) -> int:
+    light = np.asarray(args.light, dtype=np.float64)
+    if not (np.all(np.isfinite(light)) and np.linalg.norm(light) > 0):
+        raise InputError(f"--light {' '.join(f'{v:g}' for v in args.light)}: give a finite, non-zero direction "
+                         "towards the light (e.g. --light 0 0 1)")
     out = check_output_folder(args.out)   # before the meshing
     render_out = check_output(args.render) if args.render else None
     mesh = (sphere_mesh(args.size_mm / 2.0, subdivisions=5) if args.mesh == "sphere"
@@ -422,6 +431,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="remove the side n . x > D (mm, the scaled mesh's coordinates)")
     p.add_argument("--stroke", type=_stroke_point, nargs="+", metavar="U,V",
                    help="a stroke in output pixels (u right, v down) extruded along the view; removes its left")
+    # a point with a negative first coordinate ("-500,-500") is a value, not an option (argparse
+    # only knows plain negative numbers)
+    p._negative_number_matcher = re.compile(r"^-\d+$|^-\d*\.\d+$|^-?[\d.]+(e[-+]?\d+)?,")
     p.add_argument("--iterations", type=A.integer(0, 10_000), default=40,
                    help="relaxation iterations towards the cut (default %(default)s)")
     p.add_argument("--edge", type=A.positive, help="target tetrahedron edge, mm (default: the scene's, or size / 40)")
@@ -541,6 +553,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
         if getattr(args, "gl", None):
             os.environ["GLSLDIFF_GL"] = args.gl
+        env_gl = os.environ.get("GLSLDIFF_GL", "").strip().lower()
+        if env_gl and env_gl not in gl.BACKENDS:     # before any work, for every command (info included)
+            raise InputError(f"GLSLDIFF_GL={os.environ['GLSLDIFF_GL']!r} is not a GL backend: set it to "
+                             f"{', '.join(gl.BACKENDS)} or unset it")
         with created_folders_removed_on_failure():
             return args.func(args)
     except GlsldiffError as exc:   # one line, also where a library's text inside it spans several

@@ -308,13 +308,19 @@ def created_folders_removed_on_failure() -> Iterator[None]:
         _CREATED.clear()
 
 
+def not_a_file(path: str | os.PathLike) -> str:
+    """Why ``path`` is not a readable file, for an error message: "is a folder, not a file" or
+    "does not exist"."""
+    return "is a folder, not a file" if Path(path).is_dir() else "does not exist"
+
+
 def read_npz(path: str | os.PathLike, what: str, required: Sequence[str] = ()) -> dict[str, NDArray]:
     """All arrays of an ``.npz`` file (no pickled objects), read once; ``required`` names
     must be present. Every way a file can be bad (missing, empty, truncated, not a zip, a
     pickle, a missing array) is one :class:`InputError` naming ``what`` and the file."""
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"{what} {str(p)!r} does not exist")
+        raise InputError(f"{what} {str(p)!r} {not_a_file(p)}")
     with open(p, "rb") as f:
         magic = f.read(4)
     if not magic:

@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.checks import choice, real
 from glsldiff.core.errors import InputError
+from glsldiff.core.io import not_a_file
 from glsldiff.mesh.types import (Mesh, check_face_indices, n_directed_edges, signed_volume, unique_edges,
                                  vertex_labels)
 
@@ -90,7 +91,7 @@ def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: b
         path = Path(source)
         name = path.name
         if not path.is_file():
-            raise InputError(f"mesh file {str(path)!r} does not exist; pass an existing file "
+            raise InputError(f"mesh file {str(path)!r} {not_a_file(path)}; pass an existing file "
                              f"or one of the sample names {', '.join(SAMPLE_MESHES)}")
     _check_file_numbers(path)
     ms = _meshset()
@@ -204,6 +205,8 @@ def _check_file_numbers(path: Path) -> None:
     head = data[:4096]
     if (head[:3] == b"ply" and b"format ascii" not in head) or (head[:3] != b"ply" and b"\0" in head):
         return                                   # binary: nothing to scan as text
+    if path.suffix.lower() == ".obj":
+        _check_obj_faces(path, data)
     lower = data.lower()
     if b"nan" not in lower and b"inf" not in lower:
         return                                   # the usual case: no line can match (7 ms, not 89 ms)
@@ -211,6 +214,25 @@ def _check_file_numbers(path: Path) -> None:
         if _NON_FINITE.search(line) and not _COMMENT.match(line):
             raise InputError(f"mesh file {str(path)!r} line {number}: a NaN or infinite number "
                              f"({line.decode(errors='replace').strip()[:60]!r}); fix or remove that vertex")
+
+
+def _check_obj_faces(path: Path, data: bytes) -> None:
+    """Refuse an OBJ face that names a vertex the file does not have (pymeshlab drops such
+    faces without a word, leaving a hole): 1-based indices up to the vertex count, negative ones
+    counted back from the end."""
+    nv = len(re.findall(rb"(?m)^[ \t]*v[ \t]", data))
+    for number, line in enumerate(data.splitlines(), 1):
+        if not line.lstrip().startswith((b"f ", b"f\t")):
+            continue
+        try:
+            idx = [int(tok.split(b"/")[0]) for tok in line.split()[1:]]
+        except ValueError:
+            raise InputError(f"mesh file {str(path)!r} line {number}: a face with a non-integer vertex index "
+                             f"({line.decode(errors='replace').strip()[:60]!r})") from None
+        bad = [i for i in idx if i == 0 or i > nv or i < -nv]
+        if bad:
+            raise InputError(f"mesh file {str(path)!r} line {number}: face names vertex {bad[0]} but the file has "
+                             f"{nv} vertices (OBJ indices run 1..{nv}); fix or remove that face")
 
 
 def _check_finite(v: NDArray[np.float64], label: str) -> None:

@@ -97,12 +97,13 @@ class Edit:
             if np.size(self.value) in (1, 3) else None
         if v is None or not np.all(np.isfinite(v)):
             raise InputError(f"edit value must be 1 or 3 finite numbers, got {self.value!r}")
+        given = f"{v[0]:g}" if np.all(v == v[0]) else " ".join(f"{x:g}" for x in v)   # as the user wrote it
         if self.op == "set" and self.prop == "kappa" and np.any(v <= 0):
-            raise InputError(f"kappa must be set to a positive value (mm), got {tuple(v)}")
+            raise InputError(f"kappa must be set to a positive value (mm), got {given}")
         if self.op == "set" and self.prop == "mu" and np.any(v < 0):
-            raise InputError(f"mu must be set to a value >= 0 (mm^-1), got {tuple(v)}")
+            raise InputError(f"mu must be set to a value >= 0 (mm^-1), got {given}")
         if self.op == "multiply" and np.any(v < 0):
-            raise InputError(f"a multiply factor must be >= 0, got {tuple(v)}")
+            raise InputError(f"a multiply factor must be >= 0, got {given}")
         object.__setattr__(self, "value", tuple(float(x) for x in v))
         if not 0.0 <= self.strength <= 1.0:
             raise InputError(f"edit strength must be in [0, 1], got {self.strength!r}")

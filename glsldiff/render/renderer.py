@@ -414,9 +414,14 @@ class Renderer:
                              f"(source <= {Q_MAX:.0e}); scale the lights' irradiance or intensity down (the "
                              "image is linear in it)")
         if not q.any():
+            placed = [(k, light.position) for k, light in enumerate(scene.lights) if hasattr(light, "position")]
+            inside = [(k, p) for (k, p), i in zip(placed, contains(self._geo["mesh"], [p for _, p in placed])
+                                                  if placed else []) if i]
+            where = "".join(f"; light {k + 1} at ({', '.join(f'{c:g}' for c in p)}) mm is inside the object: "
+                            "move its position outside the mesh" for k, p in inside)
+            hint = "; check the lights' directions, positions, cones and intensities"
             raise InputError(f"{scene.source}: [[lights]]: no light reaches the object (the source is 0 at "
-                             "every boundary node); check the lights' directions, positions, cones and "
-                             "intensities")
+                             f"every boundary node){where or hint}")
         self._q = self._q_marshak = np.zeros_like(q) if volume else q
         self._beams = beams or []
         self._load = None

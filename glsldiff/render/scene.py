@@ -145,7 +145,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.core.io import read_image, read_npz
+from glsldiff.core.io import not_a_file, read_image, read_npz
 from glsldiff.grids.fem_grid import FEM_BYTES_PER_NODE, FEM_MAX_NODES
 from glsldiff.grids.polygrid import node_budget_problem
 from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES
@@ -181,6 +181,15 @@ LIGHT_TYPES = tuple(KINDS)
 #: Keys of a ``[[lights]]`` table (module docstring); which ones each kind reads: :func:`_light`.
 LIGHT_KEYS = ("type", "direction", "position", "irradiance", "intensity", "cone_deg", "falloff_deg", "path",
               "scale", "shadows", "image", "up", "fov_deg", "size", "radiance", "samples")
+#: The keys each kind of light reads (the others are errors, not silently ignored).
+LIGHT_READS = {
+    "directional": ("type", "direction", "irradiance", "shadows"),
+    "point": ("type", "position", "intensity", "shadows"),
+    "spot": ("type", "position", "direction", "intensity", "cone_deg", "falloff_deg", "shadows"),
+    "projector": ("type", "position", "direction", "image", "intensity", "up", "fov_deg", "shadows"),
+    "area": ("type", "position", "direction", "size", "radiance", "up", "samples", "shadows"),
+    "environment": ("type", "path", "scale"),
+}
 SCHEMES = ("single", "hierarchical", "multigrid")
 #: Where pass 3 takes the outward flux of the exitant bracket from (``[options].flux``).
 #: smoothed: the Robin condition's flux with the bracket's q and phi smoothed along the surface over
@@ -434,10 +443,10 @@ def _material(t: _Table, scene_dir: Path) -> MaterialSpec:
         t.fail("procedural", f"give either a procedural volume or a {kinds[-1]} file, not both")
     if len(set(kinds) - {"sigma_a"}) > 1:
         t.fail("nodes", "give either a block volume or a node material file, not both")
+    if t.has("preset") and (t.has("sigma_a") or t.has("sigma_s_prime")):
+        t.fail("preset", "give either a preset or sigma_a/sigma_s_prime, not both")
     if t.has("sigma_a") != t.has("sigma_s_prime"):
         t.fail("sigma_a" if not t.has("sigma_a") else "sigma_s_prime", "sigma_a and sigma_s_prime go together")
-    if t.has("preset") and t.has("sigma_a"):
-        t.fail("preset", "give either a preset or sigma_a/sigma_s_prime, not both")
     name = t.string("preset", None if kinds else "marble")
     t.preset_name("preset", name)
     sa = t.vec3("sigma_a", None, nonneg=True)
@@ -481,7 +490,7 @@ def _image(t: _Table, key: str, scene_dir: Path, what: str, exr_only: bool) -> N
         return None
     p = _resolve(scene_dir, path)
     if not p.is_file():
-        t.fail(key, f"{what} {str(p)!r} does not exist")
+        t.fail(key, f"{what} {str(p)!r} {not_a_file(p)}")
     kind = "OpenEXR" if exr_only else "OpenEXR, PNG or JPEG"
     try:
         img = read_image(p, exr_only)
@@ -510,6 +519,9 @@ def _light(t: _Table, scene_dir: Path) -> Light:
     for k in need:
         if not t.has(k):
             t.fail(k, f"a {kind} light needs {k}")
+    for k in LIGHT_KEYS:
+        if t.has(k) and k not in LIGHT_READS[kind]:
+            t.fail(k, f"a {kind} light has no {k} (it reads {', '.join(LIGHT_READS[kind][1:])}); remove the key")
     cone = t.number("cone_deg", 30.0, 0.0, lo_open=True, hi=90.0)
     falloff = t.number("falloff_deg", min(25.0, cone), 0.0)
     if falloff > cone:
@@ -619,7 +631,7 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
     if source not in SAMPLE_MESHES and source not in GENERATED_MESHES:
         p = _resolve(base_dir, source)
         if not p.is_file():
-            m.fail("source", f"mesh file {str(p)!r} does not exist (sample names: "
+            m.fail("source", f"mesh file {str(p)!r} {not_a_file(p)} (sample names: "
                              f"{', '.join((*SAMPLE_MESHES, *GENERATED_MESHES))})")
     mesh = MeshSpec(source, m.number("size_mm", 100.0, MIN_SIZE_MM, hi=MAX_SIZE_MM))
 
@@ -733,7 +745,7 @@ def load_scene(path: str | Path) -> Scene:
     """Read and validate a TOML scene file."""
     p = Path(path)
     if not p.is_file():
-        raise InputError(f"scene file {str(p)!r} does not exist")
+        raise InputError(f"scene file {str(p)!r} {not_a_file(p)}")
     try:
         data = tomllib.loads(p.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
@@ -779,6 +791,9 @@ def block_arrays(z: dict[str, NDArray], path: str | Path, what: str
     h = float(z["h_mm"].reshape(()))
     if not (np.isfinite(h) and h > 0):
         raise InputError(f"{what} {str(path)!r}: h_mm must be a positive voxel size in mm, got {h}")
+    if not MIN_SIZE_MM * 1e-3 <= h <= MAX_SIZE_MM:   # a voxel larger than any object, or a sub-micron one: a unit slip
+        raise InputError(f"{what} {str(path)!r}: h_mm = {h:g} is not a voxel size in mm (expected "
+                         f"{MIN_SIZE_MM * 1e-3:g} .. {MAX_SIZE_MM:g}); write the voxel size in mm")
     _check_coefficients(kappa, mu, path, what, " everywhere")
     return kappa, mu, h
 

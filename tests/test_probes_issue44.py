@@ -1,0 +1,125 @@
+"""The misleading or silent answers of issue 44's probes, each now one line naming the user's
+option (exit 2) or a correct result: a demo size below its 4 x 4 regions, a scene path that
+is a folder, a preset with coefficients, a light inside the object, a key the light kind does
+not read, an OBJ face naming a missing vertex, a voxel size in the wrong unit, a bogus
+GLSLDIFF_GL, a zero light direction, a stroke point with negative coordinates, numbers
+written as numbers."""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from glsldiff.commands.cli import build_parser, main
+from glsldiff.core.errors import InputError
+from glsldiff.mesh.load import load_mesh
+from glsldiff.physics.editing import Edit
+from glsldiff.render.scene import load_scene
+
+SCENE = """[mesh]
+source = "sphere"
+size_mm = 20
+[polygrid]
+n = 4
+cubes = 20
+levels = 1
+{material}
+[[lights]]
+{light}
+[output]
+width = 32
+height = 32
+"""
+DIRECTIONAL = 'type = "directional"\ndirection = [0, 0, 1]'
+
+
+def _one_error_line(capsys, code, expect):
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("glsldiff: error:") and expect in err[0], err
+
+
+def _scene(tmp_path, material="", light=DIRECTIONAL):
+    p = tmp_path / "s.toml"
+    p.write_text(SCENE.format(material=material, light=light))
+    return p
+
+
+def test_demo_size_below_its_regions(tmp_path, capsys):
+    _one_error_line(capsys, main(["demo", "--size", "3", "3", "3", "--out", str(tmp_path / "d")]),
+                    "--size: NX and NY must be >= 4")
+    assert not (tmp_path / "d").exists()
+
+
+def test_scene_path_that_is_a_folder(tmp_path, capsys):
+    _one_error_line(capsys, main(["render", str(tmp_path), "-o", str(tmp_path / "r.exr")]), "is a folder, not a file")
+
+
+@pytest.mark.parametrize("material", ['preset = "marble"\nsigma_s_prime = [1, 1, 1]',
+                                      'preset = "marble"\nsigma_a = [0.01, 0.01, 0.01]'])
+def test_preset_with_coefficients(tmp_path, material):
+    with pytest.raises(InputError, match="give either a preset or sigma_a/sigma_s_prime, not both"):
+        load_scene(_scene(tmp_path, "[material]\n" + material))
+
+
+@pytest.mark.parametrize("light, key", [
+    ('type = "point"\nposition = [0, 0, 50]\ndirection = [0, 0, -1]', "a point light has no direction"),
+    ('type = "directional"\ndirection = [0, 0, 1]\nposition = [0, 0, 5]', "a directional light has no position"),
+    ('type = "directional"\ndirection = [0, 0, 1]\ncone_deg = 10', "a directional light has no cone_deg"),
+])
+def test_a_key_the_light_does_not_read_is_an_error(tmp_path, light, key):
+    with pytest.raises(InputError, match=key):
+        load_scene(_scene(tmp_path, light=light))
+
+
+def test_light_inside_the_object(tmp_path, capsys):
+    scene = _scene(tmp_path, light='type = "point"\nposition = [0, 0, 0]\nintensity = [1, 1, 1]')
+    assert main(["render", str(scene), "-o", str(tmp_path / "r.exr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()           # progress lines, then the error
+    assert err[-1].startswith("glsldiff: error:") and "light 1 at (0, 0, 0) mm is inside the object" in err[-1]
+    assert not (tmp_path / "r.exr").exists()
+
+
+def test_obj_face_naming_a_missing_vertex(tmp_path):
+    p = tmp_path / "t.obj"
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 99\n")
+    with pytest.raises(InputError, match="line 8: face names vertex 99 but the file has 4 vertices"):
+        load_mesh(str(p), size_mm=20)
+    p.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf -3 -2 -1\n")
+    assert len(load_mesh(str(p), size_mm=20).faces) == 4      # negative (relative) indices are fine
+
+
+@pytest.mark.parametrize("h, ok", [(1e6, False), (1e-9, False), (0.5, True)])
+def test_block_volume_voxel_size_in_mm(tmp_path, h, ok):
+    vol = tmp_path / "v.npz"
+    np.savez(vol, kappa=np.full((2, 2, 2, 3), 0.3), mu=np.full((2, 2, 2, 3), 0.01), h_mm=h)
+    scene = _scene(tmp_path, '[material]\nvolume = "v.npz"')
+    if ok:
+        assert load_scene(scene).material.volume is not None
+    else:
+        with pytest.raises(InputError, match=re.escape(f"h_mm = {h:g} is not a voxel size in mm")):
+            load_scene(scene)
+
+
+def test_bogus_gl_backend_fails_info(capsys, monkeypatch):
+    monkeypatch.setenv("GLSLDIFF_GL", "bogus")
+    _one_error_line(capsys, main(["info"]), "GLSLDIFF_GL='bogus' is not a GL backend")
+
+
+def test_zero_light_direction_before_meshing(tmp_path, capsys):
+    _one_error_line(capsys, main(["tet", "sphere", "--light", "0", "0", "0", "--out", str(tmp_path / "t")]),
+                    "--light 0 0 0: give a finite, non-zero direction")
+    assert not (tmp_path / "t").exists()
+
+
+def test_stroke_points_with_negative_coordinates_are_values():
+    args = build_parser().parse_args(["cut", "--stroke", "-500,-500", "-1.5,2", "3,-4", "-o", "c.exr"])
+    assert args.stroke == [(-500.0, -500.0), (-1.5, 2.0), (3.0, -4.0)]
+
+
+def test_edit_values_read_as_numbers():
+    with pytest.raises(InputError, match=r"mu must be set to a value >= 0 \(mm\^-1\), got -1$"):
+        Edit("mu", "set", (-1.0, -1.0, -1.0))
+    with pytest.raises(InputError, match=r"got -2 0 1$"):
+        Edit("mu", "multiply", (-2.0, 0.0, 1.0))
