@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from glsldiff.core import io
 from glsldiff.render.scene import default_scene
 from glsldiff.viewer.controls import Orbit, Tool, turn_light
 
@@ -174,3 +175,24 @@ def test_view_command_opens_renders_and_closes(xdisplay, tmp_path):
                          text=True, timeout=300, cwd=tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "viewer closed:" in run.stdout and "Traceback" not in run.stderr
+
+
+def test_view_screenshot_from_the_command_line(xdisplay, tmp_path):
+    """``view --screenshot shot.png``: the first converged frame, window-sized, no overlay, then
+    the window closes by itself (no --seconds); ``--save`` with a PNG name says what it is."""
+    scene = tmp_path / "sphere.toml"
+    scene.write_text('[mesh]\nsource = "sphere"\nsize_mm = 30.0\n'
+                     '[polygrid]\ndiscretisation = "conservative"\nn = 8\ncubes = 20\nlevels = 2\n'
+                     '[[lights]]\ntype = "directional"\ndirection = [0, 0, 1]\n')
+    shot = tmp_path / "shot.png"
+    run = subprocess.run([sys.executable, "-m", "glsldiff.commands.cli", "view", str(scene), "--size", "160", "120",
+                          "--screenshot", str(shot)], env=_env(xdisplay), capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert f"screenshot {shot}" in run.stdout
+    img = io.read_image(shot)
+    assert img.shape[:2] == (120, 160) and img.max() > 0.1             # the lit sphere
+    assert img[:12, :].max() < 0.02                                    # no overlay text in the top rows
+    bad = subprocess.run([sys.executable, "-m", "glsldiff.commands.cli", "view", "--save", "shot.png"],
+                         env=_env(xdisplay), capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert bad.returncode == 2 and "a screenshot is --screenshot" in bad.stderr

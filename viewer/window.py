@@ -107,6 +107,7 @@ class Viewer:
         self.dirty = True
         self.exposure: float | None = None
         self.message = ""
+        self.error: GlsldiffError | None = None      # the last render's error, if it failed
         self.frame_times: list[float] = []
         self.last_report: Any = None
         self._stroke_started = False
@@ -155,6 +156,7 @@ class Viewer:
         except GlsldiffError as exc:
             self.message = f"error: {exc}"
             self.log(self.message)
+            self.error = exc
             self.dirty = False
             self._show(status_frame(self.message, scene.output.width, scene.output.height, None))
             return
@@ -248,15 +250,32 @@ class Viewer:
             self.render()
         return not self.closed
 
-    def run(self, seconds: float | None = None) -> None:
-        """The event loop (until the window closes, or for ``seconds``)."""
-        t_end = None if seconds is None else time.perf_counter() + seconds
+    def run(self, seconds: float | None = None, screenshot: str | Path | None = None) -> Path | None:
+        """The event loop: until the window closes, or for ``seconds`` counted from the first
+        frame shown (the grid build before it does not count). With ``screenshot``, the first
+        converged frame (pass 2 within tolerance) is written there as PNG, without the overlay,
+        and the window closes then unless ``seconds`` keeps it open; a scene that fails to
+        render raises its error instead. Returns the screenshot's path."""
+        t_end: float | None = None
+        shot: Path | None = None
+        if screenshot is not None:
+            self.show_overlay = False
         while self.step():
+            if seconds is not None and t_end is None and self.frame_times:
+                t_end = time.perf_counter() + seconds
+            if screenshot is not None and shot is None:
+                if self.error is not None:
+                    raise self.error
+                if self.frame_times and not self.dirty:
+                    shot = self.screenshot(screenshot)
+                    if seconds is None:
+                        break
             if t_end is not None and time.perf_counter() > t_end:
                 break
             if not self.dirty:
                 time.sleep(1.0 / 120.0)
         self.close()
+        return shot
 
     def close(self) -> None:
         """Release the renderer and the GL objects, then close the window."""

@@ -117,12 +117,16 @@ def add_view_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--example", metavar="NAME", help="a shipped example scene shown first")
     p.add_argument("--size", type=A.integer(64, 8192), nargs=2, default=(640, 480), metavar=("W", "H"))
     p.add_argument("--mask", default=None, help="pattern mask image for the brush (M toggles it)")
-    p.add_argument("--save", default="edited.npz", help="where Ctrl+S saves the edited material (.npz)")
+    p.add_argument("--save", "--save-material", dest="save", default="edited.npz",
+                   help="where Ctrl+S saves the edited material (.npz; a screenshot is --screenshot)")
     p.add_argument("--shots", default=".", help="folder for screenshots (F12 / P)")
+    p.add_argument("--screenshot", metavar="PATH", default=None,
+                   help="write the first converged frame (no overlay) to this PNG, then close (with "
+                        "--seconds: stay open that long)")
     p.add_argument("--frame-sweeps", type=A.integer(1, 100000), default=10,
                    help="pass-2 sweeps per frame while a warm start converges (frame coherence)")
     p.add_argument("--seconds", type=A.number(0.0, lo_open=True), default=None,
-                   help="close after this many seconds (demos, smoke tests)")
+                   help="close this many seconds after the first frame is shown (demos, smoke tests)")
     p.set_defaults(func=cmd_view)
 
 
@@ -132,14 +136,15 @@ def cmd_view(args: argparse.Namespace) -> int:
     from glsldiff.viewer.window import Viewer
     if args.scene and args.example:
         raise InputError("give a scene file or --example NAME, not both")
-    check_output(args.save, (".npz",))
+    check_output(args.save, (".npz",), "--save is the edited material; a screenshot is --screenshot PATH.png")
+    shot = check_output(args.screenshot, (".png",)) if args.screenshot else None
     first = ((Path(args.scene).name, load_scene(args.scene)) if args.scene
              else (f"example {args.example}", example_scene(args.example)) if args.example else None)
     mask = read_mask(args.mask) if args.mask else None
     v = Viewer(presets(first), *args.size, mask=mask, save_path=args.save, shots=args.shots,
                frame_sweeps=args.frame_sweeps, log=lambda line: print(line, flush=True))
     try:
-        v.run(args.seconds)
+        v.run(args.seconds, shot)      # the screenshot, when written, is logged ("screenshot PATH")
     finally:
         v.close()
     times = v.frame_times
