@@ -123,3 +123,22 @@ def test_edit_values_read_as_numbers():
         Edit("mu", "set", (-1.0, -1.0, -1.0))
     with pytest.raises(InputError, match=r"got -2 0 1$"):
         Edit("mu", "multiply", (-2.0, 0.0, 1.0))
+
+
+def test_render_prints_a_short_report_and_writes_the_full_one(tmp_path, capsys):
+    """``glsldiff render``: about ten lines on stdout (grid, model, material, solver, times, the
+    files), the full report in the .json beside the image (written with the EXR and PNG); -v
+    prints the full report."""
+    import json
+    scene = _scene(tmp_path)
+    assert main(["render", str(scene), "-o", str(tmp_path / "r.exr")]) == 0
+    out = capsys.readouterr().out.strip().splitlines()
+    assert len(out) <= 10 and out[0].startswith("scene:") and any(l.startswith("solver:") for l in out), out
+    assert any(l.startswith("time: frame") for l in out) and "r.json" in out[-1]
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["nodes"] > 0 and report["passes"] and any(l.startswith("t1/t2/t3") for l in report["report"])
+    assert main(["render", str(scene), "-o", str(tmp_path / "v.exr"), "-v"]) == 0
+    verbose = capsys.readouterr().out
+    assert "t1/t2/t3" in verbose and "  pass2" in verbose
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.exr", "r.json", "r.png", "s.toml", "v.exr", "v.json",
+                                                          "v.png"]

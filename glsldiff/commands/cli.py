@@ -90,7 +90,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     with Renderer(allow_unconverged=args.allow_unconverged, status=_status) as r:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}")
-        print("\n".join(rep.lines()))
+        print("\n".join(rep.lines() if args.verbose else rep.summary_lines()))
         _warn(rep)
         if args.check_grid:
             err, nodes, seconds = r.discretisation_error(scene)
@@ -104,7 +104,8 @@ def cmd_render(args: argparse.Namespace) -> int:
             print(f"frame {k}: ran {', '.join(ran)}; frame {again.frame_seconds * 1e3:.1f} ms "
                   f"= {1.0 / max(again.frame_seconds, 1e-9):.1f} fps-equivalent")
     exr, png, exposure = save(img, out, scene, rep)
-    print(f"wrote {exr} (linear radiance) and {png} (exposure {exposure:.3g}, gamma 2.2)")
+    print(f"wrote {exr} (linear radiance), {png} (exposure {exposure:.3g}, gamma 2.2) and "
+          f"{exr.with_suffix('.json')} (the full report{'' if args.verbose else '; -v prints it'})")
     return 0
 
 
@@ -343,6 +344,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-unconverged", action="store_true",
                    help="write the image even when pass 2 runs out of iterations (default: exit 2)")
     p.add_argument("--frames", type=A.integer(1, 10000), default=1, help="render the scene this many times (frame 2+ reuse passes)")
+    p.add_argument("-v", "--verbose", action="store_true",
+                   help="print the full report (passes, grid, lights, regime); it is always in the .json beside the image")
     p.add_argument("--check-grid", action="store_true",
                    help="also solve the frame on the grid's 1:8 refinement and print how far apart they are "
                         "(tetrahedral grids; ~8x the grid's memory, about a minute for the default scene)")

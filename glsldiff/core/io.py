@@ -110,14 +110,17 @@ def write_exr(path: str | os.PathLike, image: ArrayLike,
 
 
 def write_exr_png(path: str | os.PathLike, image: ArrayLike, image8: NDArray[np.uint8],
-                  attributes: Mapping[str, str] | None = None) -> tuple[Path, Path]:
-    """An EXR (linear) and its 8-bit PNG beside it (same name, ``.png``), written as a pair:
-    both appear together, or neither changes."""
+                  attributes: Mapping[str, str] | None = None, sidecar: str | None = None) -> tuple[Path, Path]:
+    """An EXR (linear) and its 8-bit PNG beside it (same name, ``.png``), and with ``sidecar``
+    that text as ``.json``, written together: all appear, or none changes."""
     exr = Path(path)
     png = exr.with_suffix(".png")
-    with atomic_paths([exr, png]) as (tmp_exr, tmp_png):
-        _exr_file(tmp_exr, image, attributes, False, str(exr))
-        _png_file(tmp_png, image8)
+    paths = [exr, png] + ([exr.with_suffix(".json")] if sidecar is not None else [])
+    with atomic_paths(paths) as tmps:
+        _exr_file(tmps[0], image, attributes, False, str(exr))
+        _png_file(tmps[1], image8)
+        if sidecar is not None:
+            tmps[2].write_text(sidecar, encoding="utf-8")
     return exr, png
 
 

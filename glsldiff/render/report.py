@@ -54,3 +54,33 @@ class RenderReport:
                        "tighter [options].tol tells them apart)")
         out.extend(self.notes)
         return out
+
+    def summary_lines(self) -> list[str]:
+        """The short report of ``glsldiff render`` (:meth:`lines` is the full one): the grid, the
+        model and material, the solver, the times, and clamped vertices if any."""
+        t = self.seconds
+        ran = [p for p in self.passes if p["ran"] and p["pass"] in ("pass1", "pass2", "pass3")]
+        times = " + ".join(f"{p['pass'].replace('pass', 'pass ')} {p['seconds']:.2f}" for p in ran)
+        why = [p["why"].removeprefix("first frame: ") for p in ran
+               if p["pass"] == "pass2" and p["why"].startswith("first frame: ")]
+        out = [f"grid: {self.nodes:,} nodes ({self.boundary_nodes:,} on the boundary); image {self.image_size[0]} x "
+               f"{self.image_size[1]}; GL {self.renderer}"]
+        out.extend(n for n in self.notes if n.startswith(("model ", "material:")))
+        if self.solver is not None:
+            out.append("solver: " + self.solver.summary())
+        out.append(f"time: frame {self.frame_seconds:.2f} s = {times} s" + (f"; set-up {t['setup']:.2f} s" if "setup" in t
+                                                                           else "") + (f"; pass 2: {why[0]}" if why else ""))
+        out.extend(line for line in self.lines() if line.startswith("exitant radiance clamped"))
+        return out
+
+    def as_dict(self) -> dict[str, Any]:
+        """The full report as plain JSON-ready values (the render's sidecar file)."""
+        return {"renderer": self.renderer, "nodes": self.nodes, "boundary_nodes": self.boundary_nodes,
+                "image_size": list(self.image_size), "model": self.model,
+                "passes": [{k: (float(v) if isinstance(v, float) else v) for k, v in p.items()} for p in self.passes],
+                "seconds": {k: float(v) for k, v in self.seconds.items()},
+                "frame_seconds": float(self.frame_seconds),
+                "solver": self.solver.summary() if self.solver is not None else None,
+                "clamped_vertices": int(self.clamped_vertices), "clamped_deep": int(self.clamped_deep),
+                "clamped_depth": float(self.clamped_depth), "notes": list(self.notes),
+                "warnings": list(self.warnings), "report": self.lines()}
