@@ -142,3 +142,32 @@ def test_render_prints_a_short_report_and_writes_the_full_one(tmp_path, capsys):
     assert "t1/t2/t3" in verbose and "  pass2" in verbose
     assert sorted(p.name for p in tmp_path.iterdir()) == ["r.exr", "r.json", "r.png", "s.toml", "v.exr", "v.json",
                                                           "v.png"]
+
+
+def test_ctrl_c_inside_ftetwild_is_honoured(tmp_path):
+    """A real SIGINT while fTetWild meshes (``tet``; ``cut`` meshes the same way): exit 130 within
+    2 s with the one-line message, no output folder and no fTetWild scratch folder left (fTetWild
+    used to end the program with no word, leaving both)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    env = dict(os.environ, GLSLDIFF_GL="osmesa", GLSLDIFF_CACHE="off", TMPDIR=str(scratch))
+    p = subprocess.Popen([sys.executable, "-m", "glsldiff.commands.cli", "tet", "bunny", "--edge", "1.5", "--out",
+                          "o"], cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = []
+    for line in p.stderr:                       # wait until the meshing has started
+        seen.append(line)
+        if line.startswith("tetwild: meshing"):
+            break
+    time.sleep(3.0)                             # the child process is meshing by now
+    assert p.poll() is None, seen
+    p.send_signal(signal.SIGINT)
+    t0 = time.perf_counter()
+    _, err = p.communicate(timeout=60)
+    assert p.returncode == 130 and time.perf_counter() - t0 < 2.0, err
+    assert "interrupted" in err.strip().splitlines()[-1] and "Traceback" not in err, err
+    assert not (tmp_path / "o").exists() and list(scratch.iterdir()) == []

@@ -6,9 +6,11 @@ working directory (it writes ``__tracked_surface.stl`` into the current one) at 
 length ``edge_mm``, orients every tetrahedron positively, extracts the boundary triangles
 (outward) and reports the quality (:class:`TetQuality`): dihedral angles, radius ratios,
 slivers, the volume against the input mesh's and how far the boundary strays from the input
-surface. :func:`cached_tetrahedralize` keeps the result in the on-disk cache
-(:mod:`glsldiff.core.cache`) keyed by the mesh's arrays and the parameters: the bunny at
-2.5 mm (127k tetrahedra) took 490 s on one core of this machine.
+surface. fTetWild runs in a child process, so that Ctrl-C reaches the program (the C++ code
+would otherwise end it with no word) and its scratch folder is removed.
+:func:`cached_tetrahedralize` keeps the result in the on-disk cache (:mod:`glsldiff.core.cache`)
+keyed by the mesh's arrays and the parameters: the bunny at 2.5 mm (127k tetrahedra) took 490 s
+on one core of this machine.
 
 A :class:`TetMesh` answers the attributes the tetrahedral system uses
 (:class:`glsldiff.system.tet_problem.TetProblem`, :func:`glsldiff.oracle.fem.tet_geometry`):
@@ -17,13 +19,16 @@ A :class:`TetMesh` answers the attributes the tetrahedral system uses
 """
 from __future__ import annotations
 
-import contextlib
+import importlib.util
 import math
+import multiprocessing
 import os
+import signal
 import tempfile
+import threading
 import time
 from dataclasses import asdict, dataclass, field
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -132,17 +137,58 @@ def _check_closed(mesh: Mesh) -> None:
                          "it first (e.g. pymeshlab's meshing_close_holes and meshing_repair_non_manifold_edges)")
 
 
-@contextlib.contextmanager
-def _scratch_directory() -> Iterator[None]:
-    """fTetWild writes ``__tracked_surface.stl`` into the working directory: run it in a
-    temporary one."""
-    old = os.getcwd()
+def _tetwild_child(conn: Any, v: NDArray, f: NDArray, edge_mm: float, epsilon: float, threads: int,
+                   workdir: str) -> None:
+    """fTetWild in a child process (:func:`_run_tetwild`): its result or its error down ``conn``.
+    It ignores Ctrl-C: the parent is interrupted and ends this process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    os.chdir(workdir)           # fTetWild writes __tracked_surface.stl into the working directory
+    try:
+        import pytetwild
+        X, T = pytetwild.tetrahedralize(v, f, edge_length_abs=edge_mm, epsilon=epsilon, num_threads=threads,
+                                        quiet=True)
+        conn.send(("ok", np.asarray(X, dtype=np.float64), np.asarray(T, dtype=np.int64)))
+    except Exception as exc:    # reported by the parent as the input error it is
+        conn.send(("error", type(exc).__name__, str(exc)))
+    finally:
+        conn.close()
+
+
+def _run_tetwild(v: NDArray, f: NDArray, edge_mm: float, epsilon: float, threads: int) -> tuple[NDArray, NDArray]:
+    """``pytetwild.tetrahedralize`` in a child process, in a temporary working directory removed
+    afterwards: a Ctrl-C (which the C++ code would otherwise take, ending the whole program with
+    no word and leaving its files) reaches this process within 0.2 s, ends the child and
+    raises KeyboardInterrupt here."""
+    mp = multiprocessing.get_context("spawn")
+    receive, send = mp.Pipe(duplex=False)
     with tempfile.TemporaryDirectory(prefix="glsldiff-tetwild-") as tmp:
-        os.chdir(tmp)
+        main = threading.current_thread() is threading.main_thread()
+        old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None   # the child starts ignoring Ctrl-C
         try:
-            yield
+            child = mp.Process(target=_tetwild_child, args=(send, v, f, float(edge_mm), float(epsilon), int(threads),
+                                                            tmp), daemon=True)
+            child.start()
         finally:
-            os.chdir(old)
+            if main:
+                signal.signal(signal.SIGINT, old)
+        send.close()
+        try:
+            while not receive.poll(0.2):
+                if not child.is_alive():
+                    raise InputError(f"fTetWild stopped without a result (exit code {child.exitcode}); repair the "
+                                     "mesh (pymeshlab) or change the edge length")
+            message = receive.recv()
+        finally:
+            if child.is_alive():
+                child.terminate()
+                child.join(2.0)
+                if child.is_alive():
+                    child.kill()
+            child.join()
+            receive.close()
+    if message[0] == "error":
+        raise InputError(f"fTetWild failed: {message[2]}; repair the mesh (pymeshlab) or change the edge length")
+    return message[1], message[2]
 
 
 def dihedral_cos_sin(P: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -229,22 +275,16 @@ def tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, threads: i
     if edge_mm > extent:
         raise InputError(f"tetrahedral edge length {edge_mm:g} mm exceeds the mesh's extent ({extent:.3g} mm); "
                          "choose an edge length a tenth of the thinnest part or less")
-    try:
-        import pytetwild
-    except ImportError as exc:
-        raise InputError(f"tetrahedral meshing needs pytetwild ({exc}); pip install 'glsldiff[tet]'") from None
+    if importlib.util.find_spec("pytetwild") is None:       # it runs in a child process (_run_tetwild)
+        raise InputError("tetrahedral meshing needs pytetwild; pip install 'glsldiff[tet]'")
     if status is not None:
         status(f"tetwild: meshing {mesh.name} ({len(f):,} triangles) at edge {edge_mm:g} mm: seconds to minutes")
     t0 = time.perf_counter()
     try:
-        with _scratch_directory():
-            X, T = pytetwild.tetrahedralize(v, f, edge_length_abs=float(edge_mm), epsilon=float(epsilon),
-                                            num_threads=int(threads), quiet=True)
-    except (RuntimeError, ValueError) as exc:
-        raise InputError(f"fTetWild failed on mesh {mesh.name!r}: {exc}; repair the mesh (pymeshlab) or change the "
-                         "edge length") from None
+        X, T = _run_tetwild(v, f, edge_mm, epsilon, threads)
+    except InputError as exc:
+        raise InputError(f"mesh {mesh.name!r}: {exc}") from None
     t_mesh = time.perf_counter() - t0
-    X, T = np.asarray(X, dtype=np.float64), np.asarray(T, dtype=np.int64)
     if len(T) == 0:
         raise InputError(f"fTetWild produced no tetrahedra for mesh {mesh.name!r} at edge {edge_mm:g} mm; the mesh "
                          "may be thinner than the edge length: choose a smaller edge")
