@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -71,29 +72,10 @@ def test_thin_slab_against_photon_transport_with_fresnel():
             assert ours == pytest.approx(mc.scattered[face, b], rel=0.03, abs=3 * mc.scattered_err[face, b])
 
 
-def _collided_fluence_1d(a: float, t: float, C: float, n: int) -> tuple[NDArray, NDArray]:
-    """The 1-D first-collision diffusion below a half-space lit at refracted cosine ``t``
-    (sigma_t' = 1 /mm, albedo ``a``, Robin constant ``C``): finite differences over 30 mean free
-    paths of ``n`` nodes; (depths, fluence)."""
-    L = 30.0
-    z = np.linspace(0.0, L, n)
-    h = z[1] - z[0]
-    k, m = 1.0 / 3.0, 1.0 - a
-    V = np.full(n, h)
-    V[0] = V[-1] = h / 2
-    main = np.full(n, 2 * k / h)
-    main[0] = main[-1] = k / h
-    main += m * V
-    main[0] += 1.0 / (2.0 * C)
-    A = sp.diags([np.full(n - 1, -k / h), main, np.full(n - 1, -k / h)], [-1, 0, 1]).tocsc()
-    return z, spl.spsolve(A, V * a * np.exp(-z / t) / t)
-
-
-def _diffuse_slab_exit_flux(a: float, depth: float, eta: float, C: float, n: int = 4000) -> float:
-    """The 1-D first-collision diffusion of a slab of ``depth`` mean free paths (sigma_t' = 1,
-    albedo ``a``, Robin constant ``C`` on both faces) lit by unit Lambertian irradiance from
-    outside one face: the Robin flux ``phi / (2 C)`` leaving the other face (finite differences,
-    the entering light by Gauss quadrature over the outside cosine)."""
+def _robin_diffusion_1d(a: float, depth: float, C: float, n: int, far_face: bool) -> tuple[NDArray, NDArray, Any]:
+    """The 1-D diffusion (sigma_t' = 1 /mm, albedo ``a``) over ``depth`` mean free paths in ``n``
+    nodes by finite differences, the Robin condition (constant ``C``) at z = 0 and, with
+    ``far_face``, at z = depth too (else a zero-flux end): (depths, node volumes, matrix)."""
     z = np.linspace(0.0, depth, n)
     h = z[1] - z[0]
     k, m = 1.0 / 3.0, 1.0 - a
@@ -102,8 +84,24 @@ def _diffuse_slab_exit_flux(a: float, depth: float, eta: float, C: float, n: int
     main = np.full(n, 2 * k / h)
     main[0] = main[-1] = k / h
     main += m * V
-    main[[0, -1]] += 1.0 / (2.0 * C)
-    A = sp.diags([np.full(n - 1, -k / h), main, np.full(n - 1, -k / h)], [-1, 0, 1]).tocsc()
+    main[[0, -1] if far_face else [0]] += 1.0 / (2.0 * C)
+    return z, V, sp.diags([np.full(n - 1, -k / h), main, np.full(n - 1, -k / h)], [-1, 0, 1]).tocsc()
+
+
+def _collided_fluence_1d(a: float, t: float, C: float, n: int) -> tuple[NDArray, NDArray]:
+    """The 1-D first-collision diffusion below a half-space lit at refracted cosine ``t``
+    (sigma_t' = 1 /mm, albedo ``a``, Robin constant ``C``): finite differences over 30 mean free
+    paths of ``n`` nodes; (depths, fluence)."""
+    z, V, A = _robin_diffusion_1d(a, 30.0, C, n, far_face=False)
+    return z, spl.spsolve(A, V * a * np.exp(-z / t) / t)
+
+
+def _diffuse_slab_exit_flux(a: float, depth: float, eta: float, C: float, n: int = 4000) -> float:
+    """The 1-D first-collision diffusion of a slab of ``depth`` mean free paths (sigma_t' = 1,
+    albedo ``a``, Robin constant ``C`` on both faces) lit by unit Lambertian irradiance from
+    outside one face: the Robin flux ``phi / (2 C)`` leaving the other face (finite differences,
+    the entering light by Gauss quadrature over the outside cosine)."""
+    z, V, A = _robin_diffusion_1d(a, depth, C, n, far_face=True)
     src = np.zeros(n)
     for nu, w in zip(MU, W):
         t = math.sqrt(1.0 - (1.0 - nu * nu) / (eta * eta))
