@@ -155,6 +155,7 @@ INTERRUPTS = [
     ("Ctrl-C during render", lambda d: ["render", "-o", "r.exr"], 8.0),
     ("Ctrl-C during fit", lambda d: ["fit", synth(d, "12", "12", "6", "3"), "-o", "f.npz", "--no-png"], 20.0),
     ("Ctrl-C inside fTetWild (tet)", lambda d: ["tet", "bunny", "--edge", "1.5", "--out", "o"], 8.0),
+    ("Ctrl-C inside SuperLU (demo 96x96x24)", lambda d: ["demo", "--size", "96", "96", "24"], 5.0),
 ]
 
 

@@ -16,6 +16,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from glsldiff.core import arguments as A
+from glsldiff.core import interrupt
 from glsldiff.core.errors import GlsldiffError, InputError
 from glsldiff.core.tables import print_table
 from glsldiff import gl
@@ -567,6 +568,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     except KeyboardInterrupt:
         print("glsldiff: interrupted; finished output files are kept, none is half-written", file=sys.stderr)
+        if interrupt.abandoned():    # compiled code still running in a worker thread: end now, streams flushed
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os._exit(130)
         return 130
 
 if __name__ == "__main__":

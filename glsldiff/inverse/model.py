@@ -27,6 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 
+from glsldiff.core.interrupt import interruptible
 from glsldiff.core.checks import choice
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.regular import RegularGrid
@@ -132,7 +133,7 @@ class ForwardModel:
         t0 = time.perf_counter()
         kappa, mu = np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64)
         A = self.matrix(kappa, mu)
-        lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1)
+        lu = interruptible(spla.splu, A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1)
         self.stats.factorizations += 1
         self.stats.factor_seconds += time.perf_counter() - t0
         return Factorized(self, kappa, mu, A, lu)

@@ -27,6 +27,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.interrupt import interruptible
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.pillow import TET_EDGES, unique_tet_edges
@@ -227,7 +228,7 @@ def solve_matrix_reference(A: sp.spmatrix, b: NDArray[np.float64], max_direct: i
     ``(n, k)``: k right-hand sides share one factorisation / hierarchy."""
     b = np.asarray(b, dtype=np.float64)
     if A.shape[0] <= max_direct:
-        return spla.splu(sp.csc_matrix(A)).solve(b), "direct (SuperLU)"
+        return interruptible(spla.splu, sp.csc_matrix(A)).solve(b), "direct (SuperLU)"
     with pinned_global_rng():
         ml = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), symmetry="symmetric")
     cols = b.reshape(len(b), -1)

@@ -21,6 +21,7 @@ import pyamg
 import scipy.sparse.linalg as spla
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.interrupt import interruptible
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.assembly import LinearSystem, assemble, assemble_rhs, diverged_message
@@ -55,8 +56,8 @@ class DirectSolver:
         t0 = time.perf_counter()
         self.problem = problem
         self.system = assemble(problem)
-        self._lu = [spla.splu(self.system.block(c)[0].tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.1)
-                    for c in range(3)]
+        self._lu = [interruptible(spla.splu, self.system.block(c)[0].tocsc(), permc_spec="MMD_AT_PLUS_A",
+                                  diag_pivot_thresh=0.1) for c in range(3)]
         self.factor_seconds = time.perf_counter() - t0
 
     def solve(self, q: ArrayLike | Mapping[str, ArrayLike] | None = None, *,
