@@ -144,10 +144,12 @@ def test_render_prints_a_short_report_and_writes_the_full_one(tmp_path, capsys):
                                                           "v.png"]
 
 
-def test_ctrl_c_inside_ftetwild_is_honoured(tmp_path):
-    """A real SIGINT while fTetWild meshes (``tet``; ``cut`` meshes the same way): exit 130 within
-    2 s with the one-line message, no output folder and no fTetWild scratch folder left (fTetWild
-    used to end the program with no word, leaving both)."""
+@pytest.mark.parametrize("signame, code, word", [("SIGINT", 130, "interrupted"), ("SIGTERM", 143, "terminated")])
+def test_ctrl_c_inside_ftetwild_is_honoured(tmp_path, signame, code, word):
+    """A real SIGINT (or SIGTERM) while fTetWild meshes (``tet``; ``cut`` meshes the same way):
+    exit 130 (143) within 2 s with the one-line message, no output folder and no fTetWild scratch
+    folder left (fTetWild used to end the program with no word, leaving both); a "still meshing"
+    line every 10 s before that."""
     import os
     import signal
     import subprocess
@@ -165,11 +167,11 @@ def test_ctrl_c_inside_ftetwild_is_honoured(tmp_path):
             break
     time.sleep(3.0)                             # the child process is meshing by now
     assert p.poll() is None, seen
-    p.send_signal(signal.SIGINT)
+    p.send_signal(getattr(signal, signame))
     t0 = time.perf_counter()
     _, err = p.communicate(timeout=60)
-    assert p.returncode == 130 and time.perf_counter() - t0 < 2.0, err
-    assert "interrupted" in err.strip().splitlines()[-1] and "Traceback" not in err, err
+    assert p.returncode == code and time.perf_counter() - t0 < 2.0, err
+    assert word in err.strip().splitlines()[-1] and "Traceback" not in err, err
     assert not (tmp_path / "o").exists() and list(scratch.iterdir()) == []
 
 

@@ -9,7 +9,9 @@ import argparse
 import logging
 import os
 import re
+import signal
 import sys
+import threading
 from dataclasses import replace
 from typing import Any, Sequence
 
@@ -547,8 +549,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM (``kill``, ``timeout``), handled as Ctrl-C is: the clean-up runs, then exit 143."""
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise _Terminated
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
+    on_main = threading.current_thread() is threading.main_thread()
+    old_term = signal.signal(signal.SIGTERM, _terminate) if on_main else None
     try:
         args = parser.parse_args(argv)
         if not getattr(args, "command", None):  # bare `glsldiff`: say what it can do, start nothing
@@ -566,13 +578,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     except GlsldiffError as exc:   # one line, also where a library's text inside it spans several
         print(f"glsldiff: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("glsldiff: interrupted; finished output files are kept, none is half-written", file=sys.stderr)
+    except KeyboardInterrupt as exc:
+        code = 143 if isinstance(exc, _Terminated) else 130
+        print(f"glsldiff: {'terminated' if code == 143 else 'interrupted'}; finished output files are kept, none is "
+              "half-written", file=sys.stderr)
         if interrupt.abandoned():    # compiled code still running in a worker thread: end now, streams flushed
             sys.stdout.flush()
             sys.stderr.flush()
-            os._exit(130)
-        return 130
+            os._exit(code)
+        return code
+    finally:
+        if on_main:
+            signal.signal(signal.SIGTERM, old_term)
 
 if __name__ == "__main__":
     sys.exit(main())
