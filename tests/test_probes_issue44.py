@@ -203,3 +203,24 @@ def test_ctrl_c_during_a_superlu_factorisation_is_honoured(tmp_path):
     assert p.returncode == 130 and time.perf_counter() - t0 < 2.0, err
     assert err.strip().splitlines()[-1].startswith("glsldiff: interrupted") and "Traceback" not in err, err
     assert not (tmp_path / "d").exists()
+
+
+def test_heartbeat_speaks_only_when_the_command_is_quiet(capsys):
+    """No more than ``every`` seconds without a line: a quiet step gets "still working" naming
+    the last line; a step that prints gets none; the streams are restored afterwards."""
+    import sys
+    import time
+    from glsldiff.core.heartbeat import Heartbeat
+    before = sys.stderr
+    with Heartbeat(every=1.0):
+        print("setup: building the grid", file=sys.stderr)
+        time.sleep(2.6)
+    err = capsys.readouterr().err.splitlines()
+    beats = [line for line in err if line.startswith("glsldiff: still working")]
+    assert len(beats) in (1, 2) and all("last: setup: building the grid" in b for b in beats), err
+    with Heartbeat(every=1.0):
+        for k in range(6):
+            print(f"step {k}")
+            time.sleep(0.4)
+    assert "still working" not in capsys.readouterr().err
+    assert sys.stderr is before

@@ -6,6 +6,7 @@ Errors a user can cause are printed as one line without a traceback (exit code 2
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import os
 import re
@@ -19,6 +20,7 @@ import numpy as np
 
 from glsldiff.core import arguments as A
 from glsldiff.core import interrupt
+from glsldiff.core.heartbeat import Heartbeat
 from glsldiff.core.errors import GlsldiffError, InputError
 from glsldiff.core.tables import print_table
 from glsldiff import gl
@@ -573,7 +575,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if env_gl and env_gl not in gl.BACKENDS:     # before any work, for every command (info included)
             raise InputError(f"GLSLDIFF_GL={os.environ['GLSLDIFF_GL']!r} is not a GL backend: set it to "
                              f"{', '.join(gl.BACKENDS)} or unset it")
-        with created_folders_removed_on_failure():
+        quiet_ok = args.command in ("view", "info")    # a window waits for the user; info is instant
+        with created_folders_removed_on_failure(), (contextlib.nullcontext() if quiet_ok else Heartbeat()):
             return args.func(args)
     except GlsldiffError as exc:   # one line, also where a library's text inside it spans several
         print(f"glsldiff: error: {' '.join(str(exc).split())}", file=sys.stderr)

@@ -67,7 +67,7 @@ class RenderReport:
                f"{self.image_size[1]}; GL {self.renderer}"]
         out.extend(n for n in self.notes if n.startswith(("model ", "material:")))
         if self.solver is not None:
-            out.append("solver: " + self.solver.summary())
+            out.append("solver: " + self.solver.summary().splitlines()[0])      # the per-level rows: -v
         out.append(f"time: frame {self.frame_seconds:.2f} s = {times} s" + (f"; set-up {t['setup']:.2f} s" if "setup" in t
                                                                            else "") + (f"; pass 2: {why[0]}" if why else ""))
         out.extend(line for line in self.lines() if line.startswith("exitant radiance clamped"))

@@ -98,11 +98,11 @@ class SolveReport:
         state = "converged" if self.converged else "NOT converged"
         line = (f"{self.method}: {self.sweeps} {'cycles' if 'multigrid' in self.method else 'sweeps'}, "
                 f"residual {self.residual:.2e}{est}{err}, {self.seconds:.3f} s, {state}")
-        for lv in self.levels:
-            res = float(lv["residual"])  # type: ignore[arg-type]
+        for lv in self.levels:          # what a level measured: residual and time only where it has them
+            res, secs = float(lv["residual"]), float(lv["seconds"])  # type: ignore[arg-type]
             line += (f"\n  level {lv['level']} (n={lv['n']}, {lv['updated']}/{lv['nodes']} nodes updated): "
-                     f"{lv['sweeps']} sweeps, residual {'-' if math.isnan(res) else f'{res:.2e}'}, "
-                     f"{float(lv['seconds']):.3f} s"  # type: ignore[arg-type]
+                     f"{lv['sweeps']} sweeps" + ("" if math.isnan(res) else f", residual {res:.2e}")
+                     + ("" if math.isnan(secs) else f", {secs:.3f} s")
                      + (f", texture {lv['texture']}" if "texture" in lv else ""))
         return line
 
