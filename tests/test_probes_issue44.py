@@ -224,3 +224,21 @@ def test_heartbeat_speaks_only_when_the_command_is_quiet(capsys):
             time.sleep(0.4)
     assert "still working" not in capsys.readouterr().err
     assert sys.stderr is before
+
+
+def test_tables_fit_100_columns_and_name_the_rest(capsys):
+    """A wide table shows its leading columns within 100 characters and names every column it
+    leaves out (and where they are); a narrow one is printed whole."""
+    from glsldiff.core.tables import print_table
+    rows = [{f"column_{k:02d}": float(k) + 0.123 for k in range(30)} | {"case": "a"}]
+    print_table("wide", rows, first=("case", "column_29"), rest="all in x.csv")
+    out = capsys.readouterr().out.splitlines()
+    table = [line for line in out if not line.startswith("not shown")]
+    header = next(line for line in table if "case" in line)
+    assert max(len(line) for line in table) <= 100 and "column_29" in header and header.index("case") < header.index("column_29")
+    (note,) = [line for line in out if line.startswith("not shown")]
+    hidden = note.split(": ", 1)[1].removesuffix("; all in x.csv").split(", ")
+    assert len(hidden) > 10 and all(f"column_{k:02d}" not in "".join(table) for k in range(30)
+                                    if f"column_{k:02d}" in hidden)
+    print_table("narrow", [{"a": 1.0, "b": "x"}])
+    assert "not shown" not in capsys.readouterr().out

@@ -164,7 +164,9 @@ def cmd_validate(args: argparse.Namespace) -> int:
     rows = validate(args.cases, check_output_folder(args.out), size=args.size, spp=args.spp, source=args.source,
                     adapt=args.adapt, flux=args.flux, incidence=args.incidence, model=args.model, progress=_status)
     print_table("diffusion renderer vs Mitsuba 3 volpath (subsurface light: multiple and all scattering orders; "
-                "eta != 1: surface reflection removed) and the dipole", rows)
+                "eta != 1: surface reflection removed) and the dipole", rows,
+                first=("case", "rmse_vs_mc_all_scattering", "mean_ratio_all_scattering", "rel_l2", "power_ratio",
+                       "peak_ratio", "mc_noise", "diffusion_s", "mc_s"), rest=f"all in {args.out}/validation.csv")
     print("rmse: relative RMSE over the object's pixels (silhouette excluded); mc_noise: the Monte Carlo "
           "image's own relative standard error; times in seconds (diffusion: t1+t2+t3 of a frame).")
     print(f"wrote validation.csv and validation_<case>.png (diffusion | MC multiple, or subsurface at eta != 1 "
