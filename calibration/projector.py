@@ -110,6 +110,16 @@ class PoseCorners:
     image_size: tuple[int, int]
     decoded_fraction: float
     dropped: list[int] = field(default_factory=list)  # board corners without a decoded window
+    # every corner the camera found, the dropped ones too (the camera's own calibration uses them)
+    all_object_points: NDArray[np.float32] | None = None
+    all_camera_points: NDArray[np.float32] | None = None
+
+    @property
+    def camera_view(self) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+        """Board and camera points for the camera's calibration: every corner found."""
+        if self.all_object_points is None or self.all_camera_points is None:
+            return self.object_points, self.camera_points
+        return self.all_object_points, self.all_camera_points
 
     def to_json(self) -> dict:
         return {"folder": self.folder, "corners": len(self.object_points), "dropped_corners": self.dropped,
@@ -180,7 +190,8 @@ def process_capture(folder: str | Path, board: BoardSpec, projector_size: tuple[
                          f"pixels; not lit by the projector, or lower --shadow-threshold/--bit-threshold)")
     pose = PoseCorners(str(folder), np.asarray(obj)[keep], np.asarray(cam)[keep],
                        np.asarray([proj[i] for i in keep], np.float32),
-                       (stack.shape[2], stack.shape[1]), decoded.fraction, dropped=missing)
+                       (stack.shape[2], stack.shape[1]), decoded.fraction, dropped=missing,
+                       all_object_points=np.asarray(obj), all_camera_points=np.asarray(cam))
     rms = plane_residual(pose)
     limit = max(MAX_PLANE_RESIDUAL_PX, MAX_PLANE_RESIDUAL_FRACTION * max(projector_size))
     if rms > limit:
@@ -203,6 +214,54 @@ def plane_residual(pose: PoseCorners) -> float:
         return float("inf")
     fit = cv2.perspectiveTransform(cp.reshape(-1, 1, 2), H).reshape(-1, 2)
     return float(np.sqrt(((fit - pp) ** 2).sum(axis=1).mean()))
+
+
+def plane_orientation(pose: PoseCorners) -> int:
+    """+1 or -1: whether the board's camera -> projector homography keeps or mirrors its
+    orientation (the sign of its Jacobian at the board's centre). Camera and projector see the
+    board's same face, so every pose of a rig has the same sign; a pose whose pattern and inverse
+    are swapped for the top column (or row) bit decodes the board mirrored (a Gray code with its
+    top bit flipped counts backwards), which a plane fit cannot see."""
+    cp = pose.camera_points.reshape(-1, 2).astype(np.float64)
+    pp = pose.projector_points.reshape(-1, 2).astype(np.float64)
+    H, _ = cv2.findHomography(cp, pp, 0)
+    if H is None:
+        return 0
+    x, y = cp.mean(axis=0)
+    w = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+    u, v = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / w, (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / w
+    J = np.array([[H[0, 0] - u * H[2, 0], H[0, 1] - u * H[2, 1]], [H[1, 0] - v * H[2, 0], H[1, 1] - v * H[2, 1]]]) / w
+    return int(np.sign(np.linalg.det(J)))
+
+
+#: A pose whose plane residual is this many times the median of the rig's poses (and at least
+#: :data:`OUTLIER_MIN_PX`) is refused: one swapped pair of a middle bit tears the board by tens
+#: of px where sound poses fit within a fraction of a pixel.
+OUTLIER_FACTOR = 20.0
+OUTLIER_MIN_PX = 2.0
+
+
+def inconsistent_poses(poses: Sequence[PoseCorners]) -> dict[str, str]:
+    """Poses that disagree with the rest of the rig, ``{folder: reason}``: a mirrored board
+    (:func:`plane_orientation` against the majority) or a plane residual far above the others'
+    (:data:`OUTLIER_FACTOR`). Both mean a pattern/inverse pair in the wrong order for one bit."""
+    bad: dict[str, str] = {}
+    signs = [plane_orientation(p) for p in poses]
+    if len(poses) >= 2:
+        majority = 1 if signs.count(1) >= signs.count(-1) else -1
+        for p, s in zip(poses, signs):
+            if s != majority:
+                bad[p.folder] = (f"{p.folder}: the board decodes mirrored in the projector against the other "
+                                 f"{signs.count(majority)} poses: the pattern and inverse images of the top column or "
+                                 "row bit are probably in the wrong order (each pair: pattern, then inverse)")
+    res = [plane_residual(p) for p in poses]
+    for k, (p, r) in enumerate(zip(poses, res)):
+        others = [x for j, x in enumerate(res) if j != k]
+        if others and p.folder not in bad and r > max(OUTLIER_MIN_PX, OUTLIER_FACTOR * float(np.median(others))):
+            bad[p.folder] = (f"{p.folder}: the board's decoded projector corners leave a plane by {r:.1f} px RMS where "
+                             f"the other poses leave {float(np.median(others)):.2f} px: one pattern/inverse pair is "
+                             "probably in the wrong order (each pair: pattern, then inverse), or the decoding failed")
+    return bad
 
 
 @dataclass
@@ -240,14 +299,15 @@ def calibrate_rig(poses: Sequence[PoseCorners], projector_size: tuple[int, int],
     """Camera, projector and stereo calibration from per-pose corners; with ``camera`` (e.g.
     :func:`~glsldiff.calibration.camera.load_intrinsics`) the camera is not re-calibrated."""
     if not poses:
-        raise InputError("no usable poses")
+        raise InputError("no usable poses (--skip-bad: each pose's reason is in the rig's 'rejected')")
     sizes = {p.image_size for p in poses}
     if len(sizes) > 1:
         raise InputError("camera images have different sizes across poses: "
                          + ", ".join(f"{p.folder}: {p.image_size[0]}x{p.image_size[1]}" for p in poses))
     obj = [p.object_points for p in poses]
-    if camera is None:
-        cam = calibrate_points(obj, [p.camera_points for p in poses], poses[0].image_size, flags, "camera")
+    if camera is None:      # every corner the camera found, also those the projector's decoding lost
+        cam = calibrate_points([p.camera_view[0] for p in poses], [p.camera_view[1] for p in poses],
+                               poses[0].image_size, flags, "camera")
     elif camera.size is None:  # a file that does not state it (procam-calibration's camera_config.json)
         cam = replace(camera, size=tuple(poses[0].image_size))
     elif tuple(camera.size) != tuple(poses[0].image_size):
@@ -283,6 +343,14 @@ def calibrate_folder(folder: str | Path, board: BoardSpec, projector_size: tuple
             if not skip_bad:
                 raise
             rejected.append({"folder": str(sub), "reason": str(exc)})
+    bad = inconsistent_poses(poses)
+    if bad and not skip_bad:
+        raise InputError(next(iter(bad.values())) + (f" (and {len(bad) - 1} more poses)" if len(bad) > 1 else "")
+                         + "; fix the pose or pass --skip-bad to leave it out")
+    rejected += [{"folder": p.folder, "reason": bad[p.folder]} for p in poses if p.folder in bad]
+    poses = [p for p in poses if p.folder not in bad]
+    if not poses and rejected:
+        raise InputError(f"no usable poses: all {len(rejected)} were rejected; the first: {rejected[0]['reason']}")
     rig = calibrate_rig(poses, projector_size, flags, camera)
     rig.rejected = rejected
     if output is not None:
@@ -340,6 +408,10 @@ def _calibrate(args: argparse.Namespace) -> int:
                            args.skip_bad, args.output, camera)
     for r in rig.rejected:
         print(f"  rejected {r['folder']}: {r['reason']}")
+    for p in rig.poses:
+        if p.dropped:
+            print(f"  {p.folder}: {len(p.dropped)} corners dropped for the projector (no decoded window: "
+                  f"{p.dropped[:10]}{'...' if len(p.dropped) > 10 else ''}); the camera calibration keeps them")
     print(f"poses {len(rig.poses)}; camera RMS {rig.camera.rms:.3f} px; projector RMS {rig.projector.rms:.3f} px; "
           f"stereo RMS {rig.stereo_rms:.3f} px; baseline {rig.baseline:.1f} mm -> {args.output}")
     return 0

@@ -296,6 +296,39 @@ def test_pose_with_pattern_and_inverse_swapped_is_refused(proj_data, tmp_path, p
         projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31))
 
 
+def test_pose_with_the_top_column_bit_swapped_is_refused_or_dropped(proj_data, tmp_path):
+    """Pattern and inverse of the top column bit swapped in one pose: the board decodes mirrored
+    (a plane still, so the plane check passes) and the rig came out badly wrong with exit 0
+    (stereo RMS 15.9 px, baseline 696 mm for 150 mm on the synthetic rig). Now it is refused,
+    naming the pose; with skip_bad the pose is left out and the rig is right."""
+    root = copy_poses(proj_data, tmp_path / "caps", 4)
+    _swap_pattern_and_inverse(root / "capture_001", range(1))
+    with pytest.raises(InputError, match=r"capture_001: the board decodes mirrored in the projector"):
+        projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31))
+    rig = projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31), skip_bad=True)
+    assert [Path(r["folder"]).name for r in rig.rejected] == ["capture_001"] and "mirrored" in rig.rejected[0]["reason"]
+    assert len(rig.poses) == 3 and rig.stereo_rms < 0.5 and abs(rig.baseline - 150.0) < 2.0
+
+
+def test_a_pose_far_off_the_plane_of_the_others_is_refused(proj_data, tmp_path, monkeypatch):
+    """One middle bit swapped tears the board by tens of px where sound poses fit within 0.1 px;
+    on real captures that can stay under the absolute limit (18.5 px under 20.5 px), so a pose
+    far above the others' plane residual is refused too."""
+    monkeypatch.setattr(projector, "MAX_PLANE_RESIDUAL_PX", 1e6)       # as if the absolute limit let it through
+    root = copy_poses(proj_data, tmp_path / "caps", 4)
+    _swap_pattern_and_inverse(root / "capture_002", range(4, 5))
+    with pytest.raises(InputError, match=r"capture_002: the board's decoded projector corners leave a plane by"):
+        projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31))
+
+
+def test_skip_bad_keeps_the_reason_when_every_pose_fails(proj_data, tmp_path):
+    root = copy_poses(proj_data, tmp_path / "caps", 2)
+    for sub in projector.capture_folders(root):
+        _swap_pattern_and_inverse(sub, range(18))
+    with pytest.raises(InputError, match=r"no usable poses: all 2 were rejected; the first: .*pattern and inverse"):
+        projector.calibrate_folder(root, BOARD, PROJ, projector.DecodeSettings(window=31), skip_bad=True)
+
+
 def test_one_bad_corner_keeps_its_pose(proj_data, proj_rig, tmp_path):
     """A corner whose window is not lit by the projector is dropped; the pose stays, and the
     calibration is as good as with every corner."""
@@ -310,6 +343,7 @@ def test_one_bad_corner_keeps_its_pose(proj_data, proj_rig, tmp_path):
     assert len(rig.poses) == 4
     kept = {Path(p.folder).name: p for p in rig.poses}["capture_002"]
     assert kept.dropped == [10] and len(kept.object_points) == BOARD.cols * BOARD.rows - 1
+    assert len(kept.camera_view[0]) == len(kept.camera_view[1]) == BOARD.cols * BOARD.rows   # the camera keeps it
     assert rig.stereo_rms < 0.5
 
 
