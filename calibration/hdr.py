@@ -2,8 +2,9 @@
 
 A *bracket* is one folder of 8-bit images of a static scene taken with different exposure
 times, plus the times: a sidecar file (``exposures.json`` ``{"img_00.png": 0.0333, ...}``,
-or ``exposures.csv`` / ``exposures.txt`` with two columns ``file, seconds``; seconds may be
-written ``1/30``) or, without a sidecar, each image's EXIF ``ExposureTime``. Images are read
+or ``exposures.csv`` / ``exposures.txt`` with two columns ``file, seconds``, or one column of
+seconds in the images' file-name order; seconds may be written ``1/30``) or, without a
+sidecar, each image's EXIF ``ExposureTime``. Images are read
 with OpenCV and kept as RGB ``(rows, cols, 3)`` uint8 (grey images are expanded to three
 equal channels, an alpha channel is dropped). OpenCV's Debevec calibration and merge accept
 8-bit images only: a 16-bit image is refused with an error (rescaling it to 8 bits would
@@ -37,7 +38,10 @@ percentile itself a black pixel still passes once in 1000 per exposure (~0.5 % o
 is read many times too bright; the margin keeps both out. On the simulated camera of
 :func:`~.synth_radiometric.noisy_camera` (black frame 17 / 20 / 18 at the 99.9th percentile)
 the dark pixels off by more than a factor 2 fall from 0.7-0.9 % with a cutoff of 20 to
-0.05-0.07 % (0.15-0.22 % with a margin of 2). Without a black frame ``lo`` is :data:`LO` = 20.
+0.05-0.07 % (0.15-0.22 % with a margin of 2). Without a black frame the floor is estimated
+from the bracket's shortest exposure (:func:`bracket_noise_floor`: 23 / 24 / 23 there, dark
+speckle <= 0.01 % per channel against 1.9 % in green with the fixed 20), or, where that
+exposure has too few signal-free pixels, ``lo`` is :data:`LO` = 20.
 OpenCV's Debevec merge weighs the remaining values with a fixed triangle (``cv2.MergeDebevec``
 takes no per-pixel weights, nor does ``cv2.MergeRobertson``), so the floor is where the sensor
 noise enters the merge.
@@ -157,8 +161,9 @@ def parse_seconds(text: object, where: str) -> float:
     return value
 
 
-def read_sidecar(path: Path) -> dict[str, float]:
-    """``{file name: seconds}`` from ``exposures.json`` or a two-column CSV/text file."""
+def read_sidecar(path: Path) -> dict[str, float] | list[float]:
+    """``{file name: seconds}`` from ``exposures.json`` or a two-column CSV/text file, or the
+    seconds of a one-column file (the images in file-name order)."""
     try:
         text = path.read_text()
     except (OSError, UnicodeDecodeError) as exc:
@@ -173,6 +178,10 @@ def read_sidecar(path: Path) -> dict[str, float]:
         return {str(k): parse_seconds(v, f"{path}: {k}") for k, v in data.items()}
     out = {}
     lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    cells = [[c.strip() for c in next(csv.reader([ln]))] if "," in ln else ln.split() for ln in lines]
+    if cells and all(len(row) == 1 for row in cells):         # one column: seconds in file order
+        rows = cells[1:] if not _is_number(cells[0][0]) else cells  # a header line
+        return [parse_seconds(row[0], f"{path}: line {k + 1}") for k, row in enumerate(rows)]
     for k, line in enumerate(lines):
         row = [c.strip() for c in next(csv.reader([line]))] if "," in line else line.split()
         if len(row) != 2:
@@ -238,6 +247,12 @@ def load_bracket(folder: str | os.PathLike, black: str | os.PathLike | None = No
         raise InputError(f"{root}: several exposure-time files ({', '.join(s.name for s in sidecars)}); keep one")
     if sidecars:
         table = read_sidecar(sidecars[0])
+        if isinstance(table, list):                 # one column: the images in file-name order
+            if len(table) != len(files):
+                raise InputError(f"{sidecars[0]}: {len(table)} exposure times for the {len(files)} images of "
+                                 f"{root} (one column lists one time per image, in file-name order: "
+                                 f"{', '.join(f.name for f in files[:3])}{', ...' if len(files) > 3 else ''})")
+            table = {f.name: t for f, t in zip(files, table)}
         for name in table:
             if not (root / name).is_file():
                 raise InputError(f"{sidecars[0]}: lists {name!r}, which is not in {root}")
@@ -395,17 +410,54 @@ def noise_floor(black: ArrayLike, percentile: float = NOISE_PERCENTILE,
     return np.ceil(np.percentile(b, percentile, axis=0)).astype(np.int64) + int(margin)
 
 
+#: The bracket's own noise floor needs this share of the shortest exposure at or below its most
+#: common level (signal-free pixels), and that level below :data:`LO` x 2.
+MIN_DARK_SHARE = 0.05
+
+
+def bracket_noise_floor(bracket: Bracket) -> NDArray[np.int64] | None:
+    """Per-channel noise floor ``(3,)`` estimated from the bracket itself, for a bracket without
+    a black frame: in its shortest exposure the most common level of each channel is the black
+    level of the pixels that receive no signal, and the values below it are their noise alone
+    (signal only adds), provided those pixels stay at that level in the next exposure (else they
+    are dim, not dark, and there is no estimate); the floor is ``ceil(mode + 3.09 sigma)``, ``sigma`` the RMS distance of
+    those values below the mode (the 99.9th percentile of the noise, as :func:`noise_floor` takes
+    of a black frame), and at least :data:`LO` (below it quantisation dominates even without
+    noise). On the noisy synthetic camera (black frame floor 20 / 23 / 21) it gives 23 / 24 / 23;
+    on a noise-free one :data:`LO`. None when the shortest exposure has too few signal-free pixels
+    (:data:`MIN_DARK_SHARE`)."""
+    order = np.argsort(bracket.times)
+    v = bracket.images[int(order[0])].reshape(-1, 3).astype(np.int64)
+    v2 = bracket.images[int(order[1])].reshape(-1, 3).astype(np.int64)
+    out = []
+    for c in range(3):
+        mode = int(np.bincount(v[:, c], minlength=256).argmax())
+        at_or_below = v[:, c] <= mode
+        if mode >= 2 * LO or at_or_below.mean() < MIN_DARK_SHARE:
+            return None
+        # signal-free, not merely dim: the same pixels sit at the same level in the next exposure
+        if abs(int(np.bincount(v2[at_or_below, c], minlength=256).argmax()) - mode) > 1:
+            return None
+        below = v[v[:, c] < mode, c].astype(np.float64)
+        sigma = float(np.sqrt(np.mean((below - mode) ** 2))) if len(below) else 0.0
+        out.append(int(np.ceil(mode + 3.09 * sigma)))
+    return np.maximum(np.asarray(out, dtype=np.int64), LO)    # never below the quantisation floor
+
+
 def low_cutoff(bracket: Bracket, lo: int | Sequence[int] | None = None,
                hi: int = HI) -> NDArray[np.int64]:
     """The per-channel lower cutoff ``(3,)`` a merge uses: ``lo`` when given (one value or
-    R, G, B), else the :func:`noise_floor` of the bracket's black frame, else :data:`LO`."""
+    R, G, B), else the :func:`noise_floor` of the bracket's black frame, else the bracket's own
+    (:func:`bracket_noise_floor`), else :data:`LO`."""
     if lo is not None:
         try:
             low = np.broadcast_to(np.asarray(lo, dtype=np.int64), (3,)).copy()
         except (ValueError, TypeError):
             raise InputError(f"lo={lo!r}: give one pixel value or three (R, G, B)") from None
     else:
-        low = noise_floor(bracket.black) if bracket.black is not None else np.full(3, LO, dtype=np.int64)
+        own = bracket_noise_floor(bracket) if bracket.black is None else None
+        low = (noise_floor(bracket.black) if bracket.black is not None else own if own is not None
+               else np.full(3, LO, dtype=np.int64))
     given = lo if lo is not None else low.tolist()
     if not (0 < hi < 255 and np.all(low > 0)):
         raise InputError(f"lo={given}, hi={hi}: need 0 < lo < hi < 255")
@@ -478,8 +530,12 @@ def _cmd_merge(args: argparse.Namespace) -> int:
     low = low_cutoff(bracket, args.low, args.high)  # refuse a bad cutoff before the response solve
     resp = load_response(args.response) if args.response else calibrate_response(bracket)
     img, mask = merge_bracket(bracket, resp, lo=low, hi=args.high)
+    shortest = bracket.files[int(np.argmin(bracket.times))].name
     source = ("--low" if args.low is not None else
-              f"noise floor of {bracket.black_file}" if bracket.black is not None else "default, no black frame")
+              f"noise floor of {bracket.black_file}" if bracket.black is not None else
+              f"noise floor estimated from the shortest exposure {shortest}; a black frame measures it better"
+              if bracket_noise_floor(bracket) is not None else
+              f"default {LO}: no black frame, and {shortest} has too few signal-free pixels to estimate one")
     print(f"lower cutoff R G B = {' '.join(map(str, low))} ({source})")
     png = cv2.imencode(".png", (mask[..., ::-1] * 255).astype(np.uint8))[1] if args.mask else None
     attrs = {"glsldiff": "linear relative radiance (Debevec-Malik merge, OpenCV)",
