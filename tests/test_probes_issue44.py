@@ -242,3 +242,36 @@ def test_tables_fit_100_columns_and_name_the_rest(capsys):
                                     if f"column_{k:02d}" in hidden)
     print_table("narrow", [{"a": 1.0, "b": "x"}])
     assert "not shown" not in capsys.readouterr().out
+
+
+def _ortho_scene(tmp_path, name, camera):
+    p = tmp_path / f"{name}.toml"
+    p.write_text(SCENE.format(material="", light=DIRECTIONAL).replace("width = 32\nheight = 32", "width = 64\nheight = 64")
+                 + "[camera]\n" + camera + "\n")
+    return p
+
+
+def test_orthographic_camera_shows_the_object_at_its_size(tmp_path, capsys):
+    """``[camera] type = "orthographic"``: a 20 mm sphere in a 40 mm wide view covers a disc of
+    32 px diameter in a 64 px image whatever the camera's distance, and the image is the
+    distant pinhole's (parallel view rays); fov_deg with it, or width_mm without it, is refused."""
+    from glsldiff.core import io as gio
+    disc = {}
+    for name, pos in (("near", 60), ("far", 600)):
+        scene = _ortho_scene(tmp_path, name, f'type = "orthographic"\nwidth_mm = 40\nposition = [0, 0, {pos}]\n'
+                                             'target = [0, 0, 0]')
+        assert main(["render", str(scene), "-o", str(tmp_path / f"{name}.exr")]) == 0
+        disc[name] = gio.read_exr(tmp_path / f"{name}.exr")
+    capsys.readouterr()
+    area = [(img.sum(axis=2) > 0).sum() for img in disc.values()]
+    assert all(abs(a - np.pi * 16 ** 2) < 0.06 * np.pi * 16 ** 2 for a in area), area
+    np.testing.assert_allclose(disc["near"], disc["far"], atol=0.02 * float(disc["far"].max()))
+    pinhole = _ortho_scene(tmp_path, "pin", "fov_deg = 1.0\nposition = [0, 0, 2292]\ntarget = [0, 0, 0]")
+    assert main(["render", str(pinhole), "-o", str(tmp_path / "pin.exr")]) == 0          # 40 mm wide at 2.3 m
+    pin = gio.read_exr(tmp_path / "pin.exr")
+    inner = (pin.sum(axis=2) > 0) & (disc["far"].sum(axis=2) > 0)
+    assert abs(float(pin[inner].mean() / disc["far"][inner].mean()) - 1.0) < 0.03
+    with pytest.raises(InputError, match="an orthographic camera has no field of view"):
+        load_scene(_ortho_scene(tmp_path, "bad1", 'type = "orthographic"\nfov_deg = 20'))
+    with pytest.raises(InputError, match="is the view width of an orthographic camera"):
+        load_scene(_ortho_scene(tmp_path, "bad2", "width_mm = 20"))

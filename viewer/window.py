@@ -133,7 +133,8 @@ class Viewer:
         w, h = self.window.get_framebuffer_size()
         s = with_size(self.scene, w, h)
         if self.orbit is not None:
-            s = replace(s, camera=self.orbit.camera(s.camera.fov_deg))
+            orbit = self.orbit.camera(s.camera.fov_deg)   # the scene's camera type and view width stay
+            s = replace(s, camera=replace(s.camera, position=orbit.position, target=orbit.target, up=orbit.up))
         return s
 
     # ---- frames ---------------------------------------------------------------------------

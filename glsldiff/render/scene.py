@@ -76,6 +76,8 @@ silently ignored).
     target = [0, 0, 0]
     up = [0, 1, 0]
     fov_deg = 30.0            # vertical field of view
+    # type = "orthographic"   # parallel view rays (product shots, per-pixel comparisons with path
+    # width_mm = 60.0         # tracers); width_mm: the view's width (default: the object framed)
 
     [output]
     width = 512
@@ -190,6 +192,8 @@ LIGHT_READS = {
     "area": ("type", "position", "direction", "size", "radiance", "up", "samples", "shadows"),
     "environment": ("type", "path", "scale"),
 }
+#: ``[camera].type``: a pinhole (``fov_deg``) or parallel view rays (``width_mm``).
+CAMERA_TYPES = ("perspective", "orthographic")
 SCHEMES = ("single", "hierarchical", "multigrid")
 #: Where pass 3 takes the outward flux of the exitant bracket from (``[options].flux``).
 #: smoothed: the Robin condition's flux with the bracket's q and phi smoothed along the surface over
@@ -261,6 +265,8 @@ class CameraSpec:
     target: tuple[float, float, float] | None = None
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     fov_deg: float = 30.0
+    type: str = "perspective"                             # or "orthographic" (parallel view rays)
+    width_mm: float | None = None                         # orthographic: the view's width, mm (None: framed)
 
 
 @dataclass(frozen=True)
@@ -685,8 +691,14 @@ def parse_scene(data: dict[str, Any], src: str = "<scene>", base_dir: Path = Pat
         raise InputError(f"{src}: [[lights]]: the scene has no light; add a [[lights]] table")
 
     c = _Table(src, "camera", data.get("camera", {}), _keys(CameraSpec))
+    kind = c.string("type", "perspective", CAMERA_TYPES)
+    if kind == "orthographic" and c.has("fov_deg"):
+        c.fail("fov_deg", "an orthographic camera has no field of view: give width_mm (the view's width, mm)")
+    if kind == "perspective" and c.has("width_mm"):
+        c.fail("width_mm", 'is the view width of an orthographic camera: set type = "orthographic" or leave it out')
     camera = CameraSpec(c.vec3("position", None), c.vec3("target", None), c.vec3("up", (0.0, 1.0, 0.0), nonzero=True),
-                        c.number("fov_deg", 30.0, 0.0, lo_open=True, hi=170.0))
+                        c.number("fov_deg", 30.0, 0.0, lo_open=True, hi=170.0), kind,
+                        c.number("width_mm", None, 0.0, lo_open=True, hi=MAX_SIZE_MM * 10))
     if camera.position is not None and camera.target is not None and camera.position == camera.target:
         c.fail("position", "must differ from target")
     o = _Table(src, "output", data.get("output", {}), _keys(OutputSpec))
