@@ -182,8 +182,7 @@ def read_sidecar(path: Path) -> dict[str, float] | list[float]:
     if cells and all(len(row) == 1 for row in cells):         # one column: seconds in file order
         rows = cells[1:] if not _is_number(cells[0][0]) else cells  # a header line
         return [parse_seconds(row[0], f"{path}: line {k + 1}") for k, row in enumerate(rows)]
-    for k, line in enumerate(lines):
-        row = [c.strip() for c in next(csv.reader([line]))] if "," in line else line.split()
+    for k, (line, row) in enumerate(zip(lines, cells)):
         if len(row) != 2:
             raise InputError(f"{path}: line {line!r}: expected two columns 'file, seconds'")
         if k == 0 and not _is_number(row[1]):  # header line

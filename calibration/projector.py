@@ -207,13 +207,19 @@ def plane_residual(pose: PoseCorners) -> float:
     its camera corners: the board is a plane, so a sound decoding leaves lens distortion
     (a few px at most); a pose with pattern and inverse swapped decodes codes with their top
     bit flipped and tears the board in two (hundreds of px)."""
-    cp = pose.camera_points.reshape(-1, 2).astype(np.float64)
-    pp = pose.projector_points.reshape(-1, 2).astype(np.float64)
-    H, _ = cv2.findHomography(cp, pp, 0)
+    cp, pp, H = _board_homography(pose)
     if H is None:
         return float("inf")
     fit = cv2.perspectiveTransform(cp.reshape(-1, 1, 2), H).reshape(-1, 2)
     return float(np.sqrt(((fit - pp) ** 2).sum(axis=1).mean()))
+
+
+def _board_homography(pose: PoseCorners) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray | None]:
+    """The pose's camera and projector corners ``(N, 2)`` and the least-squares homography from
+    the first to the second (None where there is none)."""
+    cp = pose.camera_points.reshape(-1, 2).astype(np.float64)
+    pp = pose.projector_points.reshape(-1, 2).astype(np.float64)
+    return cp, pp, cv2.findHomography(cp, pp, 0)[0]
 
 
 def plane_orientation(pose: PoseCorners) -> int:
@@ -222,9 +228,7 @@ def plane_orientation(pose: PoseCorners) -> int:
     board's same face, so every pose of a rig has the same sign; a pose whose pattern and inverse
     are swapped for the top column (or row) bit decodes the board mirrored (a Gray code with its
     top bit flipped counts backwards), which a plane fit cannot see."""
-    cp = pose.camera_points.reshape(-1, 2).astype(np.float64)
-    pp = pose.projector_points.reshape(-1, 2).astype(np.float64)
-    H, _ = cv2.findHomography(cp, pp, 0)
+    cp, _, H = _board_homography(pose)
     if H is None:
         return 0
     x, y = cp.mean(axis=0)

@@ -148,8 +148,7 @@ def test_render_prints_a_short_report_and_writes_the_full_one(tmp_path, capsys):
 def test_ctrl_c_inside_ftetwild_is_honoured(tmp_path, signame, code, word):
     """A real SIGINT (or SIGTERM) while fTetWild meshes (``tet``; ``cut`` meshes the same way):
     exit 130 (143) within 2 s with the one-line message, no output folder and no fTetWild scratch
-    folder left (fTetWild used to end the program with no word, leaving both); a "still meshing"
-    line every 10 s before that."""
+    folder left (fTetWild used to end the program with no word, leaving both)."""
     import os
     import signal
     import subprocess

@@ -154,16 +154,12 @@ def _tetwild_child(conn: Any, v: NDArray, f: NDArray, edge_mm: float, epsilon: f
         conn.close()
 
 
-#: Seconds between the "still meshing" lines while fTetWild runs.
-HEARTBEAT_S = 10.0
-
-
-def _run_tetwild(v: NDArray, f: NDArray, edge_mm: float, epsilon: float, threads: int,
-                 status: Callable[[str], None] | None = None) -> tuple[NDArray, NDArray]:
+def _run_tetwild(v: NDArray, f: NDArray, edge_mm: float, epsilon: float, threads: int) -> tuple[NDArray, NDArray]:
     """``pytetwild.tetrahedralize`` in a child process, in a temporary working directory removed
     afterwards: a Ctrl-C (which the C++ code would otherwise take, ending the whole program with
     no word and leaving its files) reaches this process within 0.2 s, ends the child and
-    raises KeyboardInterrupt here. ``status`` gets a line every :data:`HEARTBEAT_S` seconds."""
+    raises KeyboardInterrupt here (the command's heartbeat, :mod:`glsldiff.core.heartbeat`, keeps
+    the user informed meanwhile)."""
     mp = multiprocessing.get_context("spawn")
     receive, send = mp.Pipe(duplex=False)
     with tempfile.TemporaryDirectory(prefix="glsldiff-tetwild-") as tmp:
@@ -177,12 +173,8 @@ def _run_tetwild(v: NDArray, f: NDArray, edge_mm: float, epsilon: float, threads
             if main:
                 signal.signal(signal.SIGINT, old)
         send.close()
-        t0 = next_line = time.perf_counter()
         try:
             while not receive.poll(0.2):
-                if status is not None and time.perf_counter() - next_line >= HEARTBEAT_S:
-                    next_line = time.perf_counter()
-                    status(f"tetwild: still meshing ({next_line - t0:.0f} s)")
                 if not child.is_alive():
                     raise InputError(f"fTetWild stopped without a result (exit code {child.exitcode}); repair the "
                                      "mesh (pymeshlab) or change the edge length")
@@ -290,7 +282,7 @@ def tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, threads: i
         status(f"tetwild: meshing {mesh.name} ({len(f):,} triangles) at edge {edge_mm:g} mm: seconds to minutes")
     t0 = time.perf_counter()
     try:
-        X, T = _run_tetwild(v, f, edge_mm, epsilon, threads, status)
+        X, T = _run_tetwild(v, f, edge_mm, epsilon, threads)
     except InputError as exc:
         raise InputError(f"mesh {mesh.name!r}: {exc}") from None
     t_mesh = time.perf_counter() - t0

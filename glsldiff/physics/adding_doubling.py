@@ -205,18 +205,21 @@ class HalfspaceTables:
     single: NDArray[np.float64]
     escape_table: NDArray[np.float64]
 
-    def _lookup(self, table: NDArray, albedo: ArrayLike, *cosines: ArrayLike) -> NDArray[np.float64]:
-        a = np.clip(np.asarray(albedo, dtype=np.float64), 0.0, 1.0)
-        fu = np.sqrt(1.0 - a) * (len(self.u) - 1)
+    def _albedo_cell(self, albedo: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Lower table index and weight of the upper one, linear in ``u = sqrt(1 - a)``."""
+        fu = np.sqrt(1.0 - np.clip(np.asarray(albedo, dtype=np.float64), 0.0, 1.0)) * (len(self.u) - 1)
         k = np.clip(np.floor(fu).astype(np.int64), 0, len(self.u) - 2)
-        du = fu - k
-        grid = self.nu
-        idx, frac = [], []
-        for c in cosines:
-            x = np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)
-            i = np.clip(np.searchsorted(grid, x) - 1, 0, len(grid) - 2)
-            idx.append(i)
-            frac.append((x - grid[i]) / (grid[i + 1] - grid[i]))
+        return k, fu - k
+
+    def _cosine_cell(self, cosine: ArrayLike) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+        """Lower ``nu`` node index and weight of the upper one, linear in the cosine."""
+        x = np.clip(np.asarray(cosine, dtype=np.float64), 0.0, 1.0)
+        i = np.clip(np.searchsorted(self.nu, x) - 1, 0, len(self.nu) - 2)
+        return i, (x - self.nu[i]) / (self.nu[i + 1] - self.nu[i])
+
+    def _lookup(self, table: NDArray, albedo: ArrayLike, *cosines: ArrayLike) -> NDArray[np.float64]:
+        k, du = self._albedo_cell(albedo)
+        idx, frac = zip(*(self._cosine_cell(c) for c in cosines))
         out = 0.0
         for dk, wk in ((0, 1.0 - du), (1, du)):
             if len(cosines) == 1:
@@ -252,18 +255,16 @@ class HalfspaceTables:
         if depth_mfp is None:
             return self._lookup(self.escape_table[:, -1], albedo, nu_out)
         a, x, d = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (albedo, nu_out, depth_mfp)))
-        fu = np.sqrt(1.0 - np.clip(a, 0.0, 1.0)) * (len(self.u) - 1)
-        k = np.clip(np.floor(fu).astype(np.int64), 0, len(self.u) - 2)
+        k, du = self._albedo_cell(a)
+        i, f = self._cosine_cell(x)
         p = np.interp(d, ESCAPE_DEPTHS, np.arange(len(ESCAPE_DEPTHS), dtype=np.float64))
         j = np.clip(np.floor(p).astype(np.int64), 0, len(ESCAPE_DEPTHS) - 2)
-        x = np.clip(x, 0.0, 1.0)
-        i = np.clip(np.searchsorted(self.nu, x) - 1, 0, len(self.nu) - 2)
-        weights = (fu - k, p - j, (x - self.nu[i]) / (self.nu[i + 1] - self.nu[i]))
+        weights = (du, p - j, f)
         out = np.zeros(a.shape)
         for corner in np.ndindex(2, 2, 2):       # trilinear in sqrt(1 - albedo), depth and cosine
-            w = np.prod([f if c else 1.0 - f for c, f in zip(corner, weights)], axis=0)
+            w = np.prod([g if c else 1.0 - g for c, g in zip(corner, weights)], axis=0)
             out += w * self.escape_table[k + corner[0], j + corner[1], i + corner[2]]
-        return out * np.asarray(fresnel_transmittance(self.eta, x))
+        return out * np.asarray(fresnel_transmittance(self.eta, np.clip(x, 0.0, 1.0)))
 
 
 def _linear_ends(table: NDArray[np.float64], nu: NDArray[np.float64], dims: int) -> NDArray[np.float64]:

@@ -47,13 +47,18 @@ class RenderReport:
                    + (f" (setup {t['setup']:.2f} s)" if "setup" in t else ""))
         if self.solver is not None:
             out.append("solver: " + self.solver.summary())
-        if self.clamped_vertices:
-            out.append(f"exitant radiance clamped to 0 at {self.clamped_vertices} vertices: {self.clamped_deep} "
-                       f"from below -1 % of the largest (down to -{self.clamped_depth:.2g}: diffusion undershoot), "
-                       f"{self.clamped_vertices - self.clamped_deep} within 1 % (undershoot or the solve's tolerance; a "
-                       "tighter [options].tol tells them apart)")
+        out.extend(self._clamped_lines())
         out.extend(self.notes)
         return out
+
+    def _clamped_lines(self) -> list[str]:
+        """The line on vertices whose exitant radiance was clamped to 0, if any."""
+        if not self.clamped_vertices:
+            return []
+        return [f"exitant radiance clamped to 0 at {self.clamped_vertices} vertices: {self.clamped_deep} "
+                f"from below -1 % of the largest (down to -{self.clamped_depth:.2g}: diffusion undershoot), "
+                f"{self.clamped_vertices - self.clamped_deep} within 1 % (undershoot or the solve's tolerance; a "
+                "tighter [options].tol tells them apart)"]
 
     def summary_lines(self) -> list[str]:
         """The short report of ``glsldiff render`` (:meth:`lines` is the full one): the grid, the
@@ -70,7 +75,7 @@ class RenderReport:
             out.append("solver: " + self.solver.summary().splitlines()[0])      # the per-level rows: -v
         out.append(f"time: frame {self.frame_seconds:.2f} s = {times} s" + (f"; set-up {t['setup']:.2f} s" if "setup" in t
                                                                            else "") + (f"; pass 2: {why[0]}" if why else ""))
-        out.extend(line for line in self.lines() if line.startswith("exitant radiance clamped"))
+        out.extend(self._clamped_lines())
         return out
 
     def as_dict(self) -> dict[str, Any]:
