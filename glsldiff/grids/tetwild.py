@@ -164,14 +164,17 @@ def _run_tetwild(v: NDArray, f: NDArray, edge_mm: float, epsilon: float, threads
     receive, send = mp.Pipe(duplex=False)
     with tempfile.TemporaryDirectory(prefix="glsldiff-tetwild-") as tmp:
         main = threading.current_thread() is threading.main_thread()
-        old = signal.signal(signal.SIGINT, signal.SIG_IGN) if main else None   # the child starts ignoring Ctrl-C
+        # Ctrl-C blocked (held, not lost) while the child starts: it inherits the block and ignores
+        # the signal; here it is delivered once the block lifts
+        if main:
+            signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
         try:
             child = mp.Process(target=_tetwild_child, args=(send, v, f, float(edge_mm), float(epsilon), int(threads),
                                                             tmp), daemon=True)
             child.start()
         finally:
             if main:
-                signal.signal(signal.SIGINT, old)
+                signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         send.close()
         try:
             while not receive.poll(0.2):
