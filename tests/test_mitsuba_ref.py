@@ -123,6 +123,18 @@ def test_image_orientation_and_determinism(cam):
     np.testing.assert_array_equal(img, again)
 
 
+@pytest.mark.parametrize("distance", [60.0, 600.0])
+def test_orthographic_camera_sees_parallel_rays(distance):
+    """``width_mm``: Mitsuba's orthographic sensor, same orientation as the pinhole (row 0 = +y,
+    column 0 = -x); a 4 mm block in a 16 mm wide, 16 px view covers 4 x 4 pixels at 60 mm and
+    at 600 mm alike (a pinhole's coverage would shrink tenfold)."""
+    ortho = McCamera((0, 0, distance), (0, 0, 0), (0, 1, 0), 12.0, 16, 16, width_mm=16.0)
+    block = box_mesh((4, 4, 4), origin=(2, 2, -2))    # x, y in [2, 6]: columns 10..13, rows 2..5
+    img, _ = render_mitsuba(block, 5.0, 0.0, 1.0, ortho, CONST, spp=4, seed=7)
+    rows, cols = np.nonzero(img[..., 0] < 1.0)
+    assert (rows.min(), rows.max(), cols.min(), cols.max()) == (2, 5, 10, 13)
+
+
 def test_envmap_z_up_frame():
     """An EnvironmentLight in the glsldiff lat-long convention (glsldiff.physics.sh.latlong_directions).
     A map holding 1 + its own pixel-centre direction returns 1 + d for any view direction d (up
@@ -209,6 +221,7 @@ def test_bad_input(cube, cam, change, field):
     (dict(target=(0, 0, 60)), "target"),
     (dict(up=(0, 0, 1)), "up"),
     (dict(origin=(0, np.inf, 60)), "origin"),
+    (dict(width_mm=0.0), "width_mm"),
 ])
 def test_bad_camera(kwargs, field):
     args = dict(origin=(0, 0, 60), target=(0, 0, 0), up=(0, 1, 0), fov_deg=12.0, width=4, height=4)

@@ -17,8 +17,8 @@ the physical truth:
   see :mod:`glsldiff.validation.mitsuba`): the incoming ``q`` at each lit-face node is its exact
   irradiance (:func:`glsldiff.physics.area.area_beams`; 1 inside the region, a narrow
   penumbra at its edge);
-* the observed face ``z+`` is imaged by a pinhole 2 m away with one pixel per face node (pixel
-  centres on the nodes, box filter over the node's cell); the unscattered light (the
+* the observed face ``z+`` is imaged by an orthographic camera with one pixel per face node (pixel
+  centres on the nodes, box filter over the node's cell; parallel rays, no perspective); the unscattered light (the
   rectangle seen straight through the block) is removed exactly, path by path
   (:func:`glsldiff.validation.mitsuba.render_scattering_orders`), as the capture's projector
   would not send it to the camera. Single and multiple scattering stay: the diffusion model is
@@ -43,7 +43,7 @@ from glsldiff.validation.mitsuba import McCamera, check_ldsampler_spp, render_sc
 __all__ = ["mitsuba_measurements", "GAP_MM", "CAMERA_DISTANCE_MM"]
 
 GAP_MM = 0.02
-CAMERA_DISTANCE_MM = 2000.0
+CAMERA_DISTANCE_MM = 100.0      # an orthographic camera: one pixel per face node, any distance
 
 
 def _region_light(r: tuple[slice, slice], h: float, low: NDArray) -> AreaLight:
@@ -76,8 +76,8 @@ def mitsuba_measurements(kappa: NDArray, mu: NDArray, h: float, n: int, spp: int
     volume = {"sigma_a": mu, "sigma_s": sigma_s, **box}
     fy, fx = ny - 2, nx - 2
     top = low[2] + ext[2]
-    fov = 2.0 * math.degrees(math.atan(0.5 * fy * h / CAMERA_DISTANCE_MM))
-    cam = McCamera((0.0, 0.0, top + CAMERA_DISTANCE_MM), (0.0, 0.0, top), (0.0, 1.0, 0.0), fov, fx, fy)
+    cam = McCamera((0.0, 0.0, top + CAMERA_DISTANCE_MM), (0.0, 0.0, top), (0.0, 1.0, 0.0), 30.0, fx, fy,
+                   width_mm=fx * h)         # pixel (i, j) centred on face node (i, j)
     jj, ii = np.meshgrid(np.arange(fx), np.arange(fy))
     lit_nodes = low + np.stack([(jj.ravel() + 1) * h, (ii.ravel() + 1) * h, np.zeros(fx * fy)], 1)
     down = np.tile([0.0, 0.0, -1.0], (len(lit_nodes), 1))

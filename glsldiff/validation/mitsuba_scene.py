@@ -37,7 +37,7 @@ def positive_int(name: str, value: Any) -> int:
 
 @dataclass(frozen=True)
 class McCamera:
-    """Pinhole camera for :func:`render_mitsuba`.
+    """Pinhole or orthographic camera for :func:`render_mitsuba`.
 
     Attributes
     ----------
@@ -49,6 +49,10 @@ class McCamera:
         *Vertical* field of view in degrees, 0 < fov < 180 (Mitsuba ``fov_axis = "y"``).
     width, height
         Image size in pixels.
+    width_mm
+        When given, an orthographic camera (Mitsuba's ``orthographic`` sensor: parallel rays
+        along the view) whose image is ``width_mm`` wide (square pixels); ``fov_deg`` is then
+        unused. Per-pixel comparisons with a grid need it (a pinhole far away only approaches it).
     """
 
     origin: tuple[float, float, float]
@@ -57,6 +61,7 @@ class McCamera:
     fov_deg: float
     width: int
     height: int
+    width_mm: float | None = None
 
     def __post_init__(self) -> None:
         o, t, u = (checks.vector3(getattr(self, n), f"camera.{n}") for n in ("origin", "target", "up"))
@@ -72,6 +77,11 @@ class McCamera:
         for name, v in (("origin", o), ("target", t), ("up", u)):
             object.__setattr__(self, name, tuple(float(x) for x in v))
         object.__setattr__(self, "fov_deg", fov)
+        if self.width_mm is not None:
+            w = float(checks.finite_array(self.width_mm, "camera.width_mm"))
+            if not w > 0.0:
+                raise InputError(f"camera.width_mm must be > 0 (mm), got {w}")
+            object.__setattr__(self, "width_mm", w)
         object.__setattr__(self, "width", positive_int("camera.width", self.width))
         object.__setattr__(self, "height", positive_int("camera.height", self.height))
 
@@ -285,10 +295,13 @@ def z_up_to_mitsuba(img: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 def sensor_dict(mi: Any, cam: McCamera, spp: int, seed: int, sampler: str) -> dict[str, Any]:
-    return {"type": "perspective", "fov": cam.fov_deg, "fov_axis": "y",
-            "near_clip": 1e-3, "far_clip": 1e7,
-            "to_world": mi.ScalarTransform4f().look_at(origin=list(cam.origin), target=list(cam.target),
-                                                       up=list(cam.up)),
+    look = mi.ScalarTransform4f().look_at(origin=list(cam.origin), target=list(cam.target), up=list(cam.up))
+    if cam.width_mm is None:
+        kind = {"type": "perspective", "fov": cam.fov_deg, "fov_axis": "y", "to_world": look}
+    else:   # Mitsuba's orthographic image spans [-1, 1] across x (and 1/aspect along y) before to_world
+        half = 0.5 * cam.width_mm
+        kind = {"type": "orthographic", "to_world": look @ mi.ScalarTransform4f().scale([half, half, 1.0])}
+    return {**kind, "near_clip": 1e-3, "far_clip": 1e7,
             "sampler": {"type": sampler, "sample_count": spp, "seed": seed},
             "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height,
                      "pixel_format": "rgb", "component_format": "float32", "rfilter": {"type": "box"}}}
