@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
 """Re-run the bad-input probes of the hardening issue against the installed ``glsldiff``
 and print one row per probe: exit code, stderr line count, seconds, files left behind, and
-the first stderr line. Run from the repository root: ``.venv/bin/python .ci/probes.py``.
-Each probe runs in a fresh temporary folder with GLSLDIFF_GL=osmesa and the cache off."""
+the first stderr line. Run from the repository root: ``.venv/bin/python .ci/probes.py``
+(``--only capture``: only the probes whose name contains "capture", the ``glsldiff capture``
+steps). Each probe runs in a fresh temporary folder with GLSLDIFF_GL=osmesa and the cache off."""
 from __future__ import annotations
 
+import argparse
 import os
 import signal
 import subprocess
@@ -146,6 +148,23 @@ PROBES = [
     ("edit --set mu -1", lambda d: (synth(d, "8", "8", "4", "2"), ["edit", str(d / "m_truth.npz"), "--set", "mu", "-1",
                                                                   "-o", "e.npz"])[1]),
     ("cut --stroke -500,-500", lambda d: ["cut", "--stroke", "-500,-500", "-o", "c.exr"]),
+    # the capture pipeline (glsldiff capture STEP): bad input is one line and exit 2
+    ("capture merge: no such bracket folder", lambda d: ["capture", "merge", "nowhere", "-o", "m.exr"]),
+    ("capture camera: folder without images", lambda d: (d.joinpath("e").mkdir(), ["capture", "camera", "e",
+                                                         "--board", "9x7", "--square", "20"])[1]),
+    ("capture calibrate --board 9by7", lambda d: ["capture", "calibrate", "x", "--board", "9by7", "--square", "20",
+                                                  "--projector", "512x384"]),
+    ("capture patterns -o /proc/pat", lambda d: ["capture", "patterns", "--projector", "37x21", "-o", "/proc/pat"]),
+    ("capture plan --face-corners 1,2 3 4,5 6,7", lambda d: ["capture", "plan", "p", "--shape", "6", "14", "14", "--h",
+                                                             "0.5", "--face-corners", "1,2", "3", "4,5", "6,7"]),
+    ("capture measure: no plan.json", lambda d: (d.joinpath("c").mkdir(), ["capture", "measure", "c", "--corners",
+                                                 "1,1", "9,1", "9,9", "1,9", "-o", "m.npz"])[1]),
+    ("capture white-balance: broken EXR", lambda d: (d.joinpath("w.exr").write_bytes(b"garbage"),
+                                                     ["capture", "white-balance", "w.exr", "-o", "wb.json"])[1]),
+    ("capture virtual: output folder not empty", lambda d: (d.joinpath("v").mkdir(),
+                                                            d.joinpath("v", "x").write_text("x"),
+                                                            ["capture", "virtual", "v"])[2]),
+    ("capture without a step", lambda d: ["capture"]),
     # first run
     ("bare glsldiff", lambda d: []),
     ("validate without Mitsuba (if absent)", lambda d: ["validate", "--out", "v"]),
@@ -159,9 +178,18 @@ INTERRUPTS = [
 ]
 
 
-def main() -> int:
-    rows = [run(name, make) for name, make in PROBES]
-    rows += [run(name, make, after) for name, make, after in INTERRUPTS]
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description="Re-run the bad-input probes against the installed glsldiff and "
+                                                 "print a Markdown table.")
+    parser.add_argument("--only", metavar="TEXT", action="append",
+                        help="run only the probes whose name contains TEXT (repeatable; e.g. --only capture)")
+    args = parser.parse_args(argv)
+
+    def chosen(name: str) -> bool:
+        return not args.only or any(text in name for text in args.only)
+
+    rows = [run(name, make) for name, make in PROBES if chosen(name)]
+    rows += [run(name, make, after) for name, make, after in INTERRUPTS if chosen(name)]
     print("| probe | exit | stderr lines | s | files left | message |")
     print("|---|---|---|---|---|---|")
     for r in rows:

@@ -22,11 +22,11 @@ camera is recalibrated once.
      "board": {"kind", "cols", "rows", "square_mm", "marker_mm", "dictionary"},
      "flags": int}                              # cv2.calibrateCamera flags
 
-Command: ``python -m glsldiff.calibration.camera IMAGES_OR_FOLDERS --board 9x7 --square 20
--o camera.json`` (see ``--help``). Errors print one line ``glsldiff-calibration: error: ...``
-and exit with status 2. A projector capture root (a folder with ``capture_*`` sub-folders) or
-one ``capture_*`` folder contributes the white frame of each pose: the second to last image of
-its Gray-code sequence (:func:`~.graycode.sequence_images`: patterns, then white, then black).
+Command: ``glsldiff capture camera IMAGES_OR_FOLDERS --board 9x7 --square 20 -o camera.json``
+(see ``--help``). Errors print one line ``glsldiff: error: ...`` and exit with status 2. A
+projector capture root (a folder with ``capture_*`` sub-folders) or one ``capture_*`` folder
+contributes the white frame of each pose: the second to last image of its Gray-code sequence
+(:func:`~.graycode.sequence_images`: patterns, then white, then black).
 
 :func:`load_intrinsics` also reads kamino410/procam-calibration's camera parameter file
 (``camera_config.json``: ``{"camera": {"P": 9 numbers (3x3 K, row by row), "distortion":
@@ -35,10 +35,8 @@ its content; without ``width``/``height`` the image size is taken from the captu
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import sys
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -48,9 +46,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.graycode import capture_folders, list_images, read_gray, sequence_images
-from glsldiff.calibration.common import parse_size, run_command, save_json
+from glsldiff.calibration.common import save_json
 from glsldiff.core.checks import choice, real
-from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
@@ -338,8 +335,11 @@ def calibrate_views(names: Sequence[str], object_points: Sequence[NDArray], imag
 def calibrate_camera(images: Sequence[str | os.PathLike], board: BoardSpec, flags: int = DEFAULT_FLAGS,
                      drop_outliers: bool = False, outlier_factor: float = 3.0, outlier_px: float = 1.0,
                      skip_bad: bool = False, output: str | os.PathLike | None = None) -> CameraCalibration:
-    """Calibrate a camera from board images (files or folders); write ``output`` JSON when
-    given (atomically, only after success)."""
+    """Calibrate a camera from board images (files or folders, :func:`expand_inputs`); ``flags``
+    are ``cv2.calibrateCamera``'s (:func:`calibration_flags`); a view whose RMS exceeds
+    ``outlier_factor`` x the median view RMS and ``outlier_px`` px is flagged, and left out with
+    ``drop_outliers``; an image without the board is skipped with ``skip_bad`` (else an error).
+    Writes ``output`` JSON when given (atomically, only after success)."""
     paths, objs, imgs, size, rejected = detect_views(expand_inputs(images), board, skip_bad)
     result = calibrate_views([str(p) for p in paths], objs, imgs, size, board, flags, drop_outliers,
                              outlier_factor, outlier_px, rejected)
@@ -348,60 +348,7 @@ def calibrate_camera(images: Sequence[str | os.PathLike], board: BoardSpec, flag
     return result
 
 
-def add_board_arguments(p: argparse.ArgumentParser) -> None:
-    """``--board --square --charuco --marker --dictionary`` options."""
-    p.add_argument("--board", type=parse_size, required=True, metavar="COLSxROWS",
-                   help="inner corners, e.g. 9x7 (a ChArUco board with 9x7 inner corners has 10x8 squares)")
-    p.add_argument("--square", type=float, required=True, help="square size, mm")
-    p.add_argument("--charuco", action="store_true", help="ChArUco board instead of a plain chessboard")
-    p.add_argument("--marker", type=float, help="ChArUco marker size, mm")
-    p.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco ArUco dictionary (default %(default)s)")
-    p.add_argument("--fix-k3", action=argparse.BooleanOptionalAction, default=True,
-                   help="keep the k3 radial distortion term at 0 (default on)")
-
-
-def board_from_args(args: argparse.Namespace) -> BoardSpec:
-    return BoardSpec(args.board[0], args.board[1], args.square, "charuco" if args.charuco else "chessboard",
-                     args.marker, args.dictionary)
-
-
-def flags_from_args(args: argparse.Namespace) -> int:
-    return cv2.CALIB_FIX_K3 if args.fix_k3 else 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    p = CommandParser(prog="python -m glsldiff.calibration.camera",
-                                description="Camera intrinsics from chessboard/ChArUco images (Zhang's method).")
-    p.add_argument("inputs", nargs="+",
-                   help="image files and/or folders of images; a projector capture folder (with capture_* "
-                        "sub-folders) or a capture_* folder gives the white frame of each pose (the second to "
-                        "last image of its Gray-code sequence), so the projector captures calibrate the camera too")
-    add_board_arguments(p)
-    p.add_argument("-o", "--output", default="camera.json", help="output JSON (default %(default)s)")
-    p.add_argument("--drop-outliers", action="store_true",
-                   help="drop views with RMS > 3x median and > 1 px, then recalibrate")
-    p.add_argument("--skip-bad", action="store_true", help="skip images where the board is not found")
-    return p
-
-
-def _run(args: argparse.Namespace) -> int:
-    res = calibrate_camera(args.inputs, board_from_args(args), flags_from_args(args), args.drop_outliers,
-                           skip_bad=args.skip_bad, output=args.output)
-    i = res.intrinsics
-    for f, e, o in zip(res.files, i.per_view_rms, res.outlier):
-        print(f"  {f}: {e:.3f} px{'  OUTLIER' if o else ''}")
-    for r in res.rejected:
-        print(f"  rejected {r['file']}: {r['reason']}")
-    print(f"camera RMS {i.rms:.3f} px over {len(res.files)} views; fx {i.K[0, 0]:.2f} fy {i.K[1, 1]:.2f} "
-          f"cx {i.K[0, 2]:.2f} cy {i.K[1, 2]:.2f} px -> {args.output}")
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    p = build_parser()
-    p.set_defaults(func=_run)
-    return run_command(p, argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+def calibration_flags(fix_k3: bool = True) -> int:
+    """``cv2.calibrateCamera`` flags: :data:`DEFAULT_FLAGS` (the k3 radial distortion term kept
+    at 0) with ``fix_k3``, else none (k3 estimated too)."""
+    return DEFAULT_FLAGS if fix_k3 else 0

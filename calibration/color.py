@@ -18,12 +18,12 @@ half of every grid cell is sampled.
   all-white image), mean and standard deviation over the patches (or over the cells of a
   rectangle given instead of the chart).
 
-Command line: ``python -m glsldiff.calibration.color {white-balance,black-level} --help``.
+Command line: ``glsldiff capture white-balance --help`` and ``glsldiff capture black-level --help``
+(:func:`white_balance_file`, :func:`black_level_files`).
 """
 from __future__ import annotations
 
-import argparse
-import sys
+import os
 from dataclasses import asdict, dataclass
 from typing import Sequence
 
@@ -31,9 +31,8 @@ import cv2
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.calibration.common import parse_points, run_command, save_json
+from glsldiff.calibration.common import save_json
 from glsldiff.calibration.hdr import read_hdr
-from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import tonemap
 
@@ -209,68 +208,40 @@ def black_level(black: ArrayLike, white: ArrayLike, polygons: ArrayLike, method:
     return BlackLevel(ratio.mean(axis=0), ratio.std(axis=0), len(ratio), method)
 
 
-# ----------------------------------------------------------------------------- command line
+# ----------------------------------------------------------------------------- files
 
 def _jsonable(obj: object) -> dict:
     return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(obj).items()}
 
 
-def _cmd_white_balance(args: argparse.Namespace) -> int:
-    corners = parse_points(args.corners, "--corners")
-    wb = white_balance(read_hdr(args.image), corners, args.patches, name=args.image)
+def white_balance_file(image: str | os.PathLike, output: str | os.PathLike, corners: ArrayLike | None = None,
+                       patches: str = "neutral") -> WhiteBalance:
+    """White-balance gains from the HDR image (OpenEXR) ``image`` of the chart under a projected
+    white image, written to the JSON file ``output`` (atomically). ``corners``: the chart's four
+    corner pixels ``(4, 2)`` when ``cv2.mcc`` does not find it (:func:`grid_patches`);
+    ``patches``: ``"neutral"`` (the 6 grey patches) or ``"all"``."""
+    wb = white_balance(read_hdr(image), corners, patches, name=str(image))
     data = {"description": "white-balance gains (R, G, B; G = 1): multiply linear HDR images by them",
-            "image": str(args.image), "patches": args.patches, **_jsonable(wb)}
-    save_json(args.output, data)
-    print(f"{args.output}: gains R G B = {np.round(wb.gains, 4).tolist()} (chart by {wb.method})")
-    return 0
+            "image": str(image), "patches": patches, **_jsonable(wb)}
+    save_json(output, data)
+    return wb
 
 
-def _cmd_black_level(args: argparse.Namespace) -> int:
-    corners = parse_points(args.corners, "--corners")
-    black, white = read_hdr(args.black), read_hdr(args.white)
-    if args.roi:
-        polys, how = roi_cells(args.roi), "roi"
+def black_level_files(black: str | os.PathLike, white: str | os.PathLike, output: str | os.PathLike,
+                      corners: ArrayLike | None = None, roi: Sequence[float] | None = None) -> BlackLevel:
+    """Projector black level from HDR images (OpenEXR) under a projected black and white image,
+    written to the JSON file ``output`` (atomically): over the chart's patches (found by
+    ``cv2.mcc``, or from ``corners``, pixels, as in :func:`white_balance_file`), or over the
+    cells of the rectangle ``roi = (x, y, width, height)`` pixels instead of the chart."""
+    black_img, white_img = read_hdr(black), read_hdr(white)
+    if roi:
+        polys, how = roi_cells(roi), "roi"
     else:
-        polys, how = chart_patches(white, corners, args.white)
-        _check_order(region_means(white, polys), args.white, how)
-    bl = black_level(black, white, polys, how, (args.black, args.white))
+        polys, how = chart_patches(white_img, corners, str(white))
+        _check_order(region_means(white_img, polys), str(white), how)
+    bl = black_level(black_img, white_img, polys, how, (str(black), str(white)))
     data = {"description": "projector black level: HDR(black) / HDR(white) per channel (R, G, B), "
                            "mean and standard deviation over the regions",
-            "black_image": str(args.black), "white_image": str(args.white), **_jsonable(bl)}
-    save_json(args.output, data)
-    print(f"{args.output}: black level R G B = {np.round(bl.mean, 5).tolist()} "
-          f"+- {np.round(bl.std, 5).tolist()} over {bl.count} {how} regions")
-    return 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = CommandParser(prog="python -m glsldiff.calibration.color",
-                                     description="White balance and projector black level from linear HDR "
-                                                 "(OpenEXR) images of a Macbeth ColorChecker.")
-    sub = parser.add_subparsers(dest="command", required=True)
-    corners_help = ("chart corners in pixels when cv2.mcc does not find it: outer corners of patches "
-                    "1, 6, 24, 19 (X,Y X,Y X,Y X,Y)")
-    p = sub.add_parser("white-balance", help="per-channel gains from the chart under a projected white image")
-    p.add_argument("image", help="HDR image (OpenEXR) of the chart under projected white")
-    p.add_argument("-o", "--output", required=True, help="JSON file to write")
-    p.add_argument("--corners", nargs=4, metavar="X,Y", help=corners_help)
-    p.add_argument("--patches", choices=("neutral", "all"), default="neutral",
-                   help="patches of the fit (default: the 6 grey patches)")
-    p.set_defaults(func=_cmd_white_balance)
-    p = sub.add_parser("black-level", help="projector black/white ratio per channel")
-    p.add_argument("black", help="HDR image (OpenEXR) under a projected black image")
-    p.add_argument("white", help="HDR image (OpenEXR) under a projected white image")
-    p.add_argument("-o", "--output", required=True, help="JSON file to write")
-    p.add_argument("--corners", nargs=4, metavar="X,Y", help=corners_help)
-    p.add_argument("--roi", nargs=4, type=float, metavar=("X", "Y", "W", "H"),
-                   help="use this rectangle (pixels) instead of the chart")
-    p.set_defaults(func=_cmd_black_level)
-    return parser
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return run_command(build_parser(), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+            "black_image": str(black), "white_image": str(white), **_jsonable(bl)}
+    save_json(output, data)
+    return bl

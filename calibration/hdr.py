@@ -46,18 +46,16 @@ OpenCV's Debevec merge weighs the remaining values with a fixed triangle (``cv2.
 takes no per-pixel weights, nor does ``cv2.MergeRobertson``), so the floor is where the sensor
 noise enters the merge.
 
-Command line: ``python -m glsldiff.calibration.hdr {response,merge} --help``. Reading, the
-response, the merge and their command stay in one module (a little over 400 lines): they share
-the bracket and response formats documented here.
+Command line: ``glsldiff capture response --help`` and ``glsldiff capture merge --help``
+(:func:`response_from_folders`, :func:`merge_folder`). Reading, the response and the merge stay
+in one module: they share the bracket and response formats documented here.
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
 import os
-import sys
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -68,8 +66,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from PIL import ExifTags, Image, UnidentifiedImageError
 
-from glsldiff.calibration.common import run_command
-from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import LDR_SUFFIXES, atomic_path, read_image, write_exr
 
@@ -513,72 +509,58 @@ def merge_bracket(bracket: Bracket, response: ArrayLike | None = None, lo: int |
     return out, mask
 
 
-# ----------------------------------------------------------------------------- command line
+# ----------------------------------------------------------------------------- folders to files
 
-def _cmd_response(args: argparse.Namespace) -> int:
-    brackets = [load_bracket(f) for f in args.folders]
-    resp = calibrate_response(brackets, samples=args.samples, smoothness=args.smoothness)
-    save_response(args.output, resp, f"inverse camera response (Debevec-Malik, OpenCV) from "
-                                     f"{', '.join(str(f) for f in args.folders)}")
-    print(f"{args.output}: response from {len(brackets)} bracket(s) of {len(brackets[0].times)} exposures")
-    return 0
+def response_from_folders(folders: Sequence[str | os.PathLike], output: str | os.PathLike, samples: int = 256,
+                          smoothness: float = 50.0) -> tuple[Array, list[Bracket]]:
+    """Recover the inverse camera response ``(256, 3)`` from one or more bracket folders with
+    the same exposure times (:func:`calibrate_response`: ``samples`` pixels, Debevec-Malik
+    smoothness lambda ``smoothness``) and write it to ``output`` (the response JSON of the module
+    docstring, atomically). Returns the response and the brackets."""
+    brackets = [load_bracket(f) for f in folders]
+    resp = calibrate_response(brackets, samples=samples, smoothness=smoothness)
+    save_response(output, resp, f"inverse camera response (Debevec-Malik, OpenCV) from "
+                                f"{', '.join(str(f) for f in folders)}")
+    return resp, brackets
 
 
-def _cmd_merge(args: argparse.Namespace) -> int:
-    bracket = load_bracket(args.folder, args.black)
-    low = low_cutoff(bracket, args.low, args.high)  # refuse a bad cutoff before the response solve
-    resp = load_response(args.response) if args.response else calibrate_response(bracket)
-    img, mask = merge_bracket(bracket, resp, lo=low, hi=args.high)
+@dataclass
+class MergedFolder:
+    """What :func:`merge_folder` wrote: the linear relative radiance ``(rows, cols, 3)`` and its
+    unusable-pixel mask (:func:`merge_bracket`), the bracket, the lower cutoff ``(3,)`` (8-bit
+    pixel values, R G B) and where that cutoff came from (a phrase for the user)."""
+
+    image: NDArray[np.float32]
+    mask: NDArray[np.bool_]
+    bracket: Bracket
+    low: NDArray[np.int64]
+    low_source: str
+
+
+def merge_folder(folder: str | os.PathLike, output: str | os.PathLike, response: str | os.PathLike | None = None,
+                 half: bool = False, mask: str | os.PathLike | None = None, low: int | None = None,
+                 black: str | os.PathLike | None = None, high: int = HI) -> MergedFolder:
+    """Merge the bracket in ``folder`` into the OpenEXR image ``output`` (float32, or 16-bit half
+    floats with ``half``): ``response`` a response JSON file (default: recovered from this
+    bracket), ``low`` / ``high`` the trusted 8-bit pixel values (``low`` default: the noise floor
+    of the black frame ``black`` or the folder's ``black.*``, see :func:`low_cutoff`), ``mask``
+    an 8-bit PNG to write too, 255 where a channel is unusable. A bad cutoff is refused before
+    the response solve; nothing is written unless the merge succeeds."""
+    bracket = load_bracket(folder, black)
+    cutoff = low_cutoff(bracket, low, high)  # refuse a bad cutoff before the response solve
+    resp = load_response(response) if response else calibrate_response(bracket)
+    img, unusable = merge_bracket(bracket, resp, lo=cutoff, hi=high)
     shortest = bracket.files[int(np.argmin(bracket.times))].name
-    source = ("--low" if args.low is not None else
+    source = ("--low" if low is not None else
               f"noise floor of {bracket.black_file}" if bracket.black is not None else
               f"noise floor estimated from the shortest exposure {shortest}; a black frame measures it better"
               if bracket_noise_floor(bracket) is not None else
               f"default {LO}: no black frame, and {shortest} has too few signal-free pixels to estimate one")
-    print(f"lower cutoff R G B = {' '.join(map(str, low))} ({source})")
-    png = cv2.imencode(".png", (mask[..., ::-1] * 255).astype(np.uint8))[1] if args.mask else None
+    png = cv2.imencode(".png", (unusable[..., ::-1] * 255).astype(np.uint8))[1] if mask else None
     attrs = {"glsldiff": "linear relative radiance (Debevec-Malik merge, OpenCV)",
              "exposures_s": " ".join(f"{t:.6g}" for t in bracket.times)}
-    write_exr(args.output, img, attrs, half=args.half)  # validates before writing anything
+    write_exr(output, img, attrs, half=half)  # validates before writing anything
     if png is not None:
-        with atomic_path(args.mask) as tmp:
+        with atomic_path(mask) as tmp:
             tmp.write_bytes(png.tobytes())
-    print(f"{args.output}: {img.shape[1]}x{img.shape[0]} HDR from {len(bracket.times)} exposures; "
-          f"{int(mask.any(axis=2).sum())} pixels unusable (dark or saturated in every exposure)")
-    return 0
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = CommandParser(prog="python -m glsldiff.calibration.hdr",
-                                     description="Camera response (Debevec-Malik) and HDR merge of exposure "
-                                                 "brackets (folders of 8-bit images + exposure times).")
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("response", help="recover the camera response from one or more brackets")
-    p.add_argument("folders", nargs="+", metavar="FOLDER", help="bracket folder(s) with the same exposure times")
-    p.add_argument("-o", "--output", required=True, help="response JSON file to write")
-    p.add_argument("--samples", type=int, default=256, help="pixels used by the solve (default 256)")
-    p.add_argument("--smoothness", type=float, default=50.0, help="Debevec-Malik lambda (default 50)")
-    p.set_defaults(func=_cmd_response)
-    p = sub.add_parser("merge", help="merge one bracket into a linear OpenEXR image")
-    p.add_argument("folder", metavar="FOLDER", help="bracket folder")
-    p.add_argument("-o", "--output", required=True, help="OpenEXR file to write")
-    p.add_argument("--response", help="response JSON (default: recovered from this bracket)")
-    p.add_argument("--half", action="store_true", help="write 16-bit half floats instead of float32")
-    p.add_argument("--mask", help="also write an 8-bit PNG, 255 where a channel is unusable")
-    p.add_argument("--low", type=int, default=None,
-                   help=f"pixel values below this are noise, not signal (default: the noise floor of the black "
-                        f"frame, ceil(99.9th percentile) + 3 per channel; {LO} without one)")
-    p.add_argument("--black", metavar="FILE",
-                   help="black frame (lens capped, settings of the longest exposure) for the noise floor "
-                        "(default: black.png / black.* in the bracket folder, if there)")
-    p.add_argument("--high", type=int, default=HI, help=f"pixel values above this count as clipped (default {HI})")
-    p.set_defaults(func=_cmd_merge)
-    return parser
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return run_command(build_parser(), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return MergedFolder(img, unusable, bracket, cutoff, source)

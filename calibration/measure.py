@@ -18,15 +18,16 @@ it at the observed face's nodes, and then
 Node positions in the image come from the block face's four corner pixels (a homography
 in undistorted coordinates; lens distortion from the camera calibration when given). Each
 node's value is the mean over its cell (box filter of one node spacing) sampled bilinearly.
+
+Command: ``glsldiff capture measure CAPTURE --corners X,Y X,Y X,Y X,Y -o measurements.npz``
+(:func:`measure_to_file`).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -34,10 +35,9 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from glsldiff.calibration import hdr as hdrlib
-from glsldiff.calibration.common import parse_points, run_command, save_json
+from glsldiff.calibration.common import save_json
 from glsldiff.calibration.plan import CapturePlan, face_homography, load_plan
 from glsldiff.core.checks import real
-from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import check_output
 from glsldiff.inverse.measurements import Measurements, save_measurements
@@ -143,7 +143,7 @@ def measure(capture: str | os.PathLike, corners_px: Array, response: Array | Non
     return meas, MeasureReport(clipped, masked_lit, masked_exp, black_ratio, node_spacing(px))
 
 
-def _json_field(path: str, keys: tuple[str, ...], what: str) -> list:
+def _json_field(path: str | os.PathLike, keys: tuple[str, ...], what: str) -> list:
     try:
         data = json.loads(Path(path).read_text())
         for k in keys:
@@ -153,44 +153,29 @@ def _json_field(path: str, keys: tuple[str, ...], what: str) -> list:
         raise InputError(f"{path}: cannot read the {what} ({type(exc).__name__}: {exc})") from None
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m glsldiff.calibration.measure CAPTURE --corners ... -o measurements.npz``"""
-    p = CommandParser(prog="python -m glsldiff.calibration.measure",
-                      description="Measurements for `glsldiff fit` from a capture folder (plan.json + one "
-                                  "exposure bracket per condition).")
-    p.add_argument("capture", help="capture folder written by the capture driver")
-    p.add_argument("--corners", nargs=4, metavar="X,Y", required=True,
-                   help="camera pixels of the observed face's block corners (0,0), (W,0), (W,H), (0,H) mm")
-    p.add_argument("-o", "--output", default="measurements.npz")
-    p.add_argument("--camera", help="camera.json from the camera calibration (lens distortion)")
-    p.add_argument("--response", help="response JSON (default: recovered from the captured brackets)")
-    p.add_argument("--white-balance", help="white-balance JSON (gains) from the colour chart")
-    p.add_argument("--albedo", type=float, default=0.9, help="albedo of the white reference target")
-    p.add_argument("--eta", type=float, default=1.3, help="relative refractive index of the sample")
-
-    def run(args: argparse.Namespace) -> int:
-        out = check_output(args.output)
-        corners = parse_points(args.corners, "--corners")
-        K = dist = None
-        if args.camera:
-            K = np.array(_json_field(args.camera, ("K",), "camera matrix K"), dtype=np.float64)
-            dist = np.array(_json_field(args.camera, ("dist",), "distortion"), dtype=np.float64)
-        response = hdrlib.load_response(args.response) if args.response else None
-        gains = (np.array(_json_field(args.white_balance, ("gains",), "white-balance gains"))
-                 if args.white_balance else None)
-        meas, rep = measure(args.capture, corners, response, K, dist, gains, args.albedo, args.eta)
-        save_measurements(out, meas)
-        save_json(out.with_suffix(".json"), {"clipped": rep.clipped, "masked_lit": rep.masked_lit,
-                                              "masked_exposure": rep.masked_exposure,
-                                              "black_ratio": rep.black_ratio.tolist(),
-                                              "pixels_per_node": rep.node_pixels})
-        print(f"wrote {meas.M} conditions ({meas.lit_face} lit, {meas.observed_face} observed) to {out}; black level {np.round(rep.black_ratio, 4).tolist()}; {rep.clipped} values clipped "
-              f"at 0, {rep.masked_lit} lit and {rep.masked_exposure} badly exposed node values masked")
-        return 0
-
-    p.set_defaults(func=run)
-    return run_command(p, argv)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+def measure_to_file(capture: str | os.PathLike, corners_px: Array, output: str | os.PathLike = "measurements.npz",
+                    camera: str | os.PathLike | None = None, response: str | os.PathLike | None = None,
+                    white_balance: str | os.PathLike | None = None, reference_albedo: float = 0.9,
+                    eta: float = 1.3) -> tuple[Measurements, MeasureReport, Path]:
+    """:func:`measure` from files, written to ``output`` (the measurements ``.npz`` of ``glsldiff
+    fit``) and its report beside it (``.json``). ``corners_px``: camera pixels ``(4, 2)`` of the
+    observed face's block corners (0, 0), (W, 0), (W, H), (0, H) mm; ``camera``: a camera.json
+    (its ``K`` and ``dist``, for the lens distortion); ``response``: a response JSON (default:
+    recovered from the captured brackets); ``white_balance``: a white-balance JSON (its
+    ``gains``); ``reference_albedo`` of the white reference target; ``eta`` the sample's relative
+    refractive index. Returns the measurements, the report and the output path."""
+    out = check_output(output)
+    K = dist = None
+    if camera:
+        K = np.array(_json_field(camera, ("K",), "camera matrix K"), dtype=np.float64)
+        dist = np.array(_json_field(camera, ("dist",), "distortion"), dtype=np.float64)
+    resp = hdrlib.load_response(response) if response else None
+    gains = (np.array(_json_field(white_balance, ("gains",), "white-balance gains"))
+             if white_balance else None)
+    meas, rep = measure(capture, corners_px, resp, K, dist, gains, reference_albedo, eta)
+    save_measurements(out, meas)
+    save_json(out.with_suffix(".json"), {"clipped": rep.clipped, "masked_lit": rep.masked_lit,
+                                          "masked_exposure": rep.masked_exposure,
+                                          "black_ratio": rep.black_ratio.tolist(),
+                                          "pixels_per_node": rep.node_pixels})
+    return meas, rep, out

@@ -22,23 +22,23 @@ coordinates) to projector pixels: from the projector calibration or measured dir
      "conditions": [{"name": "region_00", "image": "region_00.png",
                      "rows": [y0, y1], "cols": [x0, x1]}, ...,   # face-node index ranges, end exclusive
                     {"name": "black", ...}, {"name": "white", ...}, {"name": "reference_black", ...}]}
+
+Command: ``glsldiff capture plan OUT --shape NZ NY NX --h MM --face-corners X,Y X,Y X,Y X,Y``
+(:func:`face_homography`, :class:`CapturePlan`, :func:`write_plan`).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.calibration.common import atomic_folder, parse_points, parse_size, run_command
+from glsldiff.calibration.common import atomic_folder
 from glsldiff.core.checks import choice, integer, real
-from glsldiff.core.arguments import CommandParser
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.measurements import SETUPS, face_regions
 
@@ -208,37 +208,3 @@ def load_plan(folder_or_file: str | os.PathLike) -> CapturePlan:
     except (OSError, json.JSONDecodeError) as exc:
         raise InputError(f"cannot read plan file {str(f)!r}: {exc}") from None
     return CapturePlan.from_json(data)
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m glsldiff.calibration.plan OUT --shape NZ NY NX --h MM ...``"""
-    p = CommandParser(prog="python -m glsldiff.calibration.plan",
-                      description="Write a capture plan: projector images (n x n regions lit one at a "
-                                  "time, black, white, reference_black) and plan.json.")
-    p.add_argument("out", help="plan folder to create (must not exist or be empty)")
-    p.add_argument("--shape", type=int, nargs=3, required=True, metavar=("NZ", "NY", "NX"),
-                   help="sample grid nodes, boundary layer included")
-    p.add_argument("--h", type=float, required=True, help="node spacing, mm")
-    p.add_argument("--setup", choices=tuple(SETUPS), default="back")
-    p.add_argument("--n", type=int, default=4, help="n x n regions (paper: 4)")
-    p.add_argument("--exposures", type=float, nargs="+", default=list(PAPER_EXPOSURES), help="seconds")
-    p.add_argument("--projector", type=parse_size, default=(1024, 768), metavar="WxH")
-    p.add_argument("--face-corners", nargs=4, metavar="X,Y", required=True,
-                   help="projector pixels of the lit face's block corners (0,0), (W,0), (W,H), (0,H) mm")
-
-    def run(args: argparse.Namespace) -> int:
-        corners = parse_points(args.face_corners, "--face-corners")
-        shape = tuple(args.shape)
-        H = face_homography(corners, shape, args.h)
-        plan = CapturePlan(shape, args.h, args.setup, args.n, tuple(args.exposures), args.projector,
-                           H)
-        write_plan(plan, args.out)
-        print(f"wrote {len(plan.conditions)} projector images and plan.json to {args.out}")
-        return 0
-
-    p.set_defaults(func=run)
-    return run_command(p, argv)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -19,9 +19,10 @@ Capture folder layout: ``FOLDER/capture_*/`` one sub-folder per pose, each with 
 order, white and black last). kamino410/procam-calibration's layout is read as it is:
 ``capture_*/graycode_00.png ...`` (only the ``graycode_*`` images of a folder count when it has
 any, :func:`~.graycode.sequence_images`), and its ``camera_config.json`` is accepted for
-``--camera``. ``python -m glsldiff.calibration.projector patterns`` writes the projector images;
-``--step N`` (both sub-commands, procam-calibration's ``graycode_step``) shows each code pixel
-as an ``N x N`` block, see :mod:`.graycode` for how codes map back to projector pixels.
+``--camera``. ``glsldiff capture patterns`` writes the projector images and ``glsldiff capture
+calibrate`` calibrates; ``--step N`` (both steps, procam-calibration's ``graycode_step``) shows
+each code pixel as an ``N x N`` block, see :mod:`.graycode` for how codes map back to projector
+pixels.
 
 ``rig.json`` (written atomically by :func:`calibrate_folder`)::
 
@@ -44,8 +45,6 @@ Errors a user can cause raise :class:`~glsldiff.core.errors.InputError` naming t
 """
 from __future__ import annotations
 
-import argparse
-import sys
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
@@ -54,13 +53,11 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.calibration.camera import (DEFAULT_FLAGS, MAX_ITERATIONS, BoardSpec, Intrinsics, add_board_arguments,
-                                         board_from_args, calibrate_points, flags_from_args, load_intrinsics,
+from glsldiff.calibration.camera import (DEFAULT_FLAGS, MAX_ITERATIONS, BoardSpec, Intrinsics, calibrate_points,
                                          to_uint8)
-from glsldiff.calibration.common import parse_size, run_command, save_json
+from glsldiff.calibration.common import save_json
 from glsldiff.calibration.graycode import (Decoded, bit_counts, capture_folders, code_size, decode,
-                                           read_stack, sequence_images, sequence_length, write_patterns)
-from glsldiff.core.arguments import CommandParser, integer
+                                           read_stack, sequence_images, sequence_length)
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
@@ -360,70 +357,3 @@ def calibrate_folder(folder: str | Path, board: BoardSpec, projector_size: tuple
     if output is not None:
         save_json(output, rig.to_json(board, settings, flags))
     return rig
-
-
-# ---- command --------------------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    p = CommandParser(prog="python -m glsldiff.calibration.projector",
-                                description="Gray-code projector-camera calibration (Moreno & Taubin 2012).")
-    sub = p.add_subparsers(dest="command", required=True)
-    step_help = ("Gray-code step: each code pixel is an N x N block of projector pixels, for a "
-                 "ceil(W/N) x ceil(H/N) code (procam-calibration's graycode_step; raise it against moire "
-                 "or defocus; calibrate with the step the patterns were made with; default %(default)s)")
-    pat = sub.add_parser("patterns", help="write the projector images pattern_00.png ... into a folder")
-    pat.add_argument("--projector", type=parse_size, required=True, metavar="WxH", help="projector size, px")
-    pat.add_argument("--step", type=integer(1), default=1, metavar="N", help=step_help)
-    pat.add_argument("-o", "--output", default="patterns", help="output folder (default %(default)s)")
-    pat.set_defaults(func=_patterns)
-    cal = sub.add_parser("calibrate", help="calibrate camera + projector from FOLDER/capture_*/")
-    cal.add_argument("folder", help="folder with one capture_* sub-folder per board pose (images in pattern "
-                                    "order, white and black last; procam-calibration's graycode_*.png too)")
-    add_board_arguments(cal)
-    cal.add_argument("--projector", type=parse_size, required=True, metavar="WxH", help="projector size, px")
-    cal.add_argument("--step", type=integer(1), default=1, metavar="N", help=step_help)
-    cal.add_argument("-o", "--output", default="rig.json", help="output JSON (default %(default)s)")
-    d = DecodeSettings()
-    cal.add_argument("--window", type=int, default=d.window, help="local homography window, camera px (default %(default)s)")
-    cal.add_argument("--shadow-threshold", type=float, default=d.shadow_threshold,
-                     help="min white - black, 8-bit levels (default %(default)s)")
-    cal.add_argument("--bit-threshold", type=float, default=d.bit_threshold,
-                     help="min |pattern - inverse| per bit, 8-bit levels (default %(default)s)")
-    cal.add_argument("--skip-bad", action="store_true", help="skip poses that fail instead of stopping")
-    cal.add_argument("--camera", metavar="camera.json",
-                     help="reuse these camera intrinsics (python -m glsldiff.calibration.camera, or "
-                          "procam-calibration's camera_config.json) instead of calibrating the camera from "
-                          "the board poses again")
-    cal.set_defaults(func=_calibrate)
-    return p
-
-
-def _patterns(args: argparse.Namespace) -> int:
-    paths = write_patterns(args.output, args.projector, args.step)
-    print(f"wrote {len(paths)} patterns ({paths[0].name} .. {paths[-1].name}) to {args.output}")
-    return 0
-
-
-def _calibrate(args: argparse.Namespace) -> int:
-    if args.window < 5:
-        raise InputError(f"--window {args.window}: must be >= 5 px")
-    settings = DecodeSettings(args.window, args.shadow_threshold, args.bit_threshold, step=args.step)
-    camera = load_intrinsics(args.camera) if args.camera else None
-    rig = calibrate_folder(args.folder, board_from_args(args), args.projector, settings, flags_from_args(args),
-                           args.skip_bad, args.output, camera)
-    for r in rig.rejected:
-        print(f"  rejected {r['folder']}: {r['reason']}")
-    for p in rig.poses:
-        if p.dropped:
-            print(f"  {p.folder}: {len(p.dropped)} corners dropped for the projector (no decoded window: "
-                  f"{p.dropped[:10]}{'...' if len(p.dropped) > 10 else ''}); the camera calibration keeps them")
-    print(f"poses {len(rig.poses)}; camera RMS {rig.camera.rms:.3f} px; projector RMS {rig.projector.rms:.3f} px; "
-          f"stereo RMS {rig.stereo_rms:.3f} px; baseline {rig.baseline:.1f} mm -> {args.output}")
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    return run_command(build_parser(), argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -28,27 +28,27 @@ and by :func:`write_camera_dataset`: ``OUT/view_00.png ...`` plus ``OUT/truth.js
 ``truth.json``: ``{"camera": {"K", "dist", "image_size"}, "projector": {...} | null,
 "R", "T"`` (camera -> projector: ``X_p = R X_c + T``, mm) ``, "baseline_mm", "board": {...},
 "poses": [{"R", "t"}, ...]}`` (board -> camera), plus ``"graycode_step"`` for projector datasets.
+
+Commands: ``glsldiff capture synth-projector-views OUT`` and ``glsldiff capture
+synth-camera-views OUT`` (:func:`synthetic_rig` and the writers above).
 """
 from __future__ import annotations
 
-import argparse
 import json
 import os
-import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Callable, Iterator
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.calibration.camera import BoardSpec
-from glsldiff.calibration.common import atomic_folder, parse_size, run_command
+from glsldiff.calibration.common import atomic_folder
 from glsldiff.calibration.graycode import patterns
 from glsldiff.calibration.simcam import Pinhole, SimCamera, SimProjector, intersect_plane
 from glsldiff.core.camera import opencv_pose
-from glsldiff.core.arguments import CommandParser, integer
 from glsldiff.core.errors import InputError
 
 Array = NDArray[np.float64]
@@ -340,49 +340,3 @@ def write_camera_dataset(out: str | os.PathLike, rig: SyntheticRig, flood: float
             _write(tmp / f"view_{k:02d}.png", rig.camera.capture(scene.flood(flood + rig.ambient), 1.0, rng))
         (tmp / "truth.json").write_text(json.dumps(rig.truth(), indent=1))
     return Path(out)
-
-
-# ---- command --------------------------------------------------------------------------------
-def build_parser() -> argparse.ArgumentParser:
-    p = CommandParser(prog="python -m glsldiff.calibration.views",
-                                description="Write synthetic calibration captures with ground truth.")
-    sub = p.add_subparsers(dest="command", required=True)
-    for name, helptext in (("projector", "Gray-code captures: OUT/capture_XXX/img_YY.png"),
-                           ("camera", "plain board views: OUT/view_XX.png")):
-        s = sub.add_parser(name, help=helptext)
-        s.add_argument("out", help="output folder (must not exist or be empty)")
-        s.add_argument("--poses", type=int, default=5, help="number of board poses (default %(default)s)")
-        s.add_argument("--camera", type=parse_size, default=(1280, 1024), help="camera size (default 1280x1024)")
-        s.add_argument("--projector", type=parse_size, default=(1024, 768), help="projector size (default 1024x768)")
-        s.add_argument("--board", type=parse_size, default=(9, 7), help="inner corners (default 9x7)")
-        s.add_argument("--square", type=float, default=20.0, help="square size, mm (default %(default)s)")
-        s.add_argument("--seed", type=int, default=0)
-        if name == "projector":
-            s.add_argument("--step", type=integer(1), default=1, metavar="N",
-                           help="Gray-code step, projector px per code pixel (default %(default)s)")
-            s.add_argument("--layout", choices=tuple(LAYOUTS), default="glsldiff",
-                           help="file names: capture_XXX/img_YY.png, or procam-calibration's "
-                                "capture_K/graycode_YY.png (default %(default)s)")
-    return p
-
-
-def _run(args: argparse.Namespace) -> int:
-    board = BoardSpec(args.board[0], args.board[1], args.square)
-    proj = args.projector if args.command == "projector" else None
-    rig = synthetic_rig(args.poses, args.camera, proj, board, seed=args.seed)
-    if proj:
-        out = write_projector_dataset(args.out, rig, args.step, args.layout)
-    else:
-        out = write_camera_dataset(args.out, rig)
-    print(f"wrote {out}")
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    p = build_parser()
-    p.set_defaults(func=_run)
-    return run_command(p, argv)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -7,21 +7,20 @@ error E of the fitted volume against the true one. With ``calibrate=True`` the c
 projector are first calibrated from virtual chessboard / Gray-code views of the same devices
 and the measurement uses the calibrated intrinsics.
 
-Command: ``python -m glsldiff.calibration.virtual OUT --help``.
+Command: ``glsldiff capture virtual OUT`` (library: :func:`run`).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
+import sys
 import time
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
 from glsldiff.calibration import hdr
 from glsldiff.calibration.camera import BoardSpec, calibrate_camera
-from glsldiff.calibration.common import run_command, save_json
+from glsldiff.calibration.common import atomic_folder, save_json
 from glsldiff.calibration.measure import measure
 from glsldiff.calibration.plan import CapturePlan, write_plan
 from glsldiff.calibration.projector import DecodeSettings, calibrate_folder
@@ -30,24 +29,32 @@ from glsldiff.calibration.synth_radiometric import true_inverse_response
 from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homography, run_capture
 from glsldiff.calibration.views import (SyntheticRig, board_poses, synthetic_rig, write_camera_dataset,
                                         write_projector_dataset)
-from glsldiff.core.arguments import CommandParser
-from glsldiff.core.errors import InputError
 from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
 from glsldiff.inverse.measurements import save_measurements
 from glsldiff.inverse.synthetic import bssrdf_error
-from glsldiff.physics.procedural import SYNTHETIC_KINDS, synthetic_volume
+from glsldiff.physics.procedural import synthetic_volume
 from glsldiff.core.io import write_npz
 
 
 def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.5, setup: str = "back",
         n: int = 4, volume: str = "mixed", seed: int = 1, max_evals: int = 60,
         calibrate: bool = False) -> dict[str, object]:
-    """Run the virtual acquisition into folder ``out`` and return the report (also written
-    to ``out/report.json``)."""
-    out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        raise InputError(f"output folder {str(out)!r} exists and is not empty")
-    out.mkdir(parents=True, exist_ok=True)
+    """Run the virtual acquisition into folder ``out`` (created; must not exist or be empty) and
+    return the report (also written to ``out/report.json``). The sample: a synthetic ``volume``
+    (:data:`~glsldiff.physics.procedural.SYNTHETIC_KINDS`, random ``seed``) of ``size = (nx, ny,
+    nz)`` nodes spaced ``h`` mm, lit in ``n x n`` projector regions from the back or the front
+    (``setup``); ``max_evals`` bounds the fit's function evaluations; ``calibrate``: calibrate the
+    camera and projector on virtual views first (module docstring)."""
+    with atomic_folder(out) as tmp:       # nothing half-written: the folder appears when complete
+        return _run(tmp, size, h, setup, n, volume, seed, max_evals, calibrate)
+
+
+def _step(line: str) -> None:
+    print(f"virtual: {line}", file=sys.stderr, flush=True)
+
+
+def _run(out: Path, size: tuple[int, int, int], h: float, setup: str, n: int, volume: str, seed: int,
+         max_evals: int, calibrate: bool) -> dict[str, object]:
     nx, ny, nz = size
     report: dict[str, object] = {"size": list(size), "h": h, "setup": setup, "n": n, "volume": volume}
     kappa, mu = synthetic_volume((nz, ny, nx), volume, seed=seed)
@@ -58,23 +65,30 @@ def run(out: str | Path, size: tuple[int, int, int] = (24, 24, 8), h: float = 0.
     write_plan(plan, out / "plan")
     K = dist = None
     if calibrate:
+        _step("calibrating the camera (6 board views) and a Gray-code camera + projector rig (about 15 s)")
         K, dist, calib = _calibrate(cam, out)
         report.update(calib)
     rig = VirtualRig(kappa, mu, h, plan, cam, proj, seed=seed)
     t0 = time.perf_counter()
+    _step(f"capturing {n * n} regions and the references, {len(plan.exposures)} exposures each, through the "
+          "simulated camera (about 10 s)")
     run_capture(plan, rig, rig, out / "capture")
     report["capture_seconds"] = time.perf_counter() - t0
     brackets = [hdr.load_bracket(out / "capture" / c.name) for c in plan.conditions]
     response = hdr.calibrate_response(brackets)
     report["response_max_rel_error"] = hdr.inverse_response_error(response, true_inverse_response(cam))
     t0 = time.perf_counter()
-    meas, mrep = measure(out / "capture", rig.face_corners_px(), response, K, dist)
+    corners = rig.face_corners_px()
+    report["face_corners_px"] = np.round(np.asarray(corners, dtype=float), 2).tolist()
+    _step("camera response, HDR merge and measurements at the face nodes")
+    meas, mrep = measure(out / "capture", corners, response, K, dist)
     report["measure_seconds"] = time.perf_counter() - t0
     report.update(clipped=mrep.clipped, masked_lit=mrep.masked_lit, masked_exposure=mrep.masked_exposure,
                   black_ratio=mrep.black_ratio.tolist(), true_black=proj.black,
                   pixels_per_node=mrep.node_pixels)
     save_measurements(out / "measurements.npz", meas)
     t0 = time.perf_counter()
+    _step(f"fitting the material (at most {max_evals} evaluations per channel)")
     result = fit_measurements(meas, FitOptions(max_evals=max_evals))
     save_material(out / "material.npz", result)
     report["fit_seconds"] = time.perf_counter() - t0
@@ -113,31 +127,3 @@ def _calibrate(cam: SimCamera, out: Path) -> tuple[np.ndarray, np.ndarray, dict[
                gray_projector_focal_error=float(rc.projector.K[0, 0] / rig.projector.K[0, 0] - 1.0),
                gray_baseline_mm=rc.baseline, calibration_seconds=time.perf_counter() - t0)
     return cc.intrinsics.K, cc.intrinsics.dist, rep
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    parser = CommandParser(prog="python -m glsldiff.calibration.virtual", description=__doc__,
-                               formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("out", help="output folder (created; must be empty)")
-    parser.add_argument("--size", type=int, nargs=3, default=(24, 24, 8), metavar=("NX", "NY", "NZ"))
-    parser.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
-    parser.add_argument("--setup", choices=("back", "front"), default="back")
-    parser.add_argument("--n", type=int, default=4, help="n x n projector regions")
-    parser.add_argument("--volume", choices=SYNTHETIC_KINDS, default="mixed")
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--max-evals", type=int, default=60)
-    parser.add_argument("--calibrate", action="store_true", help="also calibrate camera and projector")
-
-    def go(args: argparse.Namespace) -> int:
-        rep = run(args.out, tuple(args.size), args.h, args.setup, args.n, args.volume, args.seed,
-                  args.max_evals, args.calibrate)
-        for k, v in rep.items():
-            print(f"{k:>24}: {v}")
-        return 0
-
-    parser.set_defaults(func=go)
-    return run_command(parser, argv)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -22,7 +20,7 @@ from glsldiff.calibration import camera, graycode, projector, views
 from glsldiff.calibration.camera import BoardSpec
 from glsldiff.core.errors import InputError
 
-from calibration_rig import BOARD, BOARD_ARGS, CAM, PROJ, check_cli_error, rel_err   # tests/calibration_rig.py
+from calibration_rig import BOARD, BOARD_ARGS, CAM, PROJ, capture, check_cli_error, rel_err   # tests/calibration_rig.py
 
 
 # ---- fixtures --------------------------------------------------------------------------------
@@ -65,7 +63,7 @@ def test_patterns_follow_opencv_order_and_decode_to_identity(tmp_path):
         err, pix = gcp.getProjPixel(list(ref), x, y)
         assert not err and tuple(pix) == (dec.col[y, x], dec.row[y, x])
 
-    assert projector.main(["patterns", "--projector", "37x21", "-o", str(tmp_path / "pat")]) == 0
+    assert capture(["patterns", "--projector", "37x21", "-o", str(tmp_path / "pat")]) == 0
     files = sorted((tmp_path / "pat").iterdir())
     assert [f.name for f in files] == [f"pattern_{i:02d}.png" for i in range(len(seq))]
     assert np.array_equal(cv2.imread(str(files[3]), cv2.IMREAD_GRAYSCALE), seq[3])
@@ -97,7 +95,7 @@ def test_decoding_of_synthetic_captures_matches_true_projector_pixels(proj_data,
 def test_camera_calibration_on_synthetic_views(cam_data, tmp_path, capsys):
     folder, rig = cam_data
     out = tmp_path / "camera.json"
-    assert camera.main([str(folder), *BOARD_ARGS, "-o", str(out)]) == 0
+    assert capture(["camera", str(folder), *BOARD_ARGS, "-o", str(out)]) == 0
     assert "camera RMS" in capsys.readouterr().out
     data = json.loads(out.read_text())
     assert data["kind"] == "camera" and data["image_size"] == list(CAM)
@@ -135,8 +133,8 @@ def test_outlier_view_is_flagged_and_dropped(cam_data):
 # ---- projector -------------------------------------------------------------------------------
 def test_projector_calibration_end_to_end(proj_data, tmp_path, capsys):
     out = tmp_path / "rig.json"
-    rc = projector.main(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384",
-                         "--window", "31", "-o", str(out)])
+    rc = capture(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384",
+                  "--window", "31", "-o", str(out)])
     printed = capsys.readouterr().out
     assert rc == 0 and "camera RMS" in printed and "projector RMS" in printed and "stereo RMS" in printed
     data, truth = json.loads(out.read_text()), json.loads((proj_data / "truth.json").read_text())
@@ -158,7 +156,7 @@ def test_missing_image_is_reported_and_nothing_written(proj_data, tmp_path, caps
     root = copy_poses(proj_data, tmp_path / "caps", 2)
     (root / "capture_001" / "img_07.png").unlink()
     out = tmp_path / "rig.json"
-    rc = projector.main(["calibrate", str(root), *BOARD_ARGS, "--projector", "512x384", "-o", str(out)])
+    rc = capture(["calibrate", str(root), *BOARD_ARGS, "--projector", "512x384", "-o", str(out)])
     check_cli_error(capsys, rc, "capture_001", "37 images, expected 38")
     assert not out.exists() and list(tmp_path.glob(".rig.json*")) == []
 
@@ -204,7 +202,7 @@ def test_unreadable_image(proj_data, cam_data, tmp_path, capsys):
     bad.write_bytes(b"\xff\xd8garbage")
     out = tmp_path / "camera.json"
     out.write_text("previous")
-    rc = camera.main([str(cam_data[0]), str(bad), *BOARD_ARGS, "-o", str(out)])
+    rc = capture(["camera", str(cam_data[0]), str(bad), *BOARD_ARGS, "-o", str(out)])
     check_cli_error(capsys, rc, "bad.jpg", "unreadable")
     assert out.read_text() == "previous"  # never replaced by a partial result
 
@@ -212,14 +210,14 @@ def test_unreadable_image(proj_data, cam_data, tmp_path, capsys):
 def test_empty_folders(tmp_path, capsys):
     empty = tmp_path / "empty"
     empty.mkdir()
-    check_cli_error(capsys, projector.main(["calibrate", str(empty), *BOARD_ARGS, "--projector", "512x384",
-                                            "-o", str(tmp_path / "r.json")]), "empty", "no capture_* sub-folders")
+    check_cli_error(capsys, capture(["calibrate", str(empty), *BOARD_ARGS, "--projector", "512x384",
+                                     "-o", str(tmp_path / "r.json")]), "empty", "no capture_* sub-folders")
     (empty / "capture_000").mkdir()
     with pytest.raises(InputError, match=r"capture_000: 0 images, expected 38"):
         projector.calibrate_folder(empty, BOARD, PROJ)
-    check_cli_error(capsys, camera.main([str(tmp_path / "empty" / "capture_000"), *BOARD_ARGS]),
+    check_cli_error(capsys, capture(["camera", str(tmp_path / "empty" / "capture_000"), *BOARD_ARGS]),
                     "capture_000", "no images")
-    check_cli_error(capsys, camera.main([str(tmp_path / "nowhere"), *BOARD_ARGS]), "nowhere", "no such file")
+    check_cli_error(capsys, capture(["camera", str(tmp_path / "nowhere"), *BOARD_ARGS]), "nowhere", "no such file")
     assert not (tmp_path / "r.json").exists()
 
 
@@ -239,16 +237,17 @@ def test_bad_arguments(capsys):
         BoardSpec(9, 7, 20.0, "charuco", 25.0)
     with pytest.raises(InputError, match="square size"):
         BoardSpec(9, 7, 0.0)
-    assert projector.main(["calibrate", "x", "--board", "9by7", "--square", "20", "--projector", "512x384"]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "9by7" in err
+    rc = capture(["calibrate", "x", "--board", "9by7", "--square", "20", "--projector", "512x384"])
+    check_cli_error(capsys, rc, "glsldiff capture calibrate: argument --board", "9by7", "expected WxH")
 
 
-def test_commands_run_as_modules():
-    for mod in ("camera", "projector", "views"):
-        r = subprocess.run([sys.executable, "-m", f"glsldiff.calibration.{mod}", "--help"],
-                           capture_output=True, text=True, timeout=60)
-        assert r.returncode == 0 and "usage:" in r.stdout, r.stderr
+def test_geometric_steps_help(capsys):
+    """``glsldiff capture STEP --help`` of the geometric steps: usage on stdout, status 0."""
+    for step in ("camera", "patterns", "calibrate", "synth-projector-views", "synth-camera-views"):
+        with pytest.raises(SystemExit) as exc:
+            capture([step, "--help"])
+        out = capsys.readouterr().out
+        assert exc.value.code == 0 and out.startswith(f"usage: glsldiff capture {step} "), out
 
 
 # ---- full size -------------------------------------------------------------------------------
@@ -258,7 +257,7 @@ def test_full_size_projector_calibration(tmp_path, capsys):
     data_dir = views.write_projector_dataset(tmp_path / "captures", rig)
     out = tmp_path / "rig.json"
     t0 = time.perf_counter()
-    rc = projector.main(["calibrate", str(data_dir), *BOARD_ARGS, "--projector", "1024x768", "-o", str(out)])
+    rc = capture(["calibrate", str(data_dir), *BOARD_ARGS, "--projector", "1024x768", "-o", str(out)])
     seconds = time.perf_counter() - t0
     print(capsys.readouterr().out, f"calibration took {seconds:.1f} s")
     assert rc == 0 and seconds < 180
@@ -355,8 +354,8 @@ def test_projector_calibration_reuses_camera_intrinsics(proj_data, tmp_path, cap
     cam_json.write_text(json.dumps({"image_size": list(CAM), "K": truth["camera"]["K"],
                                     "dist": [0.0, 0.0, 0.0, 0.0, 0.0], "rms": 0.0}))
     out = tmp_path / "rig.json"
-    rc = projector.main(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
-                         "--camera", str(cam_json), "-o", str(out)])
+    rc = capture(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
+                  "--camera", str(cam_json), "-o", str(out)])
     assert rc == 0
     data = json.loads(out.read_text())
     np.testing.assert_allclose(data["camera"]["K"], truth["camera"]["K"])
@@ -365,8 +364,8 @@ def test_projector_calibration_reuses_camera_intrinsics(proj_data, tmp_path, cap
     assert rel_err(data["stereo"]["baseline_mm"], truth["baseline_mm"]) < 0.02
     capsys.readouterr()
     cam_json.write_text(json.dumps({"image_size": [1280, 1024], "K": truth["camera"]["K"], "dist": [0] * 5}))
-    rc = projector.main(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
-                         "--camera", str(cam_json), "-o", str(tmp_path / "rig2.json")])
+    rc = capture(["calibrate", str(proj_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
+                  "--camera", str(cam_json), "-o", str(tmp_path / "rig2.json")])
     check_cli_error(capsys, rc, "--camera", "1280x1024")
 
 
@@ -384,14 +383,14 @@ def test_stepped_patterns_show_code_blocks_and_decode_to_their_first_pixel(tmp_p
     dec = graycode.decode(np.stack(seq), size, step=step)
     assert dec.valid.all() and (dec.col == step * (u // step)).all() and (dec.row == step * (v // step)).all()
 
-    assert projector.main(["patterns", "--projector", "37x21", "--step", "4", "-o", str(tmp_path / "pat")]) == 0
+    assert capture(["patterns", "--projector", "37x21", "--step", "4", "-o", str(tmp_path / "pat")]) == 0
     files = sorted((tmp_path / "pat").iterdir())
     assert len(files) == 16 and np.array_equal(cv2.imread(str(files[5]), cv2.IMREAD_GRAYSCALE), seq[5])
     capsys.readouterr()
-    check_cli_error(capsys, projector.main(["patterns", "--projector", "37x21", "--step", "0", "-o",
-                                            str(tmp_path / "p0")]), "--step", ">= 1")
-    check_cli_error(capsys, projector.main(["patterns", "--projector", "37x21", "--step", "21", "-o",
-                                            str(tmp_path / "p21")]), "--step 21", "2x1 code pixels", "--step 20")
+    check_cli_error(capsys, capture(["patterns", "--projector", "37x21", "--step", "0", "-o",
+                                     str(tmp_path / "p0")]), "--step", ">= 1")
+    check_cli_error(capsys, capture(["patterns", "--projector", "37x21", "--step", "21", "-o",
+                                     str(tmp_path / "p21")]), "--step 21", "2x1 code pixels", "--step 20")
     assert not (tmp_path / "p0").exists() and not (tmp_path / "p21").exists()
     with pytest.raises(InputError, match="--step 2.5"):
         graycode.code_size(size, 2.5)
@@ -410,8 +409,8 @@ def test_step2_calibration_recovers_the_projector(step2_data, proj_rig, tmp_path
     -0.50 px mean over the corners). Decoded with step 1 the count is refused; read as a
     256x192 projector (forgetting the step) the focal lengths are half the truth."""
     out = tmp_path / "rig.json"
-    rc = projector.main(["calibrate", str(step2_data), *BOARD_ARGS, "--projector", "512x384", "--step", "2",
-                         "--window", "31", "-o", str(out)])
+    rc = capture(["calibrate", str(step2_data), *BOARD_ARGS, "--projector", "512x384", "--step", "2",
+                  "--window", "31", "-o", str(out)])
     assert rc == 0, capsys.readouterr().err
     data, truth = json.loads(out.read_text()), json.loads((step2_data / "truth.json").read_text())
     assert truth["graycode_step"] == 2 and data["settings"]["graycode_step"] == 2
@@ -430,8 +429,8 @@ def test_step2_calibration_recovers_the_projector(step2_data, proj_rig, tmp_path
     offsets = np.concatenate(offsets)
     assert np.abs(offsets).max() < 2.0 and np.all(np.abs(offsets.mean(axis=0) + 0.5) < 0.1), offsets.mean(axis=0)
 
-    rc = projector.main(["calibrate", str(step2_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
-                         "-o", str(tmp_path / "wrong.json")])
+    rc = capture(["calibrate", str(step2_data), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
+                  "-o", str(tmp_path / "wrong.json")])
     check_cli_error(capsys, rc, "34 images, expected 38 for a 512x384 projector", "fit --step 2")
     wrong = projector.calibrate_folder(step2_data, BOARD, (256, 192), projector.DecodeSettings(window=31))
     assert rel_err(wrong.projector.K[0, 0], Kpt[0, 0]) > 0.4

@@ -8,8 +8,6 @@ Simulation (``glsldiff.calibration.synth_radiometric``): an 8-bit camera with re
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import cv2
 import numpy as np
@@ -20,7 +18,7 @@ from glsldiff.calibration import synth_radiometric as sr
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import read_exr, write_exr
 
-ERR = "glsldiff-calibration: error: "
+from calibration_rig import ERR, capture, error_lines   # tests/calibration_rig.py
 
 
 @pytest.fixture(scope="module")
@@ -202,34 +200,39 @@ def test_commands(tmp_path, small_bracket, capsys):
     images, times = small_bracket
     a = sr.write_bracket(tmp_path / "a", images, times)
     b = sr.write_bracket(tmp_path / "b", [np.ascontiguousarray(im[:, ::-1]) for im in images], times, "csv")
-    assert hdr.main(["response", str(a), str(b), "-o", str(tmp_path / "r.json")]) == 0
+    assert capture(["response", str(a), str(b), "-o", str(tmp_path / "r.json")]) == 0
     assert hdr.load_response(tmp_path / "r.json").shape == (256, 3)
-    assert hdr.main(["merge", str(a), "-o", str(tmp_path / "m.exr"), "--response", str(tmp_path / "r.json"),
-                     "--half", "--mask", str(tmp_path / "mask.png")]) == 0
+    assert capture(["merge", str(a), "-o", str(tmp_path / "m.exr"), "--response", str(tmp_path / "r.json"),
+                    "--half", "--mask", str(tmp_path / "mask.png")]) == 0
     assert read_exr(tmp_path / "m.exr").shape == (16, 128, 3)
     assert cv2.imread(str(tmp_path / "mask.png")).shape == (16, 128, 3)
-    assert hdr.main(["merge", str(a), "-o", str(tmp_path / "self.exr")]) == 0  # response from the bracket
-    assert hdr.main(["--help"]) == 0
-    assert "merge" in capsys.readouterr().out
+    assert capture(["merge", str(a), "-o", str(tmp_path / "self.exr")]) == 0  # response from the bracket
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        capture(["merge", "--help"])
+    assert exc.value.code == 0 and "--response" in capsys.readouterr().out
 
 
 def test_color_commands(tmp_path, chart):
     write_exr(tmp_path / "white.exr", chart["white"])
     write_exr(tmp_path / "black.exr", chart["black"])
-    assert color.main(["white-balance", str(tmp_path / "white.exr"), "-o", str(tmp_path / "wb.json")]) == 0
+    assert capture(["white-balance", str(tmp_path / "white.exr"), "-o", str(tmp_path / "wb.json")]) == 0
     wb = json.loads((tmp_path / "wb.json").read_text())
     assert wb["method"] == "mcc" and np.abs(np.asarray(wb["gains"]) / expected_gains() - 1).max() < 0.02
     corners = [f"{x},{y}" for x, y in sr.CHART_CORNERS]
-    assert color.main(["black-level", str(tmp_path / "black.exr"), str(tmp_path / "white.exr"),
-                       "-o", str(tmp_path / "bl.json"), "--corners", *corners]) == 0
+    assert capture(["black-level", str(tmp_path / "black.exr"), str(tmp_path / "white.exr"),
+                     "-o", str(tmp_path / "bl.json"), "--corners", *corners]) == 0
     bl = json.loads((tmp_path / "bl.json").read_text())
     assert bl["method"] == "corners" and np.abs(np.asarray(bl["mean"]) / 0.01 - 1).max() < 0.10
 
 
-def test_module_help():
-    for mod in ("glsldiff.calibration.hdr", "glsldiff.calibration.color"):
-        run = subprocess.run([sys.executable, "-m", mod, "--help"], capture_output=True, text=True, timeout=60)
-        assert run.returncode == 0 and "usage:" in run.stdout
+def test_radiometric_steps_help(capsys):
+    """``glsldiff capture STEP --help`` of the radiometric steps: usage on stdout, status 0."""
+    for step in ("response", "merge", "white-balance", "black-level"):
+        with pytest.raises(SystemExit) as exc:
+            capture([step, "--help"])
+        out = capsys.readouterr().out
+        assert exc.value.code == 0 and out.startswith(f"usage: glsldiff capture {step} "), out
 
 
 # ----------------------------------------------------------------------------- bad input
@@ -276,9 +279,9 @@ def test_bad_bracket(tmp_path, small_bracket, capsys, case):
         hdr.load_bracket(folder)
     out = tmp_path / "out"
     capsys.readouterr()
-    assert hdr.main(["merge", str(folder), "-o", str(out / "m.exr"), "--mask", str(out / "mask.png")]) == 2
-    assert hdr.main(["response", str(folder), "-o", str(out / "r.json")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    assert capture(["merge", str(folder), "-o", str(out / "m.exr"), "--mask", str(out / "mask.png")]) == 2
+    assert capture(["response", str(folder), "-o", str(out / "r.json")]) == 2
+    err = error_lines(capsys.readouterr().err)
     assert len(err) == 2 and all(line.startswith(ERR) for line in err)
     assert not out.exists() or not any(out.iterdir())
 
@@ -288,10 +291,10 @@ def test_bad_exr_and_response(tmp_path, capsys):
     with pytest.raises(InputError, match=r"broken\.exr: cannot read the OpenEXR image"):
         hdr.read_hdr(tmp_path / "broken.exr")
     capsys.readouterr()
-    assert color.main(["white-balance", str(tmp_path / "broken.exr"), "-o", str(tmp_path / "wb.json")]) == 2
-    assert color.main(["black-level", str(tmp_path / "missing.exr"), str(tmp_path / "broken.exr"),
-                       "-o", str(tmp_path / "bl.json")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    assert capture(["white-balance", str(tmp_path / "broken.exr"), "-o", str(tmp_path / "wb.json")]) == 2
+    assert capture(["black-level", str(tmp_path / "missing.exr"), str(tmp_path / "broken.exr"),
+                     "-o", str(tmp_path / "bl.json")]) == 2
+    err = error_lines(capsys.readouterr().err)
     assert len(err) == 2 and "broken.exr" in err[0] and "missing.exr" in err[1]
     assert all(line.startswith(ERR) for line in err)
     (tmp_path / "r.json").write_text("{not json")
@@ -309,8 +312,8 @@ def test_bad_corners_and_roi(tmp_path, capsys):
     with pytest.raises(InputError, match="width and height must be positive"):
         color.roi_cells((0, 0, 0, 10))
     capsys.readouterr()
-    assert color.main(["white-balance", str(tmp_path / "x.exr"), "-o", str(tmp_path / "wb.json"),
-                       "--corners", "1,2", "3", "4,5", "6,7"]) == 2
+    assert capture(["white-balance", str(tmp_path / "x.exr"), "-o", str(tmp_path / "wb.json"),
+                     "--corners", "1,2", "3", "4,5", "6,7"]) == 2
     assert capsys.readouterr().err.startswith(ERR + "--corners 1,2 3 4,5 6,7: expected 4 points")
 
 
@@ -321,8 +324,8 @@ def test_inverted_exposure_times_are_refused(tmp_path, small_bracket, capsys):
     with pytest.raises(InputError, match="exposure times are probably inverted"):
         hdr.make_bracket(images, list(times)[::-1])
     folder = sr.write_bracket(tmp_path / "inv", images, list(times)[::-1])
-    assert hdr.main(["response", str(folder), "-o", str(tmp_path / "r.json")]) == 2
-    err = capsys.readouterr().err.strip()
+    assert capture(["response", str(folder), "-o", str(tmp_path / "r.json")]) == 2
+    err = "\n".join(error_lines(capsys.readouterr().err))
     assert err.startswith(ERR) and "\n" not in err and "inverted" in err
     assert not (tmp_path / "r.json").exists()
 
@@ -337,8 +340,8 @@ def test_merge_noise_floor_option(tmp_path, ramp, response, capsys):
     images, times = sr.capture_bracket(sr.camera((64, 16), gain=0.1), sr.ramp_radiance((16, 64), 1e-3, 1e2),
                                        seed=7), sr.EXPOSURES
     folder = sr.write_bracket(tmp_path / "b", images, times)
-    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "m.exr"), "--low", "30", "--high", "220"]) == 0
-    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "n.exr"), "--low", "0"]) == 2
+    assert capture(["merge", str(folder), "-o", str(tmp_path / "m.exr"), "--low", "30", "--high", "220"]) == 0
+    assert capture(["merge", str(folder), "-o", str(tmp_path / "n.exr"), "--low", "0"]) == 2
     assert "0 < lo < hi < 255" in capsys.readouterr().err
 
 
@@ -430,24 +433,24 @@ def test_merge_command_takes_the_floor_from_a_black_frame(tmp_path, noisy, capsy
     loaded = hdr.load_bracket(folder)
     assert len(loaded.images) == 5 and loaded.black_file.name == "black.png"
     resp = tmp_path / "r.json"
-    assert hdr.main(["response", str(folder), "-o", str(resp)]) == 0
-    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "a.exr"), "--response", str(resp)]) == 0
+    assert capture(["response", str(folder), "-o", str(resp)]) == 0
+    assert capture(["merge", str(folder), "-o", str(tmp_path / "a.exr"), "--response", str(resp)]) == 0
     assert "lower cutoff R G B = 20 23 21 (noise floor of" in capsys.readouterr().out
     img, _ = hdr.merge_bracket(loaded, hdr.load_response(resp))
     np.testing.assert_array_equal(read_exr(tmp_path / "a.exr"), img)
-    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "b.exr"), "--response", str(resp), "--low", "20"]) == 0
+    assert capture(["merge", str(folder), "-o", str(tmp_path / "b.exr"), "--response", str(resp), "--low", "20"]) == 0
     assert "= 20 20 20 (--low)" in capsys.readouterr().out
     other = tmp_path / "dark.png"
     cv2.imwrite(str(other), np.full_like(bracket.black, 2))
-    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "c.exr"), "--black", str(other)]) == 0
+    assert capture(["merge", str(folder), "-o", str(tmp_path / "c.exr"), "--black", str(other)]) == 0
     assert "= 5 5 5 (noise floor of " + str(other) + ")" in capsys.readouterr().out
 
     cv2.imwrite(str(other), np.full((16, 16, 3), 2, np.uint8))
-    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "d.exr"), "--black", str(other)]) == 2
-    err = capsys.readouterr().err.strip()
+    assert capture(["merge", str(folder), "-o", str(tmp_path / "d.exr"), "--black", str(other)]) == 2
+    err = "\n".join(error_lines(capsys.readouterr().err))
     assert err.startswith(ERR) and "\n" not in err and "dark.png: black frame" in err and "--low" in err
     cv2.imwrite(str(folder / "black.png"), np.full_like(bracket.black, 240))
-    assert hdr.main(["merge", str(folder), "-o", str(tmp_path / "e.exr")]) == 2
-    err = capsys.readouterr().err.strip()
+    assert capture(["merge", str(folder), "-o", str(tmp_path / "e.exr")]) == 2
+    err = "\n".join(error_lines(capsys.readouterr().err))
     assert err.startswith(ERR) and "\n" not in err and "black.png: noise floor" in err and "--low N" in err
     assert not any((tmp_path / f"{x}.exr").exists() for x in "de")

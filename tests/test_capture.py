@@ -3,6 +3,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +18,8 @@ from glsldiff.calibration.rig import VirtualRig, default_devices, projector_homo
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.synthetic import synthetic_measurements
 from glsldiff.physics.procedural import synthetic_volume
+
+from calibration_rig import capture, check_cli_error   # tests/calibration_rig.py
 
 
 def _rig(setup: str = "back", n: int = 2, shape=(6, 14, 14)) -> tuple[VirtualRig, CapturePlan]:
@@ -145,20 +151,48 @@ def test_virtual_pipeline_end_to_end(tmp_path) -> None:
 
 
 def test_plan_and_measure_commands(back_capture, tmp_path, capsys) -> None:
-    from glsldiff.calibration import measure as measure_cmd
-    from glsldiff.calibration import plan as plan_cmd
-
     args = ["--shape", "6", "14", "14", "--h", "0.5", "--n", "2", "--face-corners", "100,100", "400,100",
             "400,400", "100,400"]
-    assert plan_cmd.main([str(tmp_path / "p"), *args]) == 0
+    assert capture(["plan", tmp_path / "p", *args]) == 0
     assert load_plan(tmp_path / "p").n == 2
-    assert plan_cmd.main([str(tmp_path / "p"), *args]) == 2  # never overwrites a plan
-    assert "not empty" in capsys.readouterr().err
+    capsys.readouterr()
+    check_cli_error(capsys, capture(["plan", tmp_path / "p", *args]), "not empty")  # never overwrites a plan
     rig, plan, out = back_capture
     corners = [f"{x},{y}" for x, y in rig.face_corners_px()]
-    assert measure_cmd.main([str(out), "--corners", *corners, "-o", str(tmp_path / "m.npz")]) == 0
+    assert capture(["measure", out, "--corners", *corners, "-o", tmp_path / "m.npz"]) == 0
     from glsldiff.inverse.measurements import load_measurements
     assert load_measurements(tmp_path / "m.npz").M == 4
-    assert measure_cmd.main([str(out), "--corners", *corners[:3], "-o", str(tmp_path / "n.npz")]) == 2
-    assert measure_cmd.main([str(out), "--corners", *corners, "-o", str(tmp_path / "no" / "n.npz")]) == 2
+    assert capture(["measure", out, "--corners", *corners[:3], "-o", tmp_path / "n.npz"]) == 2
+    capsys.readouterr()
+    check_cli_error(capsys, capture(["measure", out, "--corners", *corners, "-o", tmp_path / "no" / "n.npz"]),
+                    "no' does not exist")
     assert not (tmp_path / "n.npz").exists()
+
+
+def test_capture_help_lists_every_step_and_bad_input_is_one_line() -> None:
+    """``glsldiff capture --help`` (the installed command) names every step with its one-line
+    help; a step given bad input, or a bad option, exits 2 with one error line, no traceback;
+    the old ``python -m glsldiff.calibration.X`` programs are gone."""
+    from glsldiff.commands.capture import STEPS
+
+    glsldiff = str(Path(sys.executable).with_name("glsldiff"))
+    r = subprocess.run([glsldiff, "capture", "--help"], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    listed = re.findall(r"^    ([a-z-]+)(?:  +\S|$)", r.stdout, re.MULTILINE)
+    assert listed == list(STEPS), r.stdout
+    assert len(STEPS) == 12 and {"camera", "patterns", "calibrate", "response", "merge", "white-balance",
+                                 "black-level", "plan", "measure", "virtual"} < set(STEPS)
+    r = subprocess.run([glsldiff, "--help"], capture_output=True, text=True, timeout=120)
+    assert re.search(r"^    capture  +\S", r.stdout, re.MULTILINE), r.stdout
+    for argv, needle in ((["merge", "no-such-bracket", "-o", "m.exr"], "no-such-bracket"),
+                         (["plan", "p", "--shape", "6", "14", "--h", "0.5"], "glsldiff capture plan: argument --shape"),
+                         (["calibrate", "x", "--board", "9by7", "--square", "20", "--projector", "512x384"], "9by7"),
+                         (["no-such-step"], "invalid choice")):
+        r = subprocess.run([glsldiff, "capture", *argv], capture_output=True, text=True, timeout=120)
+        lines = r.stderr.strip().splitlines()
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("glsldiff: error: "), r.stderr
+        assert needle in lines[0] and "Traceback" not in r.stderr and r.stdout == "", (argv, r.stderr)
+    r = subprocess.run([sys.executable, "-c", "import glsldiff.calibration.camera as c; "
+                        "assert not hasattr(c, 'main') and not hasattr(c, 'build_parser')"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr

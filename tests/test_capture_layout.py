@@ -14,7 +14,7 @@ import pytest
 from glsldiff.calibration import camera, graycode, projector, views
 from glsldiff.core.errors import InputError
 
-from calibration_rig import BOARD, BOARD_ARGS, CAM, PROJ, check_cli_error, rel_err   # tests/calibration_rig.py
+from calibration_rig import BOARD, BOARD_ARGS, CAM, PROJ, capture, check_cli_error, rel_err   # tests/calibration_rig.py
 
 
 @pytest.fixture(scope="module")
@@ -49,8 +49,8 @@ def test_reference_layout_calibrates_as_it_is(procam, tmp_path, capsys):
     config = tmp_path / "camera_config.json"
     config.write_text(json.dumps(camera_config(truth)))
     out = tmp_path / "rig.json"
-    rc = projector.main(["calibrate", str(root), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
-                         "--camera", str(config), "-o", str(out)])
+    rc = capture(["calibrate", str(root), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
+                  "--camera", str(config), "-o", str(out)])
     assert rc == 0, capsys.readouterr().err
     data = json.loads(out.read_text())
     np.testing.assert_allclose(data["camera"]["K"], truth["camera"]["K"])
@@ -80,8 +80,8 @@ def test_reference_camera_file_without_size_and_bad_ones(procam, tmp_path, capsy
     bad = camera_config(truth)
     bad["camera"]["width"] = 1280
     config.write_text(json.dumps(bad))
-    rc = projector.main(["calibrate", str(sub), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
-                         "--camera", str(config), "-o", str(tmp_path / "r.json")])
+    rc = capture(["calibrate", str(sub), *BOARD_ARGS, "--projector", "512x384", "--window", "31",
+                  "--camera", str(config), "-o", str(tmp_path / "r.json")])
     check_cli_error(capsys, rc, "--camera", "1280x512")
     config.write_text(json.dumps({"camera": {"P": [1.0, 0.0, 2.0], "distortion": [0, 0, 0, 0, 0]}}))
     with pytest.raises(InputError, match=r"camera_config\.json: not a camera calibration .*camera\.P"):
@@ -107,7 +107,7 @@ def test_camera_from_projector_captures(procam, tmp_path, capsys):
     of each pose (graycode_36.png of 38): K within 1 % of the truth, as from plain views."""
     root, rig = procam
     out = tmp_path / "camera.json"
-    assert camera.main([str(root), *BOARD_ARGS, "-o", str(out)]) == 0
+    assert capture(["camera", str(root), *BOARD_ARGS, "-o", str(out)]) == 0
     capsys.readouterr()
     data = json.loads(out.read_text())
     assert [Path(f).name for f in data["files_used"]] == ["graycode_36.png"] * 4
@@ -115,13 +115,13 @@ def test_camera_from_projector_captures(procam, tmp_path, capsys):
     K, Kt = np.array(data["K"]), rig.camera.K
     assert data["rms"] < 0.5 and rel_err(K[0, 0], Kt[0, 0]) < 0.01 and rel_err(K[1, 1], Kt[1, 1]) < 0.01
     folders = [str(root / f"capture_{k}") for k in range(4)]
-    assert camera.main([*folders, *BOARD_ARGS, "-o", str(tmp_path / "c2.json")]) == 0
+    assert capture(["camera", *folders, *BOARD_ARGS, "-o", str(tmp_path / "c2.json")]) == 0
     assert json.loads((tmp_path / "c2.json").read_text())["files_used"] == data["files_used"]
 
     odd = tmp_path / "capture_odd"
     shutil.copytree(root / "capture_0", odd)
     (odd / "graycode_37.png").unlink()
     capsys.readouterr()
-    check_cli_error(capsys, camera.main([str(odd), *BOARD_ARGS, "-o", str(tmp_path / "c3.json")]),
+    check_cli_error(capsys, capture(["camera", str(odd), *BOARD_ARGS, "-o", str(tmp_path / "c3.json")]),
                    "capture_odd: 37 images", "white frame")
     assert not (tmp_path / "c3.json").exists()

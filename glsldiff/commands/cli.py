@@ -36,6 +36,7 @@ from glsldiff.bench.edit import edit_study, save_edit_study
 from glsldiff.bench.throughput import sweep_throughput
 from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
                                           DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study)
+from glsldiff.commands.capture import add_capture_parser
 from glsldiff.commands.edit import add_parser as add_edit_parser, add_view_parser
 from glsldiff.commands.inverse import add_parsers
 from glsldiff.core import io
@@ -545,6 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=cmd_bench_convergence)
 
     add_parsers(sub, bsub)
+    add_capture_parser(sub)
     add_edit_parser(sub)
     add_view_parser(sub)
 
