@@ -99,7 +99,7 @@ def test_unscattered_light_through_a_slab():
 def test_tiny_back_lit_patch_validation_case(tmp_path, monkeypatch):
     """The fast CI version of issue 18's localized case: the 5 mm slab back-lit by a 4 mm patch,
     on a coarse grid and a 16-pixel, 512-sample Monte Carlo image. Every number is finite,
-    and the totals agree roughly (the full-size numbers are in the README)."""
+    and the totals agree roughly (the full-size numbers are in docs/guide/localized-light.md)."""
     pytest.importorskip("mitsuba")
     tiny = dataclasses.replace(CASES["slab-patch"], name="tiny-patch", size_mm=20.0, cubes=1500, spp_factor=1)
     monkeypatch.setitem(CASES, "tiny-patch", tiny)

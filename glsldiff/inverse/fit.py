@@ -43,7 +43,7 @@ BACKENDS = ("cpu", "glsl")
 
 @dataclass
 class FitOptions:
-    """Choices of a fit (defaults picked by measurement, see the README)."""
+    """Choices of a fit (defaults picked by measurement, see docs/guide/inverse.md)."""
 
     method: str = "lbfgs"
     lam: float = 1e-5

@@ -11,7 +11,7 @@ energy, so the paper's stop criterion ``f_M < 1e-4 sum L_o^2`` reads ``f < 1e-4`
 unnormalised, in unstated units). The regulariser is the paper's sum over nodes of
 ``|grad kappa|^2`` (forward differences, kappa in mm, gradient in mm^-1); with the
 normalised data term the paper's lambda = 1e-4 ... 1e-6 spans too smooth ... too noisy
-(see the regularisation study in the README).
+(see the regularisation study in docs/guide/inverse.md).
 
 The gradient costs one factorisation, M forward and M adjoint solves (all with the same
 factor) and is exact for this discrete objective.

@@ -13,7 +13,7 @@ d^2``, so its range is ``sigma_a +- sqrt(tolerance f0 / (A_aa - A_as^2 / A_ss))`
 0), and likewise for ``sigma_s'``.
 
 The default tolerance, 1 % of the data term, is well inside the diffusion model's own error
-against transport (several per cent, see the README), so materials inside the range explain
+against transport (several per cent, see docs/guide/inverse.md), so materials inside the range explain
 the measurements as well as the model can tell; a range that spans more than the value
 itself means the capture does not determine that coefficient.
 """

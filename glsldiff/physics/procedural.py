@@ -199,8 +199,8 @@ def random_volume(shape: tuple[int, ...], rng: np.random.Generator | int | None,
                   kappa_min: float = 0.01) -> tuple[Array, Array]:
     """Random (kappa, mu) volume of shape shape + (3,) for solver tests.
 
-    kappa is log-uniform in [kappa_min, kappa_min * kappa_contrast] [mm] and mu uniform in
-    [0, mu_max] [mm^-1], independently per node and channel. Pairs need not be physical
+    kappa is log-uniform in [kappa_min, kappa_min * kappa_contrast] (mm) and mu uniform in
+    [0, mu_max] (mm^-1), independently per node and channel. Pairs need not be physical
     (3 kappa mu may exceed 1); `optical_properties` would reject those.
     """
     real(kappa_contrast, "kappa_contrast (a ratio)", 1.0)

@@ -2,7 +2,7 @@
 
 ``glsldiff validate`` compares renders with the scene defaults against all-order Monte Carlo
 (Mitsuba 3). :data:`VALIDATED` holds the edges of what it covered and the errors measured at
-those edges (the numbers of the validation table, ``docs``/README "Validation"); a scene
+those edges (the numbers of the validation table, docs/validation.md); a scene
 beyond an edge gets one ``WARNING`` line naming the cause and what was measured at the edge
 (:func:`warnings`). Nothing is refused here: a render outside the table is still the model's
 best answer.
@@ -33,7 +33,7 @@ class Validated:
 #: Below this many transport mean free paths a surface point counts as thin.
 THIN_MFP = 2.0
 #: The validated ranges, per model (numbers: the validation run of the closing note of the issue
-#: that made the split the default; README "Validation").
+#: that made the split the default; docs/validation.md).
 VALIDATED = {
     "split": Validated(0.3, "front-lit sphere at albedo 0.3 (sphere-albedo0.3): relative RMSE 0.03, mean 1.00",
                        2.0, "slab 2 mean free paths thick, back-lit by a touching patch (slab-backlit-2mfp): "
