@@ -160,12 +160,17 @@ def test_separate_collapsed_boundary_nodes():
 def test_sphere_study_both_series(tmp_path):
     """``glsldiff bench sphere`` rows: both refinement series, errors, truncation errors per
     row kind (shared-partner boundary rows are the worst), GLSL = direct, CSV and PNG."""
+    tol = 5e-7
     rows = sphere_study(ns=(3,), cube_sizes=(5.0,), n_fixed=3, subdivisions=3, glsl=True,
-                        out=tmp_path, variance_iterations=0)
+                        out=tmp_path, variance_iterations=0, repeats=2, tol=tol)
     assert [r["series"] for r in rows] == ["n", "cubes"]
     n, cubes = rows
     assert n["err_boundary_blend"] == pytest.approx(cubes["err_boundary_blend"], rel=1e-6)
     assert 0 < n["err_boundary_blend"] < 0.2 and 0 < n["err_interior_blend"] < 0.2
     assert n["trunc_boundary_shared"] > n["trunc_boundary_single"] > 0
-    assert n["glsl_vs_direct"] <= 1e-4
+    assert n["glsl_vs_reference"] <= 1e-4
+    # the solvers that ran, with the tolerance passed, and their repeated times (median >= min)
+    from glsldiff.bench.peers import reference_label, tol_text
+    assert (n["reference"], n["glsl"]) == (reference_label(n["nodes"])[0], f"GLSL Jacobi fp32, tol {tol_text(tol)}")
+    assert n["repeats"] == 2 and 0 < n["t_min_s"] <= n["t_median_s"] and 0 < n["glsl_t_min_s"] <= n["glsl_t_median_s"]
     assert (tmp_path / "sphere.csv").stat().st_size > 0 and (tmp_path / "sphere.png").stat().st_size > 0

@@ -204,6 +204,47 @@ def test_ctrl_c_during_a_superlu_factorisation_is_honoured(tmp_path):
     assert not (tmp_path / "d").exists()
 
 
+def _interrupt(tmp_path, argv: list[str], wait_for: str | None, after: float) -> tuple[int, float, str]:
+    """Run ``glsldiff ARGV`` in ``tmp_path`` (scratch folders under tmp_path/tmp), send a real
+    SIGINT ``after`` seconds after the stderr line starting with ``wait_for`` (or after the
+    start); return the exit code, the seconds from the signal to the exit and stderr."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    scratch = tmp_path / "tmp"
+    scratch.mkdir(exist_ok=True)
+    env = dict(os.environ, GLSLDIFF_GL="osmesa", GLSLDIFF_CACHE="off", TMPDIR=str(scratch))
+    p = subprocess.Popen([sys.executable, "-m", "glsldiff.commands.cli", *argv], cwd=tmp_path, env=env,
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = []
+    if wait_for is not None:
+        for line in p.stderr:
+            seen.append(line)
+            if line.startswith(wait_for):
+                break
+    time.sleep(after)
+    assert p.poll() is None, "".join(seen)
+    p.send_signal(signal.SIGINT)
+    t0 = time.perf_counter()
+    _, err = p.communicate(timeout=120)
+    return p.returncode, time.perf_counter() - t0, "".join(seen) + err
+
+
+@pytest.mark.parametrize("argv, wait_for, after", [
+    (["cut", "--plane", "0", "0", "1", "52", "--edge", "1.5", "-o", "cut.exr"], "tetwild: meshing", 3.0),
+    (["bench", "fit", "--size", "24", "24", "8", "--n", "2", "3", "--out", "out"], None, 8.0),
+], ids=["cut", "bench-fit"])
+def test_ctrl_c_ends_every_long_command(tmp_path, argv, wait_for, after):
+    """A real SIGINT into ``cut`` (while fTetWild meshes) and ``bench fit`` (while it fits):
+    exit 130 within 2 s, one message, nothing left behind (no output file or folder, no scratch)."""
+    code, seconds, err = _interrupt(tmp_path, argv, wait_for, after)
+    assert code == 130 and seconds < 2.0, err
+    assert err.strip().splitlines()[-1].startswith("glsldiff: interrupted") and "Traceback" not in err, err
+    assert [p.name for p in tmp_path.iterdir()] == ["tmp"] and list((tmp_path / "tmp").iterdir()) == []
+
+
 def test_heartbeat_speaks_only_when_the_command_is_quiet(capsys):
     """No more than ``every`` seconds without a line: a quiet step gets "still working" naming
     the last line; a step that prints gets none; the streams are restored afterwards."""

@@ -8,10 +8,19 @@ cold start, and at every check the error
 
 is recorded against the node updates so far (figure 15's x axis) and the GPU time so far
 (sweeps and transfer passes, GPU finished; read-backs and the CPU residual checks that
-produce the curve are excluded). L0 is the converged discrete answer, solved directly
-(SuperLU; pyamg to 1e-11 above 20k nodes) and timed as the peer. L is the boundary fluence
-phi_b: every exitant-radiance formula of the renderer is linear in phi_b at fixed light,
-and phi_b is the part the solver controls.
+produce the curve are excluded). Every scheme solves to the Jacobi-scaled residual
+:data:`SCHEME_TOL`. L0 is the converged discrete answer
+(:func:`glsldiff.bench.peers.reference_solve`: SuperLU below 20k nodes, else pyamg SA + GMRES
+to a relative residual of 1e-11; its row names which) and timed as the peer. L is the boundary
+fluence phi_b: every exitant-radiance formula of the renderer is linear in phi_b at fixed
+light, and phi_b is the part the solver controls.
+
+Timing: set-up is included for every method in ``t_median_s`` / ``t_min_s`` (the time to the
+target): a scheme's is its set-up (the hierarchy's build and the solver's construction with
+its shader compilation, wall, ``setup_s``) plus its GPU time to the target
+(``seconds_to_target``, figure 15's axis); the peer's is its whole solve (assembly, the LU
+factorisation or the AMG set-up, the solve). Each runs ``repeats`` times (median and minimum).
+The peer has no early stop: its time is to its full convergence, not to the target.
 
 Also measured: the adaptive depths chosen for a requested error (:func:`choose_depths`),
 a frame-coherent re-solve after a small light rotation against a cold start, and the error
@@ -28,12 +37,13 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff.bench.peers import reference_solve, relax_label
+from glsldiff.bench.timing import median_min, repeat, timing_columns
 from glsldiff.core import io
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.grids.hierarchy import Hierarchy
 from glsldiff.grids.polygrid import Polygrid, build_polygrid
 from glsldiff.mesh import load_mesh, torus_mesh
-from glsldiff.oracle.solvers import solve_reference
 from glsldiff.physics.procedural import marble_volume
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.system.problem import DiffusionProblem
@@ -80,6 +90,7 @@ class Curve:
     report: Any
     depths: Sequence[float | None] | None = None
     textures: list[dict[str, Any]] | None = None   # per level: blocks held, texels (MultilevelDiffusion.texture_rows)
+    setup: float = math.nan   # wall seconds of the solver's construction (NaN: the caller's solver)
 
     def first_below(self, target: float) -> tuple[float, float]:
         """``(work, seconds)`` at the first check with error <= target (nan if never)."""
@@ -89,15 +100,21 @@ class Curve:
         return math.nan, math.nan
 
 
+#: The Jacobi-scaled residual every scheme of the study solves to.
+SCHEME_TOL = 1e-6
+
+
 def run_scheme(hierarchy: Hierarchy, problem: DiffusionProblem, ref_b: NDArray, scheme: str,
-               tol: float = 1e-6, check_every: int = 10, precision: str = "fp32",
+               tol: float = SCHEME_TOL, check_every: int = 10, precision: str = "fp32",
                depths: Sequence[float | None] | None = None, maxiter: int = 20000,
                solver: MultilevelDiffusion | None = None, warm: bool = False, **options: Any) -> Curve:
     """Solve with ``scheme`` and record the figure-15 error at every check (``warm``: from the
     solver's current solution, frame coherence)."""
     own = solver is None
+    t0 = time.perf_counter()
     s = solver if solver is not None else MultilevelDiffusion(hierarchy, problem, scheme, precision=precision,
                                                               depths=depths)
+    setup = time.perf_counter() - t0 if own else math.nan
     pg = problem.grid
     b = pg.lattice.boundary
     work: list[int] = []
@@ -118,7 +135,7 @@ def run_scheme(hierarchy: Hierarchy, problem: DiffusionProblem, ref_b: NDArray, 
     finally:
         if own:
             s.release()
-    return Curve(scheme, work, secs, err, rep, depths, textures)
+    return Curve(scheme, work, secs, err, rep, depths, textures, setup)
 
 
 def choose_depths(hierarchy: Hierarchy, problem: DiffusionProblem, ref_b: NDArray, target: float = 0.005,
@@ -158,27 +175,34 @@ def rotate(direction: Sequence[float], degrees: float) -> NDArray[np.float64]:
     return R @ np.asarray(direction, dtype=np.float64)
 
 
-def reference(problem: DiffusionProblem) -> tuple[NDArray, float]:
-    """Converged fluence and the time of the direct (or pyamg) solve."""
-    t0 = time.perf_counter()
-    phi, _ = solve_reference(problem)
-    return phi, time.perf_counter() - t0
+def reference(problem: DiffusionProblem, repeats: int = 1) -> tuple[NDArray, Any]:
+    """Converged fluence and the timing of the direct (or pyamg) solve (its result: ``(phi,
+    report, label, rtol)`` of :func:`glsldiff.bench.peers.reference_solve`), ``repeats`` runs."""
+    tim = repeat(lambda: reference_solve(problem), repeats)
+    return tim.result[0], tim
 
 
 def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light=(0.4, 0.3, 1.0),
           rotation: float = 5.0, precisions: Sequence[str] = ("fp32", "fp16", "paper"),
           schemes: Sequence[str] = ("single", "hierarchical", "adaptive", "multigrid"),
-          maxiter: int = 20000) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
-    """All measurements on one model: (summary rows, curve rows, extra rows)."""
+          maxiter: int = 20000, repeats: int = 1
+          ) -> tuple[list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
+    """All measurements on one model: (summary rows, curve rows, extra rows); the peer and each
+    scheme run ``repeats`` times (module docstring)."""
+    t0 = time.perf_counter()
     hierarchy = Hierarchy.build(pg, levels)
+    build = time.perf_counter() - t0              # shared by the schemes: in each one's set-up
     q = light_source(pg, light)
     problem = marble_problem(pg, q)
-    ref, ref_s = reference(problem)
+    ref, ref_t = reference(problem, repeats)
+    _, ref_rep, ref_label, ref_rtol = ref_t.result
     b = pg.lattice.boundary
     ref_b = ref.reshape(-1, 3)[b]
-    summary: list[dict[str, Any]] = [{"model": name, "scheme": "scipy-direct (peer)", "work_to_target": math.nan,
-                                      "seconds_to_target": ref_s, "final_error": 0.0,
-                                      "nodes": pg.n_active, "levels": "1", "note": "converged reference L0"}]
+    summary: list[dict[str, Any]] = [{"model": name, "method": f"{ref_label} (peer)", **ref_t.columns(),
+                                      "seconds_to_target": math.nan, "setup_s": math.nan,
+                                      "work_to_target": math.nan, "final_error": 0.0, "tol": ref_rtol,
+                                      "residual": ref_rep.residual, "nodes": pg.n_active, "levels": "1",
+                                      "note": "converged reference L0; time to its convergence"}]
     curves_rows: list[dict[str, Any]] = []
     extra: list[dict[str, Any]] = []
     depths, tried = choose_depths(hierarchy, problem, ref_b, target) if "adaptive" in schemes else (None, [])
@@ -186,20 +210,26 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
         extra.append({"model": name, "what": "adaptive depth search", **t})
     curves = {}
     for scheme in schemes:
+        label = relax_label(f"GLSL {scheme} fp32", SCHEME_TOL)
         try:
-            c = run_scheme(hierarchy, problem, ref_b, scheme, depths=depths if scheme == "adaptive" else None,
-                           maxiter=maxiter)
+            runs = [run_scheme(hierarchy, problem, ref_b, scheme, depths=depths if scheme == "adaptive" else None,
+                               maxiter=maxiter) for _ in range(repeats)]
         except SolverError as exc:  # a scheme that diverges is a result, not the end of the bench
-            summary.append({"model": name, "scheme": scheme, "work_to_target": math.nan,
-                            "seconds_to_target": math.nan, "final_error": math.nan, "nodes": pg.n_active,
-                            "levels": "", "note": f"FAILED: {str(exc)[:90]}"})
+            summary.append({"model": name, "method": label, "work_to_target": math.nan,
+                            "seconds_to_target": math.nan, "final_error": math.nan, "tol": SCHEME_TOL,
+                            "nodes": pg.n_active, "levels": "", "note": f"FAILED: {str(exc)[:90]}"})
             continue
+        c = runs[-1]
         curves[scheme] = c
-        w, s = c.first_below(target)
+        w, _ = c.first_below(target)
+        gpu, _ = median_min(r.first_below(target)[1] for r in runs)
+        setups = [build + r.setup for r in runs]
         lv = c.report.levels
-        summary.append({"model": name, "scheme": scheme, "work_to_target": w, "seconds_to_target": s,
-                        "final_error": c.error[-1], "nodes": pg.n_active,
-                        "levels": " ".join(f"L{r['level']}:n{r['n']}x{r['sweeps']}" for r in lv),
+        summary.append({"model": name, "method": label,
+                        **timing_columns([st + r.first_below(target)[1] for st, r in zip(setups, runs)]),
+                        "seconds_to_target": gpu, "setup_s": float(np.median(setups)), "work_to_target": w,
+                        "final_error": c.error[-1], "tol": SCHEME_TOL, "residual": c.report.residual,
+                        "nodes": pg.n_active, "levels": " ".join(f"L{r['level']}:n{r['n']}x{r['sweeps']}" for r in lv),
                         "note": "" if scheme != "adaptive" else
                         "depths mm " + ",".join("all" if d is None else f"{d:.2f}" for d in depths)})
         if scheme == "adaptive":  # figure 8: blocks no node of a level uses are dropped from its textures
@@ -209,10 +239,10 @@ def study(name: str, pg: Polygrid, levels: int = 3, target: float = 0.005, light
                               "texels_vs_all_blocks": t["texels"] / t["full_texels"]})
         for wk, sk, ek in zip(c.work, c.seconds, c.error):
             curves_rows.append({"model": name, "scheme": scheme, "work": wk, "seconds": sk, "error": ek})
-    single = [r for r in summary if r["scheme"] == "single"]
-    for r in summary:
-        r["speedup_vs_single"] = (single[0]["seconds_to_target"] / r["seconds_to_target"]
-                                  if single and r["seconds_to_target"] > 0 else math.nan)
+    single = [r for r in summary if r["method"] == relax_label("GLSL single fp32", SCHEME_TOL)]
+    for r in summary:   # with set-up, as t_median_s
+        r["speedup_vs_single"] = (single[0]["t_median_s"] / r["t_median_s"]
+                                  if single and r.get("t_median_s", 0) > 0 else math.nan)
 
     # frame coherence: a small light rotation, warm (previous frame) vs cold (hierarchical)
     q2 = light_source(pg, rotate(light, rotation))

@@ -9,7 +9,11 @@ editing); then frames until pass 2 meets ``tol`` again. Every frame after the la
 compared with a reference image of the edited material (saved as a node material, rendered by
 a fresh renderer with the multigrid scheme to ``ref_tol``): relative L2 over the object's
 pixels, so the time from the edit to a converged (0.5 %) image is read off the table. Peer in
-the same run: a cold solve of the edited system (no frame coherence) by the same solver.
+the same run: a cold solve of the edited system (no frame coherence) by the same solver to the
+scene's ``tol`` (the Jacobi-scaled residual; ``peer`` names the solver and tolerance,
+``peer_residual`` the residual reached), run ``repeats`` times (``cold t_median_s``, ``cold
+t_min_s``). Both it and the frames use the solver the first frame built: its set-up (shader
+compilation, textures, hierarchy) is in no time but the first frame's.
 On tetrahedral grids an edit re-assembles the P1 system and every frame solves it to ``tol``.
 """
 from __future__ import annotations
@@ -23,6 +27,8 @@ from typing import Any, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff.bench.peers import relax_label
+from glsldiff.bench.timing import repeat
 from glsldiff.core import io
 from glsldiff.core.plotting import pyplot, save_figure
 from glsldiff.physics.editing import NO_SURFACE, Brush, Edit
@@ -67,7 +73,8 @@ def _stroke(view: Any, dabs: int, radius: float) -> list[tuple[float, float]]:
 
 
 def edit_study(names: Sequence[str], dabs: int = 8, frame_sweeps: int = 10, radius: float = 30.0,
-               ref_tol: float = 1e-7, size: int = 512, status: Any = None) -> tuple[list[dict], list[dict]]:
+               ref_tol: float = 1e-7, size: int = 512, status: Any = None,
+               repeats: int = 1) -> tuple[list[dict], list[dict]]:
     """(summary rows per model, per-frame rows): module docstring."""
     scenes = model_scenes(size)
     summary, frames = [], []
@@ -104,11 +111,14 @@ def edit_study(names: Sequence[str], dabs: int = 8, frame_sweeps: int = 10, radi
                 k += 1
             converged_s = after[-1][0]
             solver = r.pass2_solver      # None when a tetrahedral frame came from the solution cache
-            cold_s, cold_sweeps = np.nan, np.nan
+            peer: dict[str, Any] = {"peer": "none (the frame came from the solution cache)", "cold t_median_s": np.nan,
+                                    "cold t_min_s": np.nan, "repeats": 0, "cold sweeps": np.nan}
             if solver is not None:
-                t0 = time.perf_counter()
-                _, cold = solver.solve(tol=scene.options.tol, x0=None)
-                cold_s, cold_sweeps = time.perf_counter() - t0, cold.sweeps
+                cold_t = repeat(lambda: solver.solve(tol=scene.options.tol, x0=None), repeats)
+                cold = cold_t.result[1]
+                peer = {"peer": relax_label(f"cold re-solve, {cold.method}", scene.options.tol),
+                        "cold t_median_s": cold_t.median, "cold t_min_s": cold_t.min, "repeats": cold_t.repeats,
+                        "cold sweeps": cold.sweeps, "peer_tol": scene.options.tol, "peer_residual": cold.residual}
             with tempfile.TemporaryDirectory() as tmp:
                 path = r.save_material(Path(tmp) / "edited.npz")
                 mat = dataclasses.replace(scene.material, nodes=str(path), preset=None, procedural=None)
@@ -126,7 +136,7 @@ def edit_study(names: Sequence[str], dabs: int = 8, frame_sweeps: int = 10, radi
                         "edit ms": 1e3 * float(np.median(t_edit)), "t2 ms/frame": 1e3 * float(np.median(t2s)),
                         "t3 ms/frame": 1e3 * float(np.median(t3s)), "fps editing": float(np.median(stroke_fps)),
                         "to 0.5 % s": hit[0] if hit else np.nan, "to tol s": converged_s,
-                        "err at tol": errs[-1], "cold solve s (peer)": cold_s, "cold sweeps": cold_sweeps,
+                        "err at tol": errs[-1], **peer,
                         "paper polygrid": paper[0], "paper fps": paper[1], "paper fps coherent": paper[2]})
     return summary, frames
 

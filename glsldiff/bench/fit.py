@@ -7,6 +7,7 @@ over the pairs a back-lit capture observes (lit z- face to observed z+ face).
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -18,6 +19,8 @@ from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.synthetic import bssrdf_error, synthetic_measurements
 from glsldiff.physics.procedural import synthetic_volume
+from glsldiff.bench.peers import direct_label, relax_label
+from glsldiff.bench.timing import repeat, runs_note
 from glsldiff.core.io import write_csv
 from glsldiff.core.tables import print_table
 from glsldiff import gl
@@ -54,11 +57,33 @@ class Case:
                 self.model.active_values(self.mu[..., CHANNEL]))
 
 
+class Cases:
+    """One line on stderr before and after each fit of a study, with the time left estimated
+    from the fits done so far (every fit has the same evaluation budget)."""
+
+    def __init__(self, study: str, total: int) -> None:
+        self.study, self.total, self.done, self.seconds = study, total, 0, 0.0
+
+    def before(self, what: str) -> None:
+        left = (f", about {self.seconds / self.done * (self.total - self.done):.0f} s left in this study"
+                if self.done else "")
+        print(f"bench fit: {self.study} {self.done + 1}/{self.total}: {what}{left}", file=sys.stderr, flush=True)
+
+    def after(self, what: str, seconds: float) -> None:
+        self.done += 1
+        self.seconds += seconds
+        print(f"bench fit: {self.study} {self.done}/{self.total}: {what} in {seconds:.1f} s", file=sys.stderr,
+              flush=True)
+
+
 def _fit(case: Case, meas, method: str, lam: float, max_evals: int, snapshot_every: int = 0):
+    """One fit; Ctrl-C inside it (which a fit answers by keeping its best point) ends the bench."""
     model = ForwardModel(case.grid)
     t0 = time.perf_counter()
     fit = fit_channel(model, *meas.channel(CHANNEL), FitOptions(method=method, lam=lam, max_evals=max_evals),
                       snapshot_every=snapshot_every)
+    if fit.trace.status == "interrupted" or fit.homogeneous_trace.status == "interrupted":
+        raise KeyboardInterrupt
     return fit, time.perf_counter() - t0, model
 
 
@@ -68,13 +93,16 @@ def measurements_study(case: Case, ns: list[int], methods: list[str], max_evals:
     up to 16 measurements, E and wall time against iterations (figure 11 right)."""
     rows, curves = [], []
     n_curve = max([n for n in ns if n * n <= 16] or ns[:1])
+    cases = Cases("measurements", len(ns) * len(methods))
     for n in ns:
         meas = case.measurements(n, noise)
         for method in methods:
             snap = (1 if method == "cg" else 5) if n == n_curve else 0  # CG: few, long iterations
+            cases.before(f"{method}, {n * n} measurements, at most {max_evals} evaluations")
             fit, seconds, model = _fit(case, meas, method, lam, max_evals, snap)
             E_h = case.error(np.full(model.n, fit.homogeneous[0]), np.full(model.n, fit.homogeneous[1]))
             E = case.error(fit.kappa, fit.mu)
+            cases.after(f"{method}, {n * n} measurements: E {E:.3g}", seconds)
             rows.append(dict(measurements=n * n, method=method, E=E, E_homogeneous=E_h, data=fit.data,
                              evals=len(fit.trace.records), iterations=fit.trace.iterations,
                              factorizations=model.stats.factorizations, seconds=seconds,
@@ -94,8 +122,11 @@ def lambda_study(case: Case, lams: list[float], n: int, max_evals: int, noise: f
     reg_true, _ = obj.regularizer(kt)
     inner = case.grid.kind.reshape(-1)[case.grid.graph.active] == 1
     rows = []
+    cases = Cases("lambda", len(lams))
     for lam in lams:
+        cases.before(f"lambda {lam:g}, at most {max_evals} evaluations")
         fit, seconds, _ = _fit(case, meas, "lbfgs", lam, max_evals)
+        cases.after(f"lambda {lam:g}: E {case.error(fit.kappa, fit.mu):.3g}", seconds)
         reg, _ = obj.regularizer(fit.kappa)
         rows.append(dict(lam=lam, E=case.error(fit.kappa, fit.mu), data=fit.data,
                          grad_kappa_sq=reg, grad_kappa_sq_true=reg_true,
@@ -106,29 +137,36 @@ def lambda_study(case: Case, lams: list[float], n: int, max_evals: int, noise: f
 
 def backend_study(case: Case, n: int, noise: float, repeats: int = 3) -> list[dict]:
     """Seconds per objective+gradient evaluation: SuperLU (one factor, all 2M right-hand
-    sides) vs GLSL Jacobi (3 conditions per solve, warm-started), and their gradient gap."""
+    sides) vs GLSL Jacobi to its model's ``tol`` (3 conditions per solve, warm-started from the
+    previous evaluation, as in a fit), and their gradient gap. Each path first evaluates once
+    outside the clock (``warmup_s``: GL context use, shader compilation, first upload; for
+    SuperLU the same first evaluation), then ``repeats`` evaluations at as many perturbed points
+    are timed one by one: median and minimum (``t_median_s``, ``t_min_s``)."""
 
     meas = case.measurements(n, noise)
     Q, Y, W = meas.channel(CHANNEL)
     kt, mt = case.true_vectors()
     rng = np.random.default_rng(0)
-    points = [(kt * (1 + 0.05 * rng.standard_normal(kt.size)), mt) for _ in range(repeats)]
+    points = [(kt * (1 + 0.05 * rng.standard_normal(kt.size)), mt) for _ in range(repeats + 1)]
     rows, grads = [], {}
-    for name in ("scipy-superlu", "glsl-jacobi"):
-        model = ForwardModel(case.grid) if name == "scipy-superlu" else GlslForwardModel(case.grid)
+    for path in ("superlu", "glsl"):
+        model = ForwardModel(case.grid) if path == "superlu" else GlslForwardModel(case.grid)
+        label = direct_label() if path == "superlu" else relax_label("GLSL Jacobi fp32", model.tol)
         obj = Objective(model, Q, Y, W)
-        obj.evaluate(*points[0])  # warm-up (GL compile / first upload)
         t0 = time.perf_counter()
-        for k, m in points:
-            ev = obj.evaluate(k, m)
-        sec = (time.perf_counter() - t0) / repeats
-        grads[name] = np.concatenate([ev.grad_kappa, ev.grad_mu])
-        device = "cpu" if name == "scipy-superlu" else gl.describe(model._solver.ctx)
-        rows.append(dict(path=name, device=device, seconds_per_gradient=sec, measurements=meas.M,
+        obj.evaluate(*points[0])  # warm-up (GL compile / first upload): outside the clock
+        warmup = time.perf_counter() - t0
+        todo = iter(points[1:])
+        tim = repeat(lambda: obj.evaluate(*next(todo)), repeats)
+        ev = tim.result
+        grads[path] = np.concatenate([ev.grad_kappa, ev.grad_mu])
+        device = "cpu" if path == "superlu" else gl.describe(model._solver.ctx)
+        rows.append(dict(path=label, device=device, seconds_per_gradient=tim.median, **tim.columns(),
+                         warmup_s=warmup, tol=getattr(model, "tol", float("nan")), measurements=meas.M,
                          sweeps=getattr(model, "sweeps", 0)))
         if hasattr(model, "release"):
             model.release()
-    gap = float(np.linalg.norm(grads["glsl-jacobi"] - grads["scipy-superlu"]) / np.linalg.norm(grads["scipy-superlu"]))
+    gap = float(np.linalg.norm(grads["glsl"] - grads["superlu"]) / np.linalg.norm(grads["superlu"]))
     for r in rows:
         r["gradient_gap"] = gap
     return rows
@@ -166,25 +204,32 @@ def plot(rows: list[dict], curves: list[dict], lam_rows: list[dict], path: Path)
 
 
 def run(args: argparse.Namespace) -> None:
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = Path(args.out)   # created when the first study's results are written
     case = Case(tuple(args.size), args.h, args.volume)
     nx, ny, nz = args.size
     title = f"{nx}x{ny}x{nz} {args.volume} volume, h = {args.h} mm, noise {args.noise:g}"
     rows, curves, lam_rows = [], [], []
     if "measurements" not in args.skip:
         rows, curves = measurements_study(case, args.n, args.methods, args.max_evals, args.noise)
+        out.mkdir(parents=True, exist_ok=True)
         write_csv(out / "fit_measurements.csv", rows)
         write_csv(out / "fit_iterations.csv", curves)
         print_table(f"figure 11: E vs measurements ({title})", rows)
     if "lambda" not in args.skip:
         lam_rows = lambda_study(case, args.lams, 4, args.max_evals, args.noise)
+        out.mkdir(parents=True, exist_ok=True)
         write_csv(out / "fit_lambda.csv", lam_rows)
         print_table(f"figure 13: regularisation, 16 measurements ({title})", lam_rows)
     if "backends" not in args.skip:
-        b_rows = backend_study(case, 4, args.noise)
+        repeats = getattr(args, "repeat", 3)
+        print(f"bench fit: timing one gradient on each path ({repeats} runs each)", file=sys.stderr, flush=True)
+        b_rows = backend_study(case, 4, args.noise, repeats)
+        out.mkdir(parents=True, exist_ok=True)
         write_csv(out / "fit_backends.csv", b_rows)
-        print_table(f"forward+adjoint paths, 16 measurements ({title})", b_rows)
+        print_table(f"forward+adjoint paths, 16 measurements ({title}); seconds per gradient: "
+                    f"{runs_note(repeats)}, warm-up outside the clock", b_rows,
+                    first=("path", "seconds_per_gradient", "t_min_s", "warmup_s", "gradient_gap"),
+                    rest=f"all in {out}/fit_backends.csv")
     if rows:
         plot(rows, curves, lam_rows, out / "fit.png")
     print("E: figure-11 diffuse-BSSRDF error over (lit z-, observed z+) node pairs vs the true volume; "

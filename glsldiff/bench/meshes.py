@@ -15,8 +15,10 @@ solve (sweeps, status) and the render time, with a front-lit and a back-lit rend
 under the lights' sharp edges, :mod:`glsldiff.grids.adapt`), so both lights share one grid.
 
 Against the oracle, on the front-lit frame: the GLSL solve's largest surface-fluence
-difference from the CPU solve of the same system (:func:`glsldiff.oracle.fem.solve_system_direct`),
-relative to the largest fluence (``glsl_vs_oracle``; the GPU stops at the scene's ``tol``);
+difference from the CPU solve of the same system (:func:`glsldiff.oracle.fem.solve_system_direct`:
+SuperLU, or pyamg SA + CG above 20k unknowns; ``oracle`` names which, ``oracle_rtol`` its
+tolerance), relative to the largest fluence (``glsl_vs_oracle``; the GPU stops at the scene's
+``tol``, ``glsl_tol``, a Jacobi-scaled residual);
 the node pairs with a positive off-diagonal entry (``positive_couplings``, red channel: the
 discrete maximum principle does not hold there) and the nodes whose exact discrete fluence
 is negative in any channel (``negative_nodes``).
@@ -37,6 +39,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from glsldiff.bench.peers import fem_reference_label
 from glsldiff.core import io
 from glsldiff.core.errors import GlsldiffError
 from glsldiff.mesh import Mesh, box_mesh, torus_mesh
@@ -74,7 +77,9 @@ def _against_oracle(r: Renderer) -> dict[str, object]:
     x = solve_system_direct(s).reshape(3, s.n).T
     exact = r.surface_values(x)
     scale = float(np.abs(exact).max()) or 1.0
-    return {"glsl_vs_oracle": float(np.abs(r.surface_fluence - exact).max()) / scale,
+    label, rtol = fem_reference_label(s.n)
+    return {"oracle": label, "oracle_rtol": rtol,
+            "glsl_vs_oracle": float(np.abs(r.surface_fluence - exact).max()) / scale,
             "positive_couplings": positive_couplings(s.block(0)[0]),
             "negative_nodes": int((x < 0).any(axis=1).sum())}
 
@@ -133,6 +138,7 @@ def mesh_bench(meshes: Sequence[str] = MESHES, cubes: Sequence[int] | None = Non
                     row[f"{light}_status"] = rep.solver.status
                     row[f"{light}_clamped"] = rep.clamped_vertices
                     if light == "front":
+                        row["glsl_tol"] = scene.options.tol
                         row.update(_against_oracle(r))
                     sources[light] = r.boundary_source.copy()
                     _, _, exposure = save(img, out / f"{name}_n{n}_{k}_{light}.exr", scene, rep)

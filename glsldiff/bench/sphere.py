@@ -4,13 +4,19 @@ A homogeneous sphere of radius R under a uniform boundary source q has the radia
 solution ``phi(r) = a sinh(s r) / r`` (:func:`glsldiff.oracle.closed_forms.sphere_fluence`). The
 polygrid of an icosphere is refined in two ways: series ``n`` keeps the polycube (cube edge
 ``cube_size``) and raises the nodes per cube ``n``; series ``cubes`` keeps ``n`` and
-shrinks the cubes. Each grid is solved directly (SuperLU; pyamg to a 1e-11 residual above
-20k nodes), so only the discretisation error is measured: the relative L2 error of phi at
+shrinks the cubes. Each grid is solved to convergence (:func:`glsldiff.bench.peers.reference_solve`:
+SuperLU below 20k nodes, else pyamg SA + GMRES to a relative residual of 1e-11; ``reference``
+names which), so only the discretisation error is measured: the relative L2 error of phi at
 the boundary nodes and at the interior nodes, each against ``phi(|x - centre|)`` at the
 node's own position, and the local (truncation) error of the exact solution per row kind
 (:func:`truncation`). Series ``n`` also solves with the other weight fallbacks (what the
-fallback costs in accuracy) and, optionally, with the GLSL solver (GPU error and time next
-to the direct solve).
+fallback costs in accuracy) and, optionally, with the GLSL solver to the Jacobi-scaled residual
+``tol`` (GPU error and time next to the reference solve's).
+
+Timing: the reference and the GLSL solve of the default weights run ``repeats`` times each,
+set-up included in both (assembly and the LU factorisation or AMG set-up; the GLSL solver's
+construction: texture upload, shader compilation): ``t_median_s`` / ``t_min_s`` of the reference
+solve, ``glsl_t_median_s`` / ``glsl_t_min_s`` of the GLSL one.
 """
 from __future__ import annotations
 
@@ -29,7 +35,8 @@ from glsldiff.mesh import sphere_mesh
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.grids.graph import BOUNDARY, INTERIOR
 from glsldiff.oracle.assembly import assemble
-from glsldiff.oracle.solvers import solve_reference
+from glsldiff.bench.peers import reference_solve, relax_label
+from glsldiff.bench.timing import repeat
 from glsldiff.solve.jacobi import solve_glsl
 from glsldiff.core.plotting import pyplot, save_figure
 
@@ -62,7 +69,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
                  kappa: float = 1.0 / 3.15, mu: float = 0.05, q: float = 1.0, subdivisions: int = 5,
                  glsl: bool = True, tol: float = 5e-7, out: Path | None = None,
                  variance_iterations: int = 100, cube_sizes: Sequence[float] = (),
-                 n_fixed: int = 4) -> list[dict[str, object]]:
+                 n_fixed: int = 4, repeats: int = 1) -> list[dict[str, object]]:
     """Discretisation error of the polygrid sphere against the closed form.
 
     Two refinements: series ``"n"`` keeps the polycube (cube edge ``cube_size``) and raises
@@ -70,6 +77,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
     edge through ``cube_sizes`` (a new polycube each time). Both halve h; only the second
     also shrinks the region the polycube-to-sphere map distorts. Homogeneous channel 0
     carries q; the other channels are 0 (pyamg skips them, SuperLU still factors them).
+    The reference and GLSL solves of the default weights run ``repeats`` times (module docstring).
     """
     mesh = sphere_mesh(radius, subdivisions=subdivisions)
     C = float(boundary_constant(1.3))
@@ -91,24 +99,27 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
                                   "fallback_nodes": pg.weight_stats.fallback if pg.weight_stats else 0}
         for fallback in ("blend", "axis", "none") if series == "n" else ("blend",):
             g = pg if fallback == "blend" else with_weights(pg, fallback=fallback)
-            t1 = time.perf_counter()
             try:
                 p = DiffusionProblem(g, kappa, mu, (q, 0.0, 0.0), C=C)
-                phi = solve_reference(p)[0]
+                ref = repeat(lambda: reference_solve(p), repeats if fallback == "blend" else 1)
             except GlsldiffError:  # raw weights may not even give a valid system
                 row[f"err_boundary_{fallback}"] = row[f"err_interior_{fallback}"] = float("nan")
                 continue
+            phi, ref_rep, ref_label, ref_rtol = ref.result
             eb, ei = _errors(g, phi, exact)
             row[f"err_boundary_{fallback}"] = eb
             row[f"err_interior_{fallback}"] = ei
             if fallback == "blend":
-                row["solve_s"] = time.perf_counter() - t1
+                row.update({"reference": ref_label, "reference_rtol": ref_rtol,
+                            "reference_residual": ref_rep.residual, **ref.columns()})
                 row.update(truncation(p, exact))
                 if glsl:
-                    phi_g, rep = solve_glsl(p, tol=tol)
-                    row["glsl_vs_direct"] = relative_l2(phi_g[g.active], phi[g.active])
-                    row["glsl_s"] = rep.seconds
-                    row["glsl_sweeps"] = rep.sweeps
+                    gt = repeat(lambda: solve_glsl(p, tol=tol), repeats)
+                    phi_g, rep = gt.result
+                    row["glsl"] = relax_label("GLSL Jacobi fp32", tol)
+                    row["glsl_vs_reference"] = relative_l2(phi_g[g.active], phi[g.active])
+                    row.update({"glsl_tol": tol, "glsl_residual": rep.residual, "glsl_t_median_s": gt.median,
+                                "glsl_t_min_s": gt.min, "glsl_sweeps": rep.sweeps})
         rows.append(row)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)

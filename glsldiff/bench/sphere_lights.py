@@ -6,7 +6,9 @@ Lights (irradiance 1, intensity 900 for the spot, source by the renderer's ``p1`
 convention): directional from -z (onto a polycube face), from -x-z (a polycube edge), from
 +x+y+z (a corner), and a spot 30 mm above the centre on +z aimed at it (cone 10 deg, smooth
 falloff from 8 deg). Each discretisation
-is solved exactly (SuperLU / pyamg), so the table shows discretisation error only:
+is solved to convergence (SuperLU, or pyamg far below the discretisation error on large grids;
+``solver`` names what ran, ``solver_rtol`` its tolerance, ``residual`` the Jacobi-scaled residual
+it reached), so the table shows discretisation error only:
 
 * ``fem``: P1 finite elements on the pillowed polycube (:mod:`glsldiff.grids.fem_grid`);
 * ``fem-adapt``: the same grid refined for each light where its source is not linear over a
@@ -26,6 +28,9 @@ points (projected on the sphere): ``rel_rms = ||B - B_ref|| / ||B_ref||`` and
 ``cube_size``, more nodes per cube) and ``cubes`` (fixed ``n``, smaller cubes). Per light,
 ``sphere_error_<light>.png`` maps the error over the whole sphere for the finest grid of
 each discretisation, carried to every point by the renderer's interpolation.
+
+Timing: each solve (problem set-up, assembly, factorisation or AMG set-up, solve; for
+``fem-adapt`` the refinement too) runs ``repeats`` times: ``t_median_s``, ``t_min_s``.
 """
 from __future__ import annotations
 
@@ -37,6 +42,8 @@ from typing import Any, Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff.bench.peers import fem_reference_label, reference_solve
+from glsldiff.bench.timing import repeat
 from glsldiff.core import io
 from glsldiff.core.plotting import pyplot, save_figure
 from glsldiff.grids.adapt import refine_for_source
@@ -46,7 +53,6 @@ from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import solve_tet_direct
-from glsldiff.oracle.solvers import solve_reference
 from glsldiff.oracle.sphere_lights import sphere_from_light
 from glsldiff.physics.exitance import exitant_bracket
 from glsldiff.physics.lights import DirectionalLight, SpotLight
@@ -96,7 +102,9 @@ def fem_case(g: Any, build: float, adapt: bool = False) -> Case:
                     "adapt_s": rep.seconds}
         q = np.asarray(source(grid.boundary_positions), dtype=np.float64)
         p = TetProblem(grid, KAPPA, MU, np.repeat(q[:, None], 3, axis=1), eta=ETA)
-        phi, _ = solve_tet_direct(p)
+        phi, rep = solve_tet_direct(p)
+        label, rtol = fem_reference_label(rep.nodes)
+        info.update({"solver": label, "solver_rtol": rtol, "residual": rep.residual})
         return p.exitant_bracket(phi)[:len(g.surface_nodes), 0], info   # the unrefined grid's nodes come first
     return Case(g.boundary_positions, solve, {"h_mm": g.h, "nodes": g.n_active, "surface_nodes": len(g.surface_nodes),
                                               "inverted": g.quality.inverted, "build_s": build},
@@ -110,8 +118,9 @@ def polygrid_case(pg: Any, build: float, stencil: str) -> Case:
     def solve(source: Source) -> tuple[NDArray[np.float64], dict[str, object]]:
         qs = np.repeat(np.asarray(source(pg.boundary_positions), dtype=np.float64)[:, None], 3, axis=1)
         p = DiffusionProblem(pg, KAPPA, MU, qs, eta=ETA, stencil=stencil)
-        phi, _ = solve_reference(p)                      # fluence (already converted from kappa phi)
-        return exitant_bracket(pg.boundary_values(phi), qs, ETA, "p1", p.C)[:, 0], {}
+        phi, rep, label, rtol = reference_solve(p)     # fluence (already converted from kappa phi)
+        return (exitant_bracket(pg.boundary_values(phi), qs, ETA, "p1", p.C)[:, 0],
+                {"solver": label, "solver_rtol": rtol, "residual": rep.residual})
     return Case(pg.boundary_positions, solve, {"h_mm": pg.lattice.h, "nodes": int(pg.n_active),
                                                "surface_nodes": len(pg.boundary_positions),
                                                "inverted": pg.mapping.inverted if pg.mapping else -1,
@@ -124,16 +133,17 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
                        n_fixed: int = 2, polygrid_n_fixed: int = 4, radius: float = 10.0,
                        tet_edges: Sequence[float] = (2.5, 1.67, 1.25),
                        discretisations: Sequence[str] = DISCRETISATIONS, lights: Sequence[str] | None = None,
-                       out: Path | None = None, progress: Callable[[str], None] | None = None
-                       ) -> list[dict[str, object]]:
-    """The table (module docstring); writes ``sphere_lights.csv`` and ``.png`` into ``out``."""
+                       out: Path | None = None, progress: Callable[[str], None] | None = None,
+                       repeats: int = 1) -> list[dict[str, object]]:
+    """The table (module docstring); writes ``sphere_lights.csv`` and ``.png`` into ``out``;
+    each solve runs ``repeats`` times."""
     mesh = sphere_mesh(radius, subdivisions=5)
     all_lights = bench_lights(radius)
     names = list(lights) if lights else list(all_lights)
     series = {k: sphere_from_light(all_lights[k], radius, KAPPA, MU, ETA) for k in names}
     polycubes: dict[float, Any] = {}
     grids: dict[tuple[str, int, float], tuple[Any, float]] = {}   # (fem | lattice, n, cube): grid, build s
-    solved: dict[tuple[str, int, float], tuple[Case, dict[str, tuple[NDArray[np.float64], float]]]] = {}
+    solved: dict[tuple[str, int, float], tuple[Case, dict[str, Any]]] = {}
     finest: dict[str, tuple[int, Case, dict[str, NDArray[np.float64]]]] = {}   # disc -> n, case, B per light
     rows: list[dict[str, object]] = []
     for disc in discretisations:
@@ -163,9 +173,9 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
                         else polygrid_case(*grids[kind, n, cs], disc))
                 results = {}
                 for k in names:
-                    t0 = time.perf_counter()
-                    B, extra = case.solve(series[k].source)
-                    results[k] = (B, time.perf_counter() - t0, extra)
+                    tim = repeat(lambda: case.solve(series[k].source), repeats)
+                    B, extra = tim.result
+                    results[k] = (B, tim.columns(), extra)
                 solved[disc, n, cs] = (case, results)
             case, results = solved[disc, n, cs]
             if ser in ("n", "edge") and disc != "paper":      # the last of series n goes into the error maps
@@ -179,7 +189,7 @@ def sphere_light_study(ns: Sequence[int] = (2, 4, 8), polygrid_ns: Sequence[int]
                              "adapt_s": 0.0, **extra, "light": k,
                              "rel_rms": float(np.linalg.norm(B - ref) / np.linalg.norm(ref)),
                              "rel_max": float(np.abs(B - ref).max() / np.abs(ref).max()),
-                             "solve_s": secs, "series_terms": series[k].n_terms})
+                             **secs, "series_terms": series[k].n_terms})
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         io.write_csv(out / "sphere_lights.csv", rows)

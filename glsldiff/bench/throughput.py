@@ -5,17 +5,21 @@ offsets, or per-texel offset textures drawn as one quad). Part of ``glsldiff ben
 --throughput``.
 
 Each grid solves a homogeneous marble problem lit on its boundary; after a few warm-up sweeps
-(shader compilation), ``sweeps`` sweeps are timed with the GPU finished (``ctx.finish``), no
-read-back inside the clock, three times: the fastest counts (run-to-run noise on a shared
-2-core VM is +-30 %).
+(shader compilation, first use; outside the clock), ``sweeps`` sweeps are timed with the GPU
+finished (``ctx.finish``), no read-back inside the clock, ``repeats`` times
+(:func:`glsldiff.bench.timing.repeat`): the rates are of the median run, ``t_min_s`` the fastest
+(run-to-run noise on a shared 2-core VM is +-30 %). The solver's construction (texture upload,
+shader compilation) and the warm-up sweeps are timed apart (``setup_s``, wall).
 """
 from __future__ import annotations
 
+import time
 from typing import Any, Sequence
 
 import numpy as np
 
 from glsldiff import gl
+from glsldiff.bench.timing import repeat
 from glsldiff.grids.cache import cached_polygrid
 from glsldiff.grids.regular import RegularGrid
 from glsldiff.mesh import GENERATED_MESHES, generated_mesh, load_mesh
@@ -43,23 +47,28 @@ def _problem(grid: Any) -> DiffusionProblem:
 
 
 def _rate(problem: DiffusionProblem, packing: str, sweeps: int, ctx: Any, repeats: int = 3) -> dict[str, Any]:
+    t0 = time.perf_counter()
     with GlslDiffusion(problem, ctx, packing=packing) as lv:
-        lv.sweep(5)                                   # compile, first-use costs
-        times = []
-        for _ in range(repeats):                      # the fastest of a few runs: a shared VM is noisy
-            t0 = lv.sweep_seconds
+        lv.sweep(5)                                   # compile, first-use costs: outside the clock
+        setup = time.perf_counter() - t0
+
+        def run() -> float:
+            t = lv.sweep_seconds                      # GPU finished, no read-back
             lv.sweep(sweeps)
-            times.append(lv.sweep_seconds - t0)
-        dt = min(times)
+            return lv.sweep_seconds - t
+        tim = repeat(run, repeats, seconds=lambda dt: dt)
+        dt = tim.median
         return {"nodes updated": lv.updated_nodes,
                 "draws per sweep": primitive_count(lv.primitives) if packing == "primitives" else 1,
-                "ms per sweep": 1e3 * dt / sweeps, "M updates/s": lv.updated_nodes * sweeps / dt / 1e6}
+                "ms/sweep": 1e3 * dt / sweeps, "ms/sweep min": 1e3 * tim.min / sweeps,
+                "M upd/s": lv.updated_nodes * sweeps / dt / 1e6, **tim.columns(), "setup_s": setup}
 
 
 def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, sweeps: int = 200,
-                     packings: Sequence[str] = PACKINGS) -> list[dict[str, Any]]:
-    """One row per grid and packing: node updates per second and the polygrid's cost per node
-    relative to the regular grid of the same node count with the same packing."""
+                     packings: Sequence[str] = PACKINGS, repeats: int = 3) -> list[dict[str, Any]]:
+    """One row per grid and packing: node updates per second (median of ``repeats`` runs of
+    ``sweeps`` sweeps) and the polygrid's cost per node relative to the regular grid of the
+    same node count with the same packing."""
     ctx = gl.get_context()
     rows: list[dict[str, Any]] = []
     for mesh_name, n, cubes in polygrids:
@@ -70,11 +79,11 @@ def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, swee
         reg = RegularGrid(side, side, side, h=1.0)
         per_node = primitive_count(pass_primitives(pg)) / pg.n_active
         for packing in packings:
-            r_reg = _rate(_problem(reg), packing, sweeps, ctx)
-            r_pg = _rate(_problem(pg), packing, sweeps, ctx)
-            label = f"{mesh_name} polygrid {pg.shape[0]} cubes x {n}^3"
-            rows.append({"grid": f"regular {side}^3 (same node count)", "packing": packing, **r_reg,
-                         "cost per node vs regular": 1.0})
+            r_reg = _rate(_problem(reg), packing, sweeps, ctx, repeats)
+            r_pg = _rate(_problem(pg), packing, sweeps, ctx, repeats)
+            label = f"{mesh_name} {pg.shape[0]} cubes x {n}^3"     # a polygrid; the regular grid before it:
+            rows.append({"grid": f"regular {side}^3", "packing": packing, **r_reg,   # the same node count
+                         "cost/node vs regular": 1.0})
             rows.append({"grid": label, "packing": packing, **r_pg, "primitives per node": per_node,
-                         "cost per node vs regular": r_reg["M updates/s"] / r_pg["M updates/s"]})
+                         "cost/node vs regular": r_reg["M upd/s"] / r_pg["M upd/s"]})
     return rows

@@ -34,6 +34,7 @@ from glsldiff.bench.tet import tet_study
 from glsldiff.bench.cut import update_seconds
 from glsldiff.bench.edit import edit_study, save_edit_study
 from glsldiff.bench.throughput import sweep_throughput
+from glsldiff.bench.timing import runs_note
 from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
                                           DISCRETISATIONS as SPHERE_DISCRETISATIONS, sphere_light_study)
 from glsldiff.commands.capture import add_capture_parser
@@ -59,6 +60,13 @@ def _add_gl(p: argparse.ArgumentParser) -> None:
                    help="GL backend (default: $GLSLDIFF_GL or egl)")
 
 
+def _add_repeat(p: argparse.ArgumentParser, default: int) -> None:
+    """A bench's ``--repeat N``: timed work runs N times, tables print the median and the minimum."""
+    p.add_argument("--repeat", type=A.integer(1, 100), default=default, metavar="N",
+                   help="run each timed solve N times; tables show the median and the fastest "
+                        "(default %(default)s" + ("; 1 run is printed as such, no median)" if default == 1 else ")"))
+
+
 def cmd_demo(args: argparse.Namespace) -> int:
     regions = demo.DemoConfig.regions
     if min(args.size[:2]) < regions:
@@ -68,9 +76,14 @@ def cmd_demo(args: argparse.Namespace) -> int:
                           tol=args.tol, precision=args.precision, out=check_output_folder(args.out), seed=args.seed)
     rows = demo.run(cfg, progress=not args.quiet)
     print_table(f"Back-lit marble slab {cfg.nx}x{cfg.ny}x{cfg.nz}, h = {cfg.h} mm, "
-                f"{gl.describe(gl.get_context())}", rows)
-    print("error_phi: relative L2 of the GPU fluence vs the scipy direct solve of the same system; "
-          "error_image: same for the front-face radiance image; est_error: the solver's own estimate.")
+                f"{gl.describe(gl.get_context())}; seconds: 1 run", rows,
+                first=("image", "gpu_s", "direct_s", "sweeps", "error_phi", "error_image", "residual"),
+                rest=f"all in {cfg.out}/report.csv")
+    print(f"gpu_s: {rows[0]['gpu']} (Jacobi-scaled residual); direct_s: {rows[0]['direct']} with the stored factors; "
+          "the set-up of both (GPU: textures, shader compilation, the residual checks' CPU system; SuperLU: assembly "
+          "and factorisation) is in its own row, in no other. error_phi: relative L2 of the GPU fluence vs the direct "
+          "solve of the same system; error_image: same for the front-face radiance image; est_error: the solver's own "
+          "estimate.")
     print(f"wrote {cfg.regions ** 2} EXR images, contact_sheet.png and report.csv to {cfg.out}/")
     return 0
 
@@ -182,15 +195,30 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.sizes:
         rows = forward_bench.forward(sizes=args.sizes, out=out, max_direct_nodes=args.max_direct_nodes,
                                      seconds=args.seconds, precisions=args.precision, schemes=args.schemes,
-                                     levels=args.levels, tol=args.tol)
-        print_table("glsldiff bench forward", rows)
+                                     levels=args.levels, tol=args.tol, repeats=args.repeat)
+        print_table(f"bench forward ({gl.describe(gl.get_context())}): seconds, {runs_note(args.repeat)}", rows,
+                    first=("grid", "method", "t_median_s", "t_min_s", "final_error", "t(err<1e-4)", "t(err<1e-5)"),
+                    rest=f"all in {args.out}/forward.csv")
+        print(f"t_median_s / t_min_s: median / fastest of {args.repeat} run(s), set-up included for every method "
+              "(CPU: assembly + SuperLU factorisation or pyamg set-up; GPU: texture upload + shader compilation), "
+              "the GL context excluded (created once, before any clock); the Jacobi runs (no tol) sweep for "
+              f"--seconds {args.seconds:g} (numpy's stops earlier where it stalls at rounding), their repeats redo the "
+              "first run's sweeps. t(err<X): the same over the "
+              "runs; Mupd/s: per second of solving (measured set-up out); rtol: relative residual passed to pyamg; tol: "
+              "Jacobi-scaled residual; residual: Jacobi-scaled residual reached.")
         print(f"wrote forward.csv, forward_curves.csv and forward.png to {args.out}/")
     if args.throughput:
-        rows = sweep_throughput()
-        print_table(f"sweep throughput, fp32, conservative stencil ({gl.describe(gl.get_context())})", rows)
+        rows = sweep_throughput(repeats=args.repeat)
+        print_table(f"sweep throughput, fp32, conservative stencil ({gl.describe(gl.get_context())}), "
+                    f"{runs_note(args.repeat)}", rows,
+                    first=("grid", "packing", "ms/sweep", "ms/sweep min", "M upd/s", "cost/node vs regular"),
+                    rest=f"all in {args.out}/throughput.csv")
         print("packing primitives: the paper's quads/lines/points with per-primitive offsets (2 passes); texels: "
-              "per-texel offset textures, one quad per sweep. Cost per node vs regular: the polygrid's time per "
-              "node update over the regular grid's, same packing.")
+              "per-texel offset textures, one quad per sweep. Each regular grid has the node count of the polygrid "
+              "after it. ms/sweep, M upd/s: the median of the runs of 200 sweeps (GPU finished, no read-back), "
+              "ms/sweep min: the fastest; the solver's construction and 5 warm-up sweeps (shader compilation) are "
+              "outside the clock (setup_s). cost/node vs regular: the polygrid's time per node update over the "
+              "regular grid's, same packing.")
         print(f"wrote {io.write_csv(out / 'throughput.csv', rows)}")
     return 0
 
@@ -229,16 +257,24 @@ def cmd_tet(args: argparse.Namespace) -> int:
     render_out = check_output(args.render) if args.render else None
     mesh = (sphere_mesh(args.size_mm / 2.0, subdivisions=5) if args.mesh == "sphere"
             else load_mesh(args.mesh, size_mm=args.size_mm, component=args.component))
-    tm, rows, summary = tet_study(mesh, args.edge, args.sigma_a, args.sigma_s, args.eta, args.light, args.tol, out,
-                                  status=_status, refine=args.refine, levels=args.levels, coarse_tol=args.coarse_tol)
+    tm, rows, summary, solvers = tet_study(mesh, args.edge, args.sigma_a, args.sigma_s, args.eta, args.light, args.tol, out,
+                                  status=_status, refine=args.refine, levels=args.levels, coarse_tol=args.coarse_tol,
+                                  repeats=args.repeat)
     q = tm.quality.as_dict()
     q.pop("seconds")
     refined = f", 1:8-refined {args.refine}x" if args.refine else ""
     print_table(f"tetrahedral mesh of {args.mesh} ({mesh.extents.max():.3g} mm), fTetWild, edge {args.edge:g} mm{refined}",
                 [{"quantity": k, "value": v} for k, v in q.items()])
-    print_table("TransCut DE matrix (eqs. 10-14) solved: error = max boundary |phi - phi_ref| / max phi_ref",
+    print_table("TransCut DE matrix (eqs. 10-14): set-up and reference",
                 [{"quantity": k, "value": v} for k, v in summary.items()])
-    print(f"wrote tet_{mesh.name}.csv and tet_{mesh.name}.png (error against time) to {out}/")
+    print_table(f"solved: error = max boundary |phi - phi_ref| / max phi_ref; seconds: {runs_note(args.repeat)}",
+                solvers, first=("method", "t(1%)", "t(0.1%)", "solve t(1%)", "solve t(0.1%)", "t_median_s", "t_min_s"),
+                rest=f"all in {out}/tet_{mesh.name}_solvers.csv")
+    print(f"rtol: ||r|| / ||b|| passed to each solver (the hierarchies' coarse levels: rtol {args.coarse_tol:g}); "
+          "t(X): seconds to error X with the set-up (pyamg's, the hierarchy's build; each built once, reused by "
+          "the repeats); solve t(X): solve-only seconds to 1 % and 0.1 %, without it; t_median_s / t_min_s: to rtol.")
+    print(f"wrote tet_{mesh.name}.csv, tet_{mesh.name}_solvers.csv and tet_{mesh.name}.png (error against time) "
+          f"to {out}/")
     if args.render:
         scene = replace(default_scene(), mesh=MeshSpec(args.mesh, args.size_mm),
                         polygrid=PolygridSpec(discretisation="tetwild", edge_mm=args.edge))
@@ -254,12 +290,17 @@ def cmd_tet(args: argparse.Namespace) -> int:
 def cmd_bench_edit(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
     summary, frames = edit_study(args.models, dabs=args.dabs, frame_sweeps=args.frame_sweeps, size=args.size,
-                                 status=_status)
+                                 status=_status, repeats=args.repeat)
     print_table(f"editing: {args.dabs}-dab stroke, {args.frame_sweeps} sweeps per frame, {args.size}^2 pixels "
-                f"({gl.describe(gl.get_context())})", summary)
-    print("fps editing: 1 / (edit + frame) per dab; to 0.5 %: seconds from the last dab's edit to the first frame "
-          "within 0.5 % (rel. L2) of the converged image; cold solve: the same solver from zero (no frame "
-          "coherence); paper: Wang et al. 2008 Table III on a GeForce 8800 GTX (its bunny has 8x our nodes).")
+                f"({gl.describe(gl.get_context())}); cold solve {runs_note(args.repeat)}", summary,
+                first=("model", "fps editing", "to 0.5 % s", "to tol s", "cold t_median_s", "cold t_min_s"),
+                rest=f"all in {args.out}/edit_summary.csv")
+    print("fps editing: 1 / (edit + frame) per dab, the median over the dabs; to 0.5 %: seconds from the last dab's "
+          "edit to the first frame within 0.5 % (rel. L2) of the converged image (1 stroke); cold t_median_s / "
+          f"t_min_s: the peer, the same solver from zero (no frame coherence) to the scene's tol (Jacobi-scaled), "
+          f"median / fastest of {args.repeat} run(s); it and the frames reuse the solver the first frame built (set-up "
+          "excluded from both, in the first frame's time); paper: Wang et al. 2008 Table III on a GeForce 8800 GTX "
+          "(its bunny has 8x our nodes).")
     paths = save_edit_study(summary, frames, out)
     print("wrote " + ", ".join(str(p) for p in paths))
     return 0
@@ -267,12 +308,18 @@ def cmd_bench_edit(args: argparse.Namespace) -> int:
 
 def cmd_bench_sphere(args: argparse.Namespace) -> int:
     rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
-                        out=check_output_folder(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed)
-    print_table(f"polygrid sphere R = {args.radius} mm vs closed form (relative L2 of phi)", rows)
+                        out=check_output_folder(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed,
+                        repeats=args.repeat)
+    print_table(f"polygrid sphere R = {args.radius} mm vs closed form (relative L2 of phi); solve times "
+                f"{runs_note(args.repeat)}", rows,
+                first=("series", "n", "h_mm", "err_boundary_blend", "err_interior_blend", "t_median_s",
+                       "glsl_t_median_s", "glsl_vs_reference"), rest=f"all in {args.out}/sphere.csv")
     print("series n: fixed polycube, more nodes per cube; series cubes: n fixed, smaller cubes. "
           "err_*_blend: default weights (blend fallback); _axis / _none: the other fallbacks on the same "
-          "nodes; glsl_vs_direct: GPU Jacobi vs the direct (SuperLU, or pyamg above 20k nodes) solve "
-          "of the same system.")
+          "nodes; reference: the converged solve each row names (SuperLU, or pyamg SA + GMRES to rtol 1e-11 "
+          "above 20k nodes); glsl_vs_reference: GPU Jacobi (glsl, to glsl_tol) vs it. t_median_s / t_min_s: the "
+          "reference solve, glsl_t_*: the GLSL solve, set-up included in both (assembly, factorisation or AMG "
+          "set-up; texture upload, shader compilation).")
     print(f"wrote sphere.csv and sphere.png to {args.out}/")
     return 0
 
@@ -282,14 +329,17 @@ def cmd_bench_sphere_lights(args: argparse.Namespace) -> int:
     rows = sphere_light_study(ns=args.n, polygrid_ns=args.polygrid_n, cube_size=args.cube_size,
                               cube_sizes=args.cube_sizes, n_fixed=args.n_fixed, polygrid_n_fixed=args.polygrid_n_fixed,
                               radius=args.radius, discretisations=args.discretisations, tet_edges=args.tet_edges,
-                              out=out, progress=_status)
-    cols = ("discretisation", "series", "n", "cube_mm", "edge_mm", "h_mm", "nodes", "inverted", "light", "rel_rms",
-            "rel_max", "adapt_s", "solve_s")
-    print_table(f"sphere R = {args.radius} mm under lights: exitant bracket B vs the exact series",
-                [{k: r[k] for k in cols} for r in rows])
+                              out=out, progress=_status, repeats=args.repeat)
+    cols = ("discretisation", "series", "n", "h_mm", "light", "rel_rms", "rel_max", "t_median_s", "t_min_s", "solver",
+            "cube_mm", "edge_mm", "nodes", "inverted", "adapt_s")
+    print_table(f"sphere R = {args.radius} mm under lights: exitant bracket B vs the exact series; solve times "
+                f"{runs_note(args.repeat)}", [{k: r[k] for k in cols} for r in rows],
+                rest=f"all in {out}/sphere_lights.csv")
     print("rel_rms = ||B - B_series|| / ||B_series||, rel_max = max |B - B_series| / max |B_series| over the "
-          "surface (fem) or boundary (paper, conservative) nodes; exact discrete solves, so discretisation "
-          "error only. series n: fixed polycube, more nodes per cube; series cubes: n fixed, smaller cubes.")
+          "surface (fem) or boundary (paper, conservative) nodes; converged discrete solves (solver: SuperLU, or "
+          "pyamg to the rtol it names on large grids), so discretisation error only. series n: fixed polycube, "
+          "more nodes per cube; series cubes: n fixed, smaller cubes. t_median_s / t_min_s: the solve, its "
+          "set-up (assembly, factorisation or AMG set-up, fem-adapt's refinement) included.")
     print(f"wrote sphere_lights.csv and sphere_lights.png to {out}/")
     return 0
 
@@ -298,8 +348,12 @@ def cmd_bench_meshes(args: argparse.Namespace) -> int:
     out = check_output_folder(args.out)
     rows = mesh_bench(args.meshes, args.cubes, args.n, out, args.size, refined=not args.no_refined,
                       progress=_status)
-    print_table("tetrahedral polygrid on meshes (fem discretisation; coverage in lattice spacings h)",
-                [{k: v for k, v in r.items() if k != "fine_reason"} for r in rows])
+    print_table("tetrahedral polygrid on meshes (fem discretisation; coverage in lattice spacings h; render "
+                "seconds: 1 run)", [{k: v for k, v in r.items() if k != "fine_reason"} for r in rows],
+                first=("mesh", "n", "nodes", "front_s", "glsl_vs_oracle", "oracle", "front_status"),
+                rest=f"all in {out}/meshes.csv")
+    print("glsl_vs_oracle: the GLSL solve (to the scene's tol, glsl_tol, Jacobi-scaled) against the oracle's solve "
+          "of the same system (oracle: SuperLU, or pyamg to the rtol it names), over the largest fluence.")
     for r in rows:
         if r.get("fine_reason"):
             print(f"{r['mesh']}, n = {r['n']}: cubes of {r['cube_nodes']} nodes per edge, since with cubes of "
@@ -310,10 +364,19 @@ def cmd_bench_meshes(args: argparse.Namespace) -> int:
 
 def cmd_bench_convergence(args: argparse.Namespace) -> int:
     summary, _, extra = convergence_bench(args.models, check_output_folder(args.out), target=args.target, hole_n=args.hole_n,
-                                          bunny_n=args.bunny_n, maxiter=args.max_sweeps)
-    print_table(f"time to error {args.target:g} (figure 15; error = sum (L-L0)^2 / sum L0^2 over the "
-                "boundary nodes, L0 = direct solve; seconds = GPU time of sweeps and transfer passes)", summary)
-    print_table("adaptive depth search, frame coherence, precision modes", extra)
+                                          bunny_n=args.bunny_n, maxiter=args.max_sweeps, repeats=args.repeat)
+    print_table(f"time to error {args.target:g} (figure 15), {runs_note(args.repeat)}", summary,
+                first=("model", "method", "t_median_s", "t_min_s", "seconds_to_target", "setup_s"),
+                rest=f"all in {args.out}/convergence_summary.csv")
+    print("error = sum (L-L0)^2 / sum L0^2 over the boundary nodes, L0 = the peer's converged solve. t_median_s / "
+          f"t_min_s: median / fastest of {args.repeat} run(s), set-up included for every method: schemes = setup_s "
+          "(hierarchy build, solver construction, shader compilation) + seconds_to_target (GPU time of sweeps and "
+          "transfer passes; read-backs and residual checks out); peer = its whole solve (assembly, factorisation or "
+          "AMG set-up), to its own convergence. tol: Jacobi-scaled residual; rtol: relative residual passed to "
+          "pyamg.")
+    print_table("adaptive depth search, frame coherence, precision modes (1 run each; seconds: GPU time)", extra,
+                first=("model", "what", "error", "final_error", f"seconds_to_{args.target:g}"),
+                rest=f"all in {args.out}/convergence_extra.csv")
     print(f"wrote convergence_summary.csv, convergence_curves.csv, convergence_extra.csv and "
           f"convergence.png to {args.out}/")
     return 0
@@ -406,6 +469,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--levels", type=A.integer(1, 12), default=4, help="levels of the --schemes hierarchy (at most)")
     b.add_argument("--tol", type=A.positive, default=1e-6,
                    help="--schemes: Jacobi-scaled residual to solve to")
+    _add_repeat(b, 3)
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench)
@@ -430,6 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "included (default %(default)s)")
     p.add_argument("--coarse-tol", type=A.positive, default=0.1,
                    help="relative residual of the coarse levels' BiCG (default %(default)s)")
+    _add_repeat(p, 3)
     p.add_argument("--render", metavar="OUT.exr", help="also render the mesh (unrefined) with the default scene's "
                    "light and veined marble through pass 3 (a .png goes beside it)")
     p.add_argument("--out", default="tet-out")
@@ -481,6 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--dabs", type=A.integer(1, 1000), default=8, help="brush dabs in the stroke (one frame each)")
     b.add_argument("--frame-sweeps", type=A.integer(1, 100000), default=10, help="pass-2 sweeps per frame")
     b.add_argument("--size", type=A.integer(16, 8192), default=512, help="image width = height, pixels")
+    _add_repeat(b, 1)
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_edit)
@@ -493,6 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="cube edges of series cubes (n fixed), mm")
     b.add_argument("--n-fixed", type=A.integer(2, 64), default=4, help="nodes per cube edge of series cubes")
     b.add_argument("--no-glsl", action="store_true", help="skip the GLSL solve (direct solves only)")
+    _add_repeat(b, 1)
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_sphere)
@@ -514,6 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="tetwild (fTetWild meshes, pip install glsldiff[tet]) runs only when named")
     b.add_argument("--tet-edges", type=A.positive, nargs="+", default=[2.5, 1.67, 1.25],
                    help="target edge lengths of the tetwild series, mm")
+    _add_repeat(b, 1)
     b.add_argument("--out", default="bench-out")
     b.set_defaults(func=cmd_bench_sphere_lights)
 
@@ -541,6 +609,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--bunny-n", type=A.integer(4, 64), default=8,
                    help="nodes per cube edge of the bunny (paper: 16; 8 keeps the CPU-only run short)")
     b.add_argument("--max-sweeps", type=A.integer(1), default=20000, help="sweep budget per solve")
+    _add_repeat(b, 1)
     b.add_argument("--out", default="bench-out")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_convergence)
