@@ -219,3 +219,20 @@ def test_toml_block_is_a_valid_scene(block: Block, tmp_path):
     data = tomllib.loads(block.text)
     data = {**tomllib.loads(SCENE), **data}     # the sphere, its light and its output size
     parse_scene(data, block.id, tmp_path)
+
+
+def test_cli_reference_covers_every_command_and_option():
+    """The generated command-line reference (docs/reference/cli.md) has a section for every
+    command and sub-command, and every option says what it does."""
+    from glsldiff.commands.cli import build_parser
+    from glsldiff.commands.reference import _subparsers, cli_markdown
+    text = cli_markdown()
+
+    def paths(parser, prefix):
+        for name, _, sub in _subparsers(parser):
+            yield f"{prefix} {name}"
+            yield from paths(sub, f"{prefix} {name}")
+    missing = [p for p in paths(build_parser(), "glsldiff") if f"`{p}`" not in text]
+    assert not missing and "glsldiff capture calibrate" in text
+    silent = [line for line in text.splitlines() if line.startswith("| `") and line.rstrip().endswith("|  |")]
+    assert not silent, silent

@@ -328,10 +328,10 @@ def add_capture_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--shape", type=int, nargs=3, required=True, metavar=("NZ", "NY", "NX"),
                    help="sample grid nodes, boundary layer included")
     p.add_argument("--h", type=float, required=True, help="node spacing, mm")
-    p.add_argument("--setup", choices=tuple(SETUPS), default="back")
+    p.add_argument("--setup", choices=tuple(SETUPS), default="back", help="back-lit or front-lit sample")
     p.add_argument("--n", type=int, default=4, help="n x n regions (paper: 4)")
     p.add_argument("--exposures", type=float, nargs="+", default=list(PAPER_EXPOSURES), help="seconds")
-    p.add_argument("--projector", type=parse_size, default=(1024, 768), metavar="WxH")
+    p.add_argument("--projector", type=parse_size, default=(1024, 768), metavar="WxH", help="projector size, px")
     p.add_argument("--face-corners", nargs=4, metavar="X,Y", required=True,
                    help="projector pixels of the lit face's block corners (0,0), (W,0), (W,H), (0,H) mm")
     p.set_defaults(func=cmd_plan)
@@ -342,7 +342,7 @@ def add_capture_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("capture", help="capture folder written by the capture driver")
     p.add_argument("--corners", nargs=4, metavar="X,Y", required=True,
                    help="camera pixels of the observed face's block corners (0,0), (W,0), (W,H), (0,H) mm")
-    p.add_argument("-o", "--output", default="measurements.npz")
+    p.add_argument("-o", "--output", default="measurements.npz", help="measurements for glsldiff fit (.npz)")
     p.add_argument("--camera", help="camera.json from the camera calibration (lens distortion)")
     p.add_argument("--response", help="response JSON (default: recovered from the captured brackets)")
     p.add_argument("--white-balance", help="white-balance JSON (gains) from the colour chart")
@@ -354,13 +354,14 @@ def add_capture_parser(sub: argparse._SubParsersAction) -> None:
                          description=virtual.__doc__,
                          formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("out", help="output folder (created; must be empty)")
-    p.add_argument("--size", type=int, nargs=3, default=(24, 24, 8), metavar=("NX", "NY", "NZ"))
+    p.add_argument("--size", type=int, nargs=3, default=(24, 24, 8), metavar=("NX", "NY", "NZ"),
+                   help="nodes per axis of the simulated sample")
     p.add_argument("--h", type=float, default=0.5, help="node spacing, mm")
-    p.add_argument("--setup", choices=("back", "front"), default="back")
+    p.add_argument("--setup", choices=("back", "front"), default="back", help="back-lit or front-lit sample")
     p.add_argument("--n", type=int, default=4, help="n x n projector regions")
-    p.add_argument("--volume", choices=SYNTHETIC_KINDS, default="mixed")
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--max-evals", type=int, default=60)
+    p.add_argument("--volume", choices=SYNTHETIC_KINDS, default="mixed", help="the simulated material")
+    p.add_argument("--seed", type=int, default=1, help="random seed of the material and the camera noise")
+    p.add_argument("--max-evals", type=int, default=60, help="fit evaluations per channel")
     p.add_argument("--calibrate", action="store_true", help="also calibrate camera and projector")
     p.set_defaults(func=cmd_virtual)
 
@@ -374,7 +375,7 @@ def add_capture_parser(sub: argparse._SubParsersAction) -> None:
         s.add_argument("--projector", type=parse_size, default=(1024, 768), help="projector size (default 1024x768)")
         s.add_argument("--board", type=parse_size, default=(9, 7), help="inner corners (default 9x7)")
         s.add_argument("--square", type=float, default=20.0, help="square size, mm (default %(default)s)")
-        s.add_argument("--seed", type=int, default=0)
+        s.add_argument("--seed", type=int, default=0, help="random seed of the poses and the noise")
         if kind == "projector":
             s.add_argument("--step", type=integer(1), default=1, metavar="N",
                            help="Gray-code step, projector px per code pixel (default %(default)s)")

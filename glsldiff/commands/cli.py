@@ -398,13 +398,14 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command")
 
     p = sub.add_parser("demo", help="back-lit marble slab, 4x4 projector regions (GLSL vs scipy on a regular grid)")
-    p.add_argument("--size", type=A.integer(3, 4096), nargs=3, default=(64, 64, 12), metavar=("NX", "NY", "NZ"))
+    p.add_argument("--size", type=A.integer(3, 4096), nargs=3, default=(64, 64, 12), metavar=("NX", "NY", "NZ"),
+                   help="nodes per axis of the slab (default 64 64 12)")
     p.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
     p.add_argument("--tol", type=A.positive, default=5e-7, help="Jacobi residual tolerance")
-    p.add_argument("--precision", choices=("fp32", "fp16"), default="fp32")
-    p.add_argument("--seed", type=A.seed, default=0)
-    p.add_argument("--out", default="glsldiff-out")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--precision", choices=("fp32", "fp16"), default="fp32", help="float format of the GPU buffers")
+    p.add_argument("--seed", type=A.seed, default=0, help="random seed of the veined marble")
+    p.add_argument("--out", default="glsldiff-out", help="output folder (EXR images, contact sheet, report.csv)")
+    p.add_argument("--quiet", action="store_true", help="no progress line per image")
     _add_gl(p)
     p.set_defaults(func=cmd_demo)
 
@@ -446,7 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="[options].incidence of every case (default local: the light reflected near where it entered "
                    "follows the half-space's transport per incidence; transport: the load too; marshak: the same "
                    "surface source whatever the incidence)")
-    p.add_argument("--out", default="bench-out/validation")
+    p.add_argument("--out", default="bench-out/validation", help="output folder (CSV, panels, cached Monte Carlo images)")
     _add_gl(p)
     p.set_defaults(func=cmd_validate)
 
@@ -462,7 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--max-direct-nodes", type=A.integer(0), default=200_000,
                    help="largest grid for the scipy direct (SuperLU) solve; above it the "
                         "pyamg solution is the reference")
-    b.add_argument("--precision", nargs="+", default=["fp32", "fp16"], choices=("fp32", "fp16"))
+    b.add_argument("--precision", nargs="+", default=["fp32", "fp16"], choices=("fp32", "fp16"),
+                   help="float formats of the GLSL Jacobi runs")
     b.add_argument("--schemes", nargs="*", default=[], choices=("hierarchical", "multigrid", "single"),
                    help="also solve with these multiresolution schedules on the grid's hierarchy (every "
                         "axis needs an odd node count, e.g. 161x161x33), to --tol")
@@ -470,7 +472,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--tol", type=A.positive, default=1e-6,
                    help="--schemes: Jacobi-scaled residual to solve to")
     _add_repeat(b, 3)
-    b.add_argument("--out", default="bench-out")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     _add_gl(b)
     b.set_defaults(func=cmd_bench)
 
@@ -497,7 +499,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_repeat(p, 3)
     p.add_argument("--render", metavar="OUT.exr", help="also render the mesh (unrefined) with the default scene's "
                    "light and veined marble through pass 3 (a .png goes beside it)")
-    p.add_argument("--out", default="tet-out")
+    p.add_argument("--out", default="tet-out", help="output folder (CSV, error-against-time plot)")
     p.set_defaults(func=cmd_tet)
 
     p = sub.add_parser("cut", help="TransCut: cut a scene's fTetWild mesh by a plane or a screen stroke, render "
@@ -535,19 +537,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--solve", action="store_true", help="also solve a lit marble problem: GLSL vs scipy")
     p.add_argument("--tol", type=A.positive, default=5e-7, help="Jacobi residual tolerance for --solve")
     p.add_argument("--no-png", action="store_true", help="skip the figure")
-    p.add_argument("--out", default="polygrid-out")
+    p.add_argument("--out", default="polygrid-out", help="output folder (statistics, polygrid.png)")
     _add_gl(p)
     p.set_defaults(func=cmd_polygrid)
 
     b = bsub.add_parser("edit", help="interactive editing (section 5.4): frame rate while painting, time from an "
                                      "edit to a converged (0.5 %%) image, cold re-solve as the peer; Table III beside")
     b.add_argument("--models", nargs="+", default=["hole", "bunny", "bunny-n8", "bunny-tetrahedral"],
-                   choices=("hole", "bunny", "bunny-n8", "bunny-tetrahedral"))
+                   choices=("hole", "bunny", "bunny-n8", "bunny-tetrahedral"), help="models to run")
     b.add_argument("--dabs", type=A.integer(1, 1000), default=8, help="brush dabs in the stroke (one frame each)")
     b.add_argument("--frame-sweeps", type=A.integer(1, 100000), default=10, help="pass-2 sweeps per frame")
     b.add_argument("--size", type=A.integer(16, 8192), default=512, help="image width = height, pixels")
     _add_repeat(b, 1)
-    b.add_argument("--out", default="bench-out")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_edit)
 
@@ -560,7 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--n-fixed", type=A.integer(2, 64), default=4, help="nodes per cube edge of series cubes")
     b.add_argument("--no-glsl", action="store_true", help="skip the GLSL solve (direct solves only)")
     _add_repeat(b, 1)
-    b.add_argument("--out", default="bench-out")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_sphere)
 
@@ -582,12 +584,12 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--tet-edges", type=A.positive, nargs="+", default=[2.5, 1.67, 1.25],
                    help="target edge lengths of the tetwild series, mm")
     _add_repeat(b, 1)
-    b.add_argument("--out", default="bench-out")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     b.set_defaults(func=cmd_bench_sphere_lights)
 
     b = bsub.add_parser("meshes", help="tetrahedral polygrid on sample and generated meshes: quality, coverage, "
                                         "front- and back-lit renders")
-    b.add_argument("--meshes", nargs="+", default=list(BENCH_MESHES), choices=BENCH_MESHES)
+    b.add_argument("--meshes", nargs="+", default=list(BENCH_MESHES), choices=BENCH_MESHES, help="meshes to run")
     b.add_argument("--cubes", type=A.integer(1), nargs="+", default=None,
                    help="target cube counts (default: the scene default's for --n)")
     b.add_argument("--n", type=A.integer(2, 16), nargs="+", default=[2],
@@ -597,20 +599,20 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--no-refined", action="store_true",
                    help="skip the comparison with each grid's 1:8 refinement (about 8x the grid's memory, "
                         "a minute per default grid)")
-    b.add_argument("--out", default="bench-out")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_meshes)
 
     b = bsub.add_parser("convergence", help="figure 15: single, hierarchical, adaptive, multigrid vs scipy, "
                                              "error against work and time")
-    b.add_argument("--models", nargs="+", default=["hole", "bunny"], choices=("hole", "bunny"))
+    b.add_argument("--models", nargs="+", default=["hole", "bunny"], choices=("hole", "bunny"), help="models to run")
     b.add_argument("--target", type=A.positive, default=0.005, help="figure-15 error to reach")
     b.add_argument("--hole-n", type=A.integer(4, 64), default=12, help="nodes per cube edge of the hole model (paper: 12)")
     b.add_argument("--bunny-n", type=A.integer(4, 64), default=8,
                    help="nodes per cube edge of the bunny (paper: 16; 8 keeps the CPU-only run short)")
     b.add_argument("--max-sweeps", type=A.integer(1), default=20000, help="sweep budget per solve")
     _add_repeat(b, 1)
-    b.add_argument("--out", default="bench-out")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_convergence)
 

@@ -115,7 +115,8 @@ def add_view_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("view", help="interactive viewer and material editor (a window; pip install glsldiff[viewer])")
     p.add_argument("scene", nargs="?", help="scene file (TOML) shown first; the built-in presets follow (Tab)")
     p.add_argument("--example", metavar="NAME", help="a shipped example scene shown first")
-    p.add_argument("--size", type=A.integer(64, 8192), nargs=2, default=(640, 480), metavar=("W", "H"))
+    p.add_argument("--size", type=A.integer(64, 8192), nargs=2, default=(640, 480), metavar=("W", "H"),
+                   help="window size, pixels")
     p.add_argument("--mask", default=None, help="pattern mask image for the brush (M toggles it)")
     p.add_argument("--save", "--save-material", dest="save", default="edited.npz",
                    help="where Ctrl+S saves the edited material (.npz; a screenshot is --screenshot)")

@@ -26,15 +26,18 @@ from glsldiff.physics.exitance import EXITANT
 def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("synth", help="render synthetic measurements of a heterogeneous block (npz)")
     p.add_argument("out", help="measurements file to write (.npz); the true material goes to OUT_truth.npz")
-    p.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 10), metavar=("NX", "NY", "NZ"))
+    p.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 10), metavar=("NX", "NY", "NZ"),
+                   help="nodes per axis of the block")
     p.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
     p.add_argument("--n", type=A.integer(1, 64), default=4, help="n x n projector regions")
-    p.add_argument("--setup", choices=("back", "front"), default="back")
-    p.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed")
+    p.add_argument("--setup", choices=("back", "front"), default="back",
+                   help="back-lit thin block (transmission) or front-lit thick block (reflection)")
+    p.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed",
+                   help="the synthetic material")
     p.add_argument("--noise", type=A.nonnegative, default=None,
                    help="relative shot noise at the bright end (default 0.01; none with --renderer mitsuba)")
     p.add_argument("--saturation", type=A.positive, default=None, help="clip radiance at this value")
-    p.add_argument("--seed", type=A.seed, default=0)
+    p.add_argument("--seed", type=A.seed, default=0, help="random seed of the volume and the noise")
     p.add_argument("--grey", action="store_true",
                    help="the volume's green channel in all three (one fit serves all; one Monte Carlo render "
                         "per region instead of three)")
@@ -51,7 +54,8 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("--method", choices=("lbfgs", "tnewton", "var2", "cg"), default="lbfgs",
                    help="optimiser (cg = the paper's Table I)")
     p.add_argument("--lam", type=A.nonnegative, default=1e-5, help="kappa-gradient regularisation weight")
-    p.add_argument("--stencil", choices=("conservative", "paper"), default="conservative")
+    p.add_argument("--stencil", choices=("conservative", "paper"), default="conservative",
+                   help="finite-difference stencil of the forward model")
     p.add_argument("--exitant", choices=EXITANT, default="p1",
                    help="forward model's source and exitance: p1 (calibrated against Monte Carlo: "
                         "physical kappa and mu) or the paper's net flux")
@@ -79,17 +83,21 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
 
     b = bsub.add_parser("fit", help="inverse diffusion: figure 11 (E vs measurements, vs iterations), "
                                     "figure 13 (lambda), CPU vs GLSL forward solves")
-    b.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 8), metavar=("NX", "NY", "NZ"))
-    b.add_argument("--h", type=A.positive, default=0.5)
+    b.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 8), metavar=("NX", "NY", "NZ"),
+                   help="nodes per axis of the synthetic block")
+    b.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
     b.add_argument("--n", type=A.integer(1, 64), nargs="+", default=[1, 2, 3, 4, 5, 6], help="n for n x n measurements")
-    b.add_argument("--methods", nargs="+", default=["lbfgs", "cg"], choices=("lbfgs", "tnewton", "var2", "cg"))
-    b.add_argument("--lams", type=A.nonnegative, nargs="+", default=[1e-4, 1e-5, 1e-6])
-    b.add_argument("--max-evals", type=A.integer(1), default=150)
-    b.add_argument("--noise", type=A.nonnegative, default=0.01)
-    b.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed")
+    b.add_argument("--methods", nargs="+", default=["lbfgs", "cg"], choices=("lbfgs", "tnewton", "var2", "cg"),
+                   help="optimisers to compare (cg = the paper's Table I)")
+    b.add_argument("--lams", type=A.nonnegative, nargs="+", default=[1e-4, 1e-5, 1e-6],
+                   help="regularisation weights of the figure-13 study")
+    b.add_argument("--max-evals", type=A.integer(1), default=150, help="evaluations per fit")
+    b.add_argument("--noise", type=A.nonnegative, default=0.01, help="relative shot noise of the measurements")
+    b.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed",
+                   help="the synthetic material")
     b.add_argument("--skip", nargs="*", default=[], choices=("measurements", "lambda", "backends"),
                    help="parts of the benchmark to leave out")
-    b.add_argument("--out", default="bench-out")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     b.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for the GLSL path")
     b.set_defaults(func=cmd_bench_fit)
 
