@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.bench.peers import reference_solve, relax_label
+from glsldiff.bench.progress import Cases
 from glsldiff.bench.timing import median_min, repeat, timing_columns
 from glsldiff.core import io
 from glsldiff.core.errors import InputError, SolverError
@@ -318,8 +319,11 @@ def convergence_bench(models: Sequence[str] = ("hole", "bunny"), out: Path | Non
     if unknown:
         raise InputError(f"unknown model(s) {unknown}; choose from {sorted(builders)}")
     summary, curves, extra = [], [], []
+    cases = Cases("bench convergence", len(models))
     for m in models:
+        cases.before(f"{m}: the peer's converged solve, then each scheme to error {target:g}")
         s, c, e = study(m, builders[m](), target=target, **options)
+        cases.after()
         summary += s
         curves += c
         extra += e

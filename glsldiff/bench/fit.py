@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from glsldiff.grids.regular import RegularGrid
+from glsldiff.bench.progress import Cases
 from glsldiff.inverse.fit import FitOptions, fit_channel
 from glsldiff.inverse.model import ForwardModel
 from glsldiff.inverse.objective import Objective
@@ -57,25 +58,6 @@ class Case:
                 self.model.active_values(self.mu[..., CHANNEL]))
 
 
-class Cases:
-    """One line on stderr before and after each fit of a study, with the time left estimated
-    from the fits done so far (every fit has the same evaluation budget)."""
-
-    def __init__(self, study: str, total: int) -> None:
-        self.study, self.total, self.done, self.seconds = study, total, 0, 0.0
-
-    def before(self, what: str) -> None:
-        left = (f", about {self.seconds / self.done * (self.total - self.done):.0f} s left in this study"
-                if self.done else "")
-        print(f"bench fit: {self.study} {self.done + 1}/{self.total}: {what}{left}", file=sys.stderr, flush=True)
-
-    def after(self, what: str, seconds: float) -> None:
-        self.done += 1
-        self.seconds += seconds
-        print(f"bench fit: {self.study} {self.done}/{self.total}: {what} in {seconds:.1f} s", file=sys.stderr,
-              flush=True)
-
-
 def _fit(case: Case, meas, method: str, lam: float, max_evals: int, snapshot_every: int = 0):
     """One fit; Ctrl-C inside it (which a fit answers by keeping its best point) ends the bench."""
     model = ForwardModel(case.grid)
@@ -93,7 +75,7 @@ def measurements_study(case: Case, ns: list[int], methods: list[str], max_evals:
     up to 16 measurements, E and wall time against iterations (figure 11 right)."""
     rows, curves = [], []
     n_curve = max([n for n in ns if n * n <= 16] or ns[:1])
-    cases = Cases("measurements", len(ns) * len(methods))
+    cases = Cases("bench fit: measurements", len(ns) * len(methods))
     for n in ns:
         meas = case.measurements(n, noise)
         for method in methods:
@@ -102,7 +84,7 @@ def measurements_study(case: Case, ns: list[int], methods: list[str], max_evals:
             fit, seconds, model = _fit(case, meas, method, lam, max_evals, snap)
             E_h = case.error(np.full(model.n, fit.homogeneous[0]), np.full(model.n, fit.homogeneous[1]))
             E = case.error(fit.kappa, fit.mu)
-            cases.after(f"{method}, {n * n} measurements: E {E:.3g}", seconds)
+            cases.after(f"E {E:.3g}")
             rows.append(dict(measurements=n * n, method=method, E=E, E_homogeneous=E_h, data=fit.data,
                              evals=len(fit.trace.records), iterations=fit.trace.iterations,
                              factorizations=model.stats.factorizations, seconds=seconds,
@@ -122,11 +104,11 @@ def lambda_study(case: Case, lams: list[float], n: int, max_evals: int, noise: f
     reg_true, _ = obj.regularizer(kt)
     inner = case.grid.kind.reshape(-1)[case.grid.graph.active] == 1
     rows = []
-    cases = Cases("lambda", len(lams))
+    cases = Cases("bench fit: lambda", len(lams))
     for lam in lams:
         cases.before(f"lambda {lam:g}, at most {max_evals} evaluations")
         fit, seconds, _ = _fit(case, meas, "lbfgs", lam, max_evals)
-        cases.after(f"lambda {lam:g}: E {case.error(fit.kappa, fit.mu):.3g}", seconds)
+        cases.after(f"E {case.error(fit.kappa, fit.mu):.3g}")
         reg, _ = obj.regularizer(fit.kappa)
         rows.append(dict(lam=lam, E=case.error(fit.kappa, fit.mu), data=fit.data,
                          grad_kappa_sq=reg, grad_kappa_sq_true=reg_true,

@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from tqdm import tqdm
 
 from glsldiff import gl
 
@@ -52,6 +51,7 @@ from glsldiff.solve.jacobi import GlslDiffusion
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.system.report import REFERENCE_TOL, RELAX_TOL, SolveReport
+from glsldiff.bench.progress import Cases
 from glsldiff.bench.peers import amg_label, direct_label, relax_label
 from glsldiff.bench.timing import Timing, median_min, repeat, timing_columns
 from glsldiff.core.plotting import pyplot, save_figure
@@ -237,10 +237,13 @@ def forward(sizes: Sequence[str], out: Path, max_direct_nodes: int = 200_000,
     t0 = time.perf_counter()
     device = gl.describe(gl.get_context())       # the GL context: created before any clock starts
     context_s = time.perf_counter() - t0         # (0 when it existed already): a column of the GPU rows
-    for size in tqdm(sizes, desc="grids"):
+    cases = Cases("bench forward", len(sizes))
+    for size in sizes:
         nx, ny, nz = parse_size(size)
         problem = slab_problem(nx, ny, nz)
         n = problem.grid.n_active
+        cases.before(f"grid {size} ({n:,} nodes): SuperLU, pyamg, Jacobi {'/'.join(precisions)}, numpy"
+                     + (f", {'/'.join(schemes)}" if schemes else "") + f"; {repeats} run(s) each")
         peers = []
         if n <= max_direct_nodes:
             factor: list[float] = []
@@ -311,6 +314,7 @@ def forward(sizes: Sequence[str], out: Path, max_direct_nodes: int = 200_000,
                          **({"gl_context_s": context_s} if dev != "cpu" else {}), **more})
             curves += [{"grid": size, "method": method, "sweeps": s, "seconds": tt, "error": e}
                        for s, tt, e in last[1:]]
+        cases.after()
     if not rows:
         raise InputError("no grid was benchmarked")
     io.write_csv(out / "forward.csv", rows)

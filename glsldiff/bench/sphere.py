@@ -36,6 +36,7 @@ from glsldiff.system.problem import DiffusionProblem, relative_l2
 from glsldiff.grids.graph import BOUNDARY, INTERIOR
 from glsldiff.oracle.assembly import assemble
 from glsldiff.bench.peers import reference_solve, relax_label
+from glsldiff.bench.progress import Cases
 from glsldiff.bench.timing import repeat
 from glsldiff.solve.jacobi import solve_glsl
 from glsldiff.core.plotting import pyplot, save_figure
@@ -84,7 +85,10 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
     rows: list[dict[str, object]] = []
     polycube = None
     runs = [("n", n, cube_size) for n in ns] + [("cubes", n_fixed, c) for c in cube_sizes]
+    cases = Cases("bench sphere", len(runs))
     for series, n, size in runs:
+        cases.before(f"series {series}, n = {n}, cubes of {size:g} mm: polygrid, reference solves"
+                     + (", GLSL solve" if glsl else ""))
         t0 = time.perf_counter()
         pg = build_polygrid(mesh, n=n, cube_size=size, polycube=polycube if series == "n" else None,
                             mapping={"variance_iterations": variance_iterations})
@@ -121,6 +125,7 @@ def sphere_study(ns: Sequence[int] = (4, 6, 8, 12), radius: float = 10.0, cube_s
                     row.update({"glsl_tol": tol, "glsl_residual": rep.residual, "glsl_t_median_s": gt.median,
                                 "glsl_t_min_s": gt.min, "glsl_sweeps": rep.sweeps})
         rows.append(row)
+        cases.after(f"{pg.n_active:,} nodes, boundary error {row.get('err_boundary_blend', float('nan')):.3g}")
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
         io.write_csv(out / "sphere.csv", rows)

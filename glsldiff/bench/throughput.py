@@ -19,6 +19,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from glsldiff import gl
+from glsldiff.bench.progress import Cases
 from glsldiff.bench.timing import repeat
 from glsldiff.grids.cache import cached_polygrid
 from glsldiff.grids.regular import RegularGrid
@@ -71,6 +72,7 @@ def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, swee
     same node count with the same packing."""
     ctx = gl.get_context()
     rows: list[dict[str, Any]] = []
+    cases = Cases("bench throughput", len(polygrids) * len(packings))
     for mesh_name, n, cubes in polygrids:
         mesh = (generated_mesh(mesh_name, 100.0) if mesh_name in GENERATED_MESHES
                 else load_mesh(mesh_name, size_mm=100.0))
@@ -79,6 +81,8 @@ def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, swee
         reg = RegularGrid(side, side, side, h=1.0)
         per_node = primitive_count(pass_primitives(pg)) / pg.n_active
         for packing in packings:
+            cases.before(f"{mesh_name} polygrid ({pg.n_active:,} nodes) and a regular {side}^3, {packing} packing, "
+                         f"{repeats} run(s) of {sweeps} sweeps")
             r_reg = _rate(_problem(reg), packing, sweeps, ctx, repeats)
             r_pg = _rate(_problem(pg), packing, sweeps, ctx, repeats)
             label = f"{mesh_name} {pg.shape[0]} cubes x {n}^3"     # a polygrid; the regular grid before it:
@@ -86,4 +90,5 @@ def sweep_throughput(polygrids: Sequence[tuple[str, int, int]] = POLYGRIDS, swee
                          "cost/node vs regular": 1.0})
             rows.append({"grid": label, "packing": packing, **r_pg, "primitives per node": per_node,
                          "cost/node vs regular": r_reg["M upd/s"] / r_pg["M upd/s"]})
+            cases.after(f"{r_pg['M upd/s']:.3g} M updates/s")
     return rows
