@@ -63,7 +63,9 @@ def _step(func: Callable[[argparse.Namespace], int | None]) -> Callable[[argpars
         try:
             return int(func(args) or 0)
         except OSError as exc:
-            raise InputError(str(exc)) from exc
+            where = f"{str(exc.filename)!r}: " if exc.filename else ""
+            raise InputError(f"{where}{exc.strerror or exc} (an input must exist and be readable; an output's "
+                             "folder must exist and be writable)") from exc
     return run
 
 
