@@ -117,7 +117,7 @@ def test_polygrid_command(tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     for word in ("cubes", "interior", "boundary", "removed", "link_variance_mean_h2", "weight_min",
-                 "weights_fallback", "seconds_total", "levels", "glsl-jacobi"):
+                 "weights_fallback", "seconds_total", "levels", "GLSL Jacobi fp32"):
         assert word in out
     assert (tmp_path / "polygrid.csv").exists() and (tmp_path / "polygrid_solve.csv").exists()
     from PIL import Image
