@@ -51,17 +51,18 @@ def files(d: Path) -> set[str]:
     return {str(p.relative_to(d)) for p in d.rglob("*")}
 
 
-def run(name: str, make, interrupt_after: float | None = None) -> dict:
+def run(name: str, make, interrupt_after: float | None = None, env: dict[str, str] | None = None) -> dict:
+    env = {**ENV, **(env or {})}
     with tempfile.TemporaryDirectory() as tmp:
         d = Path(tmp)
         argv = make(d)
         before = files(d)
         t0 = time.perf_counter()
         if interrupt_after is None:
-            p = subprocess.run([GL, *argv], cwd=d, env=ENV, capture_output=True, text=True, timeout=900)
+            p = subprocess.run([GL, *argv], cwd=d, env=env, capture_output=True, text=True, timeout=900)
             code, err, out = p.returncode, p.stderr, p.stdout
         else:
-            p = subprocess.Popen([GL, *argv], cwd=d, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            p = subprocess.Popen([GL, *argv], cwd=d, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             time.sleep(interrupt_after)
             p.send_signal(signal.SIGINT)
             out, err = p.communicate(timeout=300)
@@ -170,11 +171,20 @@ PROBES = [
     ("validate without Mitsuba (if absent)", lambda d: ["validate", "--out", "v"]),
 ]
 
+#: Probes that need an environment variable of their own: (name, variables, argv maker).
+ENV_PROBES = [
+    ("GLSLDIFF_GL=bogus glsldiff info", {"GLSLDIFF_GL": "bogus"}, lambda d: ["info"]),
+]
+
 INTERRUPTS = [
     ("Ctrl-C during render", lambda d: ["render", "-o", "r.exr"], 8.0),
     ("Ctrl-C during fit", lambda d: ["fit", synth(d, "12", "12", "6", "3"), "-o", "f.npz", "--no-png"], 20.0),
     ("Ctrl-C inside fTetWild (tet)", lambda d: ["tet", "bunny", "--edge", "1.5", "--out", "o"], 8.0),
     ("Ctrl-C inside SuperLU (demo 96x96x24)", lambda d: ["demo", "--size", "96", "96", "24"], 5.0),
+    ("Ctrl-C inside fTetWild (cut)", lambda d: ["cut", "--plane", "0", "0", "1", "52", "--edge", "1.5", "-o", "c.exr"],
+     8.0),
+    ("Ctrl-C during bench fit", lambda d: ["bench", "fit", "--size", "24", "24", "8", "--out", "o"], 8.0),
+    ("Ctrl-C during bench convergence", lambda d: ["bench", "convergence", "--out", "o"], 8.0),
 ]
 
 
@@ -189,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         return not args.only or any(text in name for text in args.only)
 
     rows = [run(name, make) for name, make in PROBES if chosen(name)]
+    rows += [run(name, make, env=env) for name, env, make in ENV_PROBES if chosen(name)]
     rows += [run(name, make, after) for name, make, after in INTERRUPTS if chosen(name)]
     print("| probe | exit | stderr lines | s | files left | message |")
     print("|---|---|---|---|---|---|")
