@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 try:
@@ -98,7 +99,7 @@ def _glsldiff_argv(command: str) -> list[str] | None:
     assignments), or None when it runs something else."""
     words = shlex.split(command)
     for k, w in enumerate(words):
-        if w.endswith("glsldiff") and (w == "glsldiff" or w.endswith("/glsldiff")):
+        if w == "glsldiff" or w.endswith("/glsldiff"):
             return words[k + 1:]
     return None
 
@@ -176,7 +177,7 @@ def test_shell_block_runs(block: Block, tmp_path: Path):
             _other_command_ok(command)     # the set-up and docs build: .ci/run runs them
             continue
         command = _headless(command)
-        if command.startswith("xvfb-run") and not _has("xvfb-run"):
+        if command.startswith("xvfb-run") and not shutil.which("xvfb-run"):
             pytest.skip("xvfb-run is not installed")
         done = subprocess.run(command, shell=True, cwd=tmp_path, env=env, capture_output=True,
                               text=True, timeout=3600)
@@ -195,10 +196,6 @@ def _headless(command: str) -> str:
     if not command.startswith("xvfb-run") and not os.environ.get("DISPLAY"):
         command = 'xvfb-run -a -s "-screen 0 1280x1024x24" ' + command
     return command
-
-
-def _has(program: str) -> bool:
-    return any((Path(p) / program).exists() for p in os.environ.get("PATH", "").split(os.pathsep))
 
 
 # --- python and toml blocks ---------------------------------------------------------------------
