@@ -20,13 +20,17 @@ from glsldiff.oracle.solvers import REFERENCE_AMG_RTOL, solve_reference
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.report import REFERENCE_TOL, SolveReport
 
-__all__ = ["tol_text", "direct_label", "amg_label", "krylov_label", "relax_label", "reference_solve",
+__all__ = ["JACOBI_CG", "tol_text", "direct_label", "amg_label", "krylov_label", "relax_label", "reference_solve",
            "reference_label", "fem_reference_label", "REFERENCE_MAX_DIRECT", "REFERENCE_AMG_RTOL"]
 
 #: Polygrid references (the sphere, convergence and polygrid studies): SuperLU below this many
 #: active nodes, pyamg SA + GMRES to REFERENCE_AMG_RTOL above (the oracle's
 #: :func:`~glsldiff.oracle.solvers.solve_reference`, which gets this value; a test may lower it).
 REFERENCE_MAX_DIRECT = solvers.REFERENCE_MAX_DIRECT
+
+
+#: scipy's conjugate gradients with the Jacobi (diagonal) preconditioner (glsldiff.oracle's jacobi_cg).
+JACOBI_CG = "scipy CG + Jacobi"
 
 
 def tol_text(tol: float) -> str:

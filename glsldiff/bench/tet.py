@@ -32,7 +32,7 @@ import pyamg
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
-from glsldiff.bench.peers import fem_reference_label, krylov_label
+from glsldiff.bench.peers import JACOBI_CG, amg_label, fem_reference_label, krylov_label
 from glsldiff.bench.timing import median_min
 from glsldiff.core import io
 from glsldiff.core.rng import pinned_global_rng
@@ -120,12 +120,12 @@ def tet_study(mesh: Mesh, edge_mm: float, sigma_a: float, sigma_s: float, eta: f
         traced.append((name, label, runs, setup))
         return runs
 
-    solve("cg (jacobi)", krylov_label("scipy CG+Jacobi", tol), lambda cb: jacobi_cg(M, b, tol, callback=cb))
+    solve("cg (jacobi)", krylov_label(JACOBI_CG, tol), lambda cb: jacobi_cg(M, b, tol, callback=cb))
     t0 = time.perf_counter()
     with pinned_global_rng():
         ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")
     t_setup = time.perf_counter() - t0
-    solve("pyamg (SA + cg)", krylov_label("pyamg SA+CG", tol),
+    solve("pyamg (SA + cg)", amg_label("cg", tol),
           lambda cb: ml.solve(b, tol=tol, accel="cg", maxiter=500, callback=cb), t_setup)
     hier: dict[str, Any] = {}
     for coarse in COARSE_OPERATORS:
