@@ -127,6 +127,7 @@ def test_renderer_edit_undo_redo_and_save(_default_context, tmp_path, discretisa
     scene = _lattice_scene(polygrid=grid)
     with Renderer(_default_context, cache_solutions=False) as r:    # solved here: the edit re-uses the solver
         img0, rep0 = r.render(scene)
+        solver = r.pass2_solver
         view = r.edit_view(scene)
         assert view.surface.shape == (64, 64) and (view.surface < 1e29).mean() > 0.2
         res = r.edit(Edit("mu", "multiply", 20.0, brush=Brush((22.0, 32.0), 9.0, 0.3), depth=(-1.0, 4.0)), view)
@@ -134,8 +135,8 @@ def test_renderer_edit_undo_redo_and_save(_default_context, tmp_path, discretisa
         img1, rep1 = r.render(scene)
         why = [p for p in rep1.passes if p["pass"] == "pass2"][0]["why"]
         assert "material edited" in why or discretisation == "fem"
-        if discretisation == "fem":     # re-assembled, same aggregates, warm: fewer cycles than the cold frame
-            assert rep1.solver.sweeps < rep0.solver.sweeps
+        if discretisation == "fem":     # updated in place, the hierarchy kept (stale), warm: no more cycles than cold
+            assert r.pass2_solver is solver and rep1.solver.sweeps <= rep0.solver.sweeps
         lum0, lum1 = img0.mean(-1), img1.mean(-1)
         under = lum0[28:37, 18:27].mean()
         assert lum1[28:37, 18:27].mean() < 0.8 * under          # darker under the brush

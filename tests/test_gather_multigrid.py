@@ -290,3 +290,98 @@ def test_single_level_release_and_profile(ctx):
     with GlslSparse(mats, b, ctx=ctx) as g:
         x, _ = g.solve(tol=1e-6)
     assert rel(x, spsolve3(mats, b)) < 1e-4
+
+
+# ---- in-place updates of the finest matrix (interactive editing) ------------------------------
+@pytest.fixture(scope="module")
+def editable():
+    """A P1 system on a fixed pattern (oracle.fem_update.P1System) of a pillowed sphere and a
+    local edit of its material: (P1System, kappa2, mu2)."""
+    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.mesh import sphere_mesh
+    from glsldiff.oracle.fem import tet_geometry
+    from glsldiff.oracle.fem_update import P1System
+    g = build_fem_grid(sphere_mesh(10.0, subdivisions=2), n=4, cube_size=5.0)
+    n = len(g.positions)
+    kappa, mu = np.tile([0.3, 0.2, 0.45], (n, 1)), np.tile([0.05, 0.1, 0.02], (n, 1))
+    P = P1System(tet_geometry(g), g.active, 2.0, kappa, mu)
+    q = np.random.default_rng(5).uniform(0.5, 1.5, (P.n, 3)) * (g.positions[P.active, 2:3] > 6.0)
+    P.set_rhs(q)
+    near = np.linalg.norm(g.positions - [0.0, 0.0, 8.0], axis=1) < 3.0
+    k2, m2 = kappa.copy(), mu.copy()
+    k2[near] *= 0.4
+    m2[near] *= 3.0
+    return P, k2, m2
+
+
+def test_update_fine_is_the_new_fine_level_with_the_old_coarse_ones(ctx, editable):
+    P, k2, m2 = editable
+    kappa0, mu0 = P.kappa.copy(), P.mu.copy()
+    b = P.system.b.reshape(3, -1).T
+    with GlslSparseMultigrid(P.matrices(), b, ctx=ctx, accel=None) as s:
+        Ps = [lv.P for lv in s.levels if lv.P is not None]
+        stale = [[A.copy() for A in lv.A] for lv in s.levels]
+        omegas = s.omegas
+        up = P.set_material(k2, m2)
+        s.update_fine(P.matrices(), up.rows)
+        assert s.levels[0].omega == omegas[0]
+        # the CPU system the solve checks is the new one
+        assert abs(s.system.A - P.system.A).max() == 0.0
+        np.testing.assert_array_equal(s.system.diag, P.system.diag)
+        x0 = np.random.default_rng(1).uniform(0.0, 1.0, (P.n, 3))
+        s.set_initial(x0)
+        s.cycle(1)
+        got = s.unknown()
+        for c, A in enumerate(P.matrices()):
+            As = [A] + [lv[c] for lv in stale[1:]]
+            ref = numpy_vcycle(As, Ps, omegas, 2, 2, b[:, c], x0[:, c])
+            assert rel(got[:, c], ref) < 2e-5
+        # Jacobi sweeps of the new matrix (painting frames)
+        s.set_initial(x0)
+        s.smooth(3)
+        got = s.unknown()
+        for c, A in enumerate(P.matrices()):
+            x = x0[:, c].copy()
+            for _ in range(3):
+                x = x + omegas[0] * (b[:, c] - A @ x) / A.diagonal()
+            assert rel(got[:, c], x) < 2e-5
+    P.set_material(kappa0, mu0)
+
+
+def test_update_fine_converges_to_the_edited_system(ctx, editable):
+    P, k2, m2 = editable
+    kappa0, mu0 = P.kappa.copy(), P.mu.copy()
+    b = P.system.b.reshape(3, -1).T
+    with GlslSparseMultigrid(P.matrices(), b, ctx=ctx) as s:
+        _, rep0 = s.solve(tol=1e-5)
+        up = P.set_material(k2, m2)
+        s.update_fine(P.matrices(), up.rows)
+        x, rep = s.solve(tol=1e-5, x0=CURRENT)
+        assert rep.converged and rep.sweeps <= rep0.sweeps + 2
+        ref = spsolve3(P.matrices(), b)
+        assert rel(x, ref) < 1e-4
+        with pytest.raises(InputError, match="pattern"):
+            s.update_fine([sp.identity(P.n, format="csr") for _ in range(3)], up.rows)
+    P.set_material(kappa0, mu0)
+
+
+def test_update_fine_of_the_diagonal_alone(ctx, editable):
+    """An absorption edit changes the diagonal only: the off-diagonal slots are not rewritten,
+    and one V-cycle is still the new matrix's."""
+    P, _, m2 = editable
+    kappa0, mu0 = P.kappa.copy(), P.mu.copy()
+    b = P.system.b.reshape(3, -1).T
+    with GlslSparseMultigrid(P.matrices(), b, ctx=ctx, accel=None) as s:
+        Ps = [lv.P for lv in s.levels if lv.P is not None]
+        stale = [[A.copy() for A in lv.A] for lv in s.levels]
+        up = P.set_material(kappa0, m2)
+        assert up.diagonal_only and up.tetrahedra == 0
+        s.update_fine(P.matrices(), up.rows, diagonal_only=True)
+        x0 = np.random.default_rng(2).uniform(0.0, 1.0, (P.n, 3))
+        s.set_initial(x0)
+        s.cycle(1)
+        got = s.unknown()
+        for c, A in enumerate(P.matrices()):
+            ref = numpy_vcycle([A] + [lv[c] for lv in stale[1:]], Ps, s.omegas, 2, 2, b[:, c], x0[:, c])
+            assert rel(got[:, c], ref) < 2e-5
+    P.set_material(kappa0, mu0)

@@ -25,12 +25,13 @@ import numpy as np
 import pyglet
 pyglet.options["debug_gl"] = True          # the strict setting: a GL error left by moderngl would raise
 from pyglet.window import key, mouse
-from glsldiff.render.scene import MeshSpec, default_scene
+from glsldiff.render.scene import MeshSpec, default_scene, tetrahedral
 from glsldiff.viewer.presets import lattice
 from glsldiff.viewer.window import Viewer
 
-out = sys.argv[1]
-scene = lattice(dataclasses.replace(default_scene(), mesh=MeshSpec("sphere", 40.0)), n=8, cubes=20, levels=2)
+out, kind = sys.argv[1], sys.argv[2]
+sphere = dataclasses.replace(default_scene(), mesh=MeshSpec("sphere", 40.0))
+scene = tetrahedral(sphere, 1500) if kind == "tetrahedral" else lattice(sphere, n=8, cubes=20, levels=2)
 v = Viewer([("sphere", scene)], 320, 240, save_path=out + "/edited.npz", shots=out)
 win = v.window
 
@@ -109,8 +110,11 @@ def _env(display: str) -> dict[str, str]:
     return env
 
 
-def test_viewer_edits_in_a_real_window(xdisplay, tmp_path):
-    run = subprocess.run([sys.executable, "-c", DRIVER, str(tmp_path)], env=_env(xdisplay), capture_output=True,
+@pytest.mark.parametrize("kind", ["tetrahedral", "lattice"])
+def test_viewer_edits_in_a_real_window(xdisplay, tmp_path, kind):
+    """Both grid families: the tetrahedral default (edits update its P1 system in place) and the
+    lattice (edits are a GPU pass over its material textures)."""
+    run = subprocess.run([sys.executable, "-c", DRIVER, str(tmp_path), kind], env=_env(xdisplay), capture_output=True,
                          text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     assert "closed cleanly" in run.stdout and "Traceback" not in run.stderr

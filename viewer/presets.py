@@ -1,13 +1,14 @@
 """Scene presets the viewer's Tab key cycles through: the scene given on the command line (if
-any), the default bunny on the lattice polygrid (GPU editing), the default scene as
-``glsldiff render`` draws it (tetrahedral), a torus (the paper's "Hole", Table III), and the
-shipped examples."""
+any), the default scene as ``glsldiff render`` draws it (tetrahedral; edits update its P1 system
+in place), the same bunny on the lattice polygrid (GPU editing of its material textures), a
+torus (the paper's "Hole", Table III) on a tetrahedral grid and on the lattice, and the shipped
+examples."""
 from __future__ import annotations
 
 from dataclasses import replace
 
-from glsldiff.render.scene import (EDIT_LATTICE, MeshSpec, PolygridSpec, Scene, default_cubes, default_scene,
-                                   example_names, example_scene)
+from glsldiff.render.scene import (EDIT_LATTICE, HOLE_CUBES, MeshSpec, PolygridSpec, Scene, default_cubes,
+                                   default_scene, example_names, example_scene, tetrahedral)
 
 def lattice(scene: Scene, n: int = 8, cubes: int | None = None, levels: int = 3) -> Scene:
     """``scene`` on the conservative lattice polygrid (GPU editing of its material textures);
@@ -30,10 +31,11 @@ def presets(first: tuple[str, Scene] | None = None, examples: bool = True) -> li
 def _presets(first: tuple[str, Scene] | None, examples: bool) -> list[tuple[str, Scene]]:
     base = default_scene()
     out = [] if first is None else [first]
-    out += [("bunny, veined marble (lattice polygrid: GPU editing)", replace(base, polygrid=EDIT_LATTICE)),
-            ("bunny, veined marble (tetrahedral, as glsldiff render)", base),
-            ("torus 'Hole', veined marble (lattice, 36 cubes x 12^3)",
-             lattice(replace(base, mesh=MeshSpec("torus", 100.0)), n=12, cubes=36))]
+    torus = replace(base, mesh=MeshSpec("torus", 100.0))
+    out += [("bunny, veined marble (tetrahedral, as glsldiff render)", base),
+            ("bunny, veined marble (lattice polygrid: GPU editing)", replace(base, polygrid=EDIT_LATTICE)),
+            (f"torus 'Hole', veined marble (tetrahedral, about {HOLE_CUBES:,} cubes)", tetrahedral(torus, HOLE_CUBES)),
+            ("torus 'Hole', veined marble (lattice, 36 cubes x 12^3)", lattice(torus, n=12, cubes=36))]
     if examples:
         out += [(f"example {name}", example_scene(name)) for name in example_names()]
     return out

@@ -90,12 +90,12 @@ from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import single_scattering_frame
 from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.split_frame import SplitInputs, SplitResult, split_radiance
+from glsldiff.render.tetrahedral import TetPass2, check_precision
 from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
 from glsldiff.solve.multilevel import MultilevelDiffusion
 from glsldiff.oracle.assembly import LinearSystem
-from glsldiff.oracle.fem import assemble_tet, tet_geometry, tet_rhs
+from glsldiff.oracle.fem import tet_geometry, tet_rhs
 from glsldiff.oracle.refined import RefinedComparison, RefinedError
-from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
 from glsldiff.system.transcut import paint_blend, paint_weights
@@ -122,10 +122,6 @@ GATHER_MAX_H_SIGMA = 1.0
 LIT_SHARE = 1e-3
 #: Surface nodes whose thickness the regime check measures (a ray cast each, once per grid).
 THICKNESS_SAMPLES = 4000
-#: Pass 2's iteration budget on tetrahedra: multigrid-preconditioned CG takes 10-20 iterations
-#: on the scenes measured (bunny, cow, spheres, tile); a system it cannot solve in this many is
-#: reported as not converged instead of running the relaxations' 20,000-sweep budget.
-FEM_MAXITER = 300
 
 
 def _key(*parts: Any) -> str:
@@ -172,7 +168,7 @@ class Renderer:
         self._phi_b: NDArray | None = None
         self._solve_report: Any = None
         self._from_cache = False
-        self._fem_system: LinearSystem | None = None
+        self._tet: TetPass2 | None = None          # tetrahedral grids: the P1 system and solver across frames
         self._load: NDArray | None = None
         self._flux_fields: tuple[NDArray, NDArray] | None = None   # (phi, q) of the exitant bracket
         self._flux_kind: str | None = None        # the [options].flux that _flux_fields were made for
@@ -180,7 +176,6 @@ class Renderer:
         self._smoother_info = ""                  # the smoothers' lengths and set-up time, for the report
         self._flux_used = ""                      # what the last frame's bracket took its flux from (report)
         self._editor: GpuMaterialEditor | None = None
-        self._fem_reuse: tuple[list, NDArray] | None = None   # (prolongations, phi) kept across a tetrahedral edit
         self._history = MaterialHistory()
         self._edit_version = 0
         self._surface: tuple[Any, NDArray] | None = None
@@ -196,8 +191,8 @@ class Renderer:
     @property
     def pass2_solver(self) -> Any:
         """The pass-2 solver of the last frame (lattice: :class:`MultilevelDiffusion`; tetrahedra:
-        :class:`GlslSparseMultigrid`; None before a solve or when a cached answer served it)."""
-        return self._solver
+        :class:`~glsldiff.solve.gather_multigrid.GlslSparseMultigrid`; None before a solve or when a cached answer served it)."""
+        return self._tet.solver if self._tet is not None else self._solver
 
     @property
     def converged(self) -> bool:
@@ -218,7 +213,7 @@ class Renderer:
     def fem_system(self) -> LinearSystem | None:
         """The P1 system (over the active nodes, with the last frame's source) a tetrahedral
         grid solved in pass 2; ``None`` on the lattice or before the first frame."""
-        return self._fem_system
+        return None if self._tet is None or self._tet.p1 is None else self._tet.p1.system
 
     def surface_values(self, x: NDArray) -> NDArray[np.float64]:
         """``(n_surface, 3)``: per-active-node values ``(n_active, 3)`` of a tetrahedral grid
@@ -227,6 +222,11 @@ class Renderer:
         full = np.zeros((len(pg.positions), 3))
         full[self._fem_active] = x
         return full[pg.surface_nodes]
+
+    @property
+    def _fem_active(self) -> NDArray[np.int64]:
+        assert self._tet is not None
+        return self._tet.active
 
     @property
     def node_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -356,9 +356,9 @@ class Renderer:
             info = {**info, "material": f"{info.get('material')} + {len(scene.paint)} paint stroke(s)"}
         shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
-        self._fem_system = None
-        self._fem_reuse = None
         self._drop_solver()
+        if self._tet is not None:
+            self._tet.reset()
         self._history = MaterialHistory()     # a new material starts a new edit history
         self._edited = False                  # the node material differs from the scene's (edits)
 
@@ -369,6 +369,8 @@ class Renderer:
         if self._solver is not None:
             self._solver.release()
             self._solver = None
+        if self._tet is not None:
+            self._tet.release()
 
     def _effective(self, scene: Scene) -> Scene:
         """``scene`` with its options made concrete for the current grid and material: the source
@@ -516,56 +518,85 @@ class Renderer:
 
     def _pass2(self, scene: Scene, warm: bool, painting: bool = False) -> None:
         pg, opts, fem = self._geo["pg"], scene.options, self._geo["fem"]
-        if painting and not fem and self.frame_sweeps is not None and self._solver is not None:
+        if fem:
+            self._tet_pass2(scene, warm, painting)
+            return
+        if painting and self.frame_sweeps is not None and self._solver is not None:
             self._paint_sweeps(pg)
             return
-        scheme = "multigrid-preconditioned CG (tetrahedra)" if fem else opts.scheme
-        self._say(f"pass 2: {scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
+        self._say(f"pass 2: {opts.scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
         gl.make_current(self.ctx)
         x0: Any = CURRENT if warm and opts.scheme != "multigrid" else None
-        key = cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", scene.polygrid.discretisation, pg.positions,
-                           pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q, self._load,
-                           scene.material.eta, opts.scheme, opts.precision, opts.tol)
+        key = self._solution_key(scene)
         warm_from_disk = opts.scheme != "adaptive" and (x0 is None or self._solver is None)   # (adaptive: below)
-        stored = (cache.load("pass2", key, np.ndarray) if self.cache_solutions
-                  and (warm_from_disk or (fem and self._solver is None)) else None)
-        if fem and self._solver is None and (verified := self._cached_fem_solution(scene, stored)) is not None:
-            phi, rep = verified    # the cached answer meets tol: no GPU hierarchy needed for this frame
-            self._from_cache = True
-            self._finish_pass2(pg, phi, rep, fem)
-            return
+        stored = cache.load("pass2", key, np.ndarray) if self.cache_solutions and warm_from_disk else None
         if self._solver is None:
-            self._solver = self._fem_solver(scene) if fem else self._lattice_solver(scene)
+            self._solver = self._lattice_solver(scene)
             x0 = None
-            if fem and self._fem_reuse is not None:   # an edit: start from the last frame's answer
-                x0 = self._fem_reuse[1]
-        elif fem:    # the assembled system takes the frame's source, the GPU solver its b
-            self._solver.set_b(self._fem_linear_system(scene).b.reshape(3, -1).T)
         else:
             self._solver.set_q(self._q)
         self._from_cache = False
-        self._fem_reuse = None
         if x0 is None and opts.scheme != "adaptive":   # adaptive needs its coarse-to-fine start
             x0 = stored
             self._from_cache = x0 is not None
-        budget: dict[str, Any] = {"maxiter": FEM_MAXITER} if fem else {}
-        partial = not fem and self.frame_sweeps is not None and isinstance(x0, str)   # x0 = CURRENT
+        budget: dict[str, Any] = {}
+        partial = self.frame_sweeps is not None and isinstance(x0, str)   # x0 = CURRENT
         if partial:      # frame coherence: a few sweeps now, more next frame
             budget = {"maxiter": self.frame_sweeps, "check_every": self.frame_sweeps}
-        hint = ("the object may be optically too small or thin for its material (size_mm, sigma), or "
-                "[options].tol too tight")
         try:
             phi, rep = self._solver.solve(tol=opts.tol, x0=x0, **budget)
         except SolverError as exc:   # diverged: no image to keep, whatever allow_unconverged says
-            raise SolverError(f"pass 2 did not converge: {exc}; {hint}") from exc
+            raise SolverError(f"pass 2 did not converge: {exc}; {self._PASS2_HINT}") from exc
         self._partial = partial and rep.status not in ("converged", "stalled")
-        if rep.status not in ("converged", "stalled") and not self.allow_unconverged and not self._partial:
-            raise SolverError(f"pass 2 did not converge: residual {rep.residual:.3g} > tol {opts.tol:g} after "
-                              f"{rep.sweeps} iterations ({rep.status}); {hint}; "
-                              "--allow-unconverged writes the unconverged image")
+        self._check_converged(scene, rep)
         if rep.status == "converged" and not self._from_cache and self.cache_solutions:
             cache.store("pass2", key, np.asarray(phi))
         self._finish_pass2(pg, phi, rep, fem)
+
+    _PASS2_HINT = ("the object may be optically too small or thin for its material (size_mm, sigma), or "
+                   "[options].tol too tight")
+
+    def _solution_key(self, scene: Scene) -> str:
+        """The disk cache's key of this frame's converged pass-2 answer."""
+        pg, opts, fem = self._geo["pg"], scene.options, self._geo["fem"]
+        return cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", scene.polygrid.discretisation, pg.positions,
+                            pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q, self._load,
+                            scene.material.eta, opts.scheme, opts.precision, opts.tol)
+
+    def _check_converged(self, scene: Scene, rep: SolveReport) -> None:
+        if rep.status not in ("converged", "stalled") and not self.allow_unconverged and not self._partial:
+            raise SolverError(f"pass 2 did not converge: residual {rep.residual:.3g} > tol {scene.options.tol:g} "
+                              f"after {rep.sweeps} iterations ({rep.status}); {self._PASS2_HINT}; "
+                              "--allow-unconverged writes the unconverged image")
+
+    def _tet_pass2(self, scene: Scene, warm: bool, painting: bool) -> None:
+        """Pass 2 on tetrahedra (:mod:`glsldiff.render.tetrahedral`): the P1 system updated in
+        place after edits, the GPU solver kept; under ``frame_sweeps`` (interactive) a frame
+        with a new edit runs a few Jacobi sweeps and the next ones a CG iteration each."""
+        pg, opts = self._geo["pg"], scene.options
+        check_precision(opts.precision, str(scene.source))
+        gl.make_current(self.ctx)
+        self._fem_linear_system(scene)
+        tet = self._tet
+        assert tet is not None
+        interactive = self.frame_sweeps is not None
+        if not (interactive and warm):
+            self._say(f"pass 2: multigrid-preconditioned CG (tetrahedra) diffusion solve of {pg.n_active:,} nodes "
+                      f"to tol {opts.tol:g}")
+        key = self._solution_key(scene) if self.cache_solutions and not (interactive and warm) else None
+        stored = cache.load("pass2", key, np.ndarray) if key is not None and tet.solver is None else None
+        frame = tet.cached(stored, opts.tol) if tet.solver is None else None
+        if frame is None:
+            try:
+                frame = tet.solve(opts.tol, warm=warm, painting=painting, frame_budget=interactive, x0=stored)
+            except SolverError as exc:
+                raise SolverError(f"pass 2 did not converge: {exc}; {self._PASS2_HINT}") from exc
+        self._from_cache = frame.from_cache
+        self._partial = frame.partial
+        self._check_converged(scene, frame.report)
+        if key is not None and frame.report.status == "converged" and not frame.from_cache:
+            cache.store("pass2", key, np.asarray(frame.phi))
+        self._finish_pass2(pg, frame.phi, frame.report, True)
 
     def _finish_pass2(self, pg: Any, phi: NDArray, rep: SolveReport, fem: bool) -> None:
         self._flux_fields = None
@@ -576,21 +607,6 @@ class Renderer:
         else:
             self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
         self._solve_report = rep
-
-    def _cached_fem_solution(self, scene: Scene, x: NDArray | None) -> tuple[NDArray, SolveReport] | None:
-        """The cached pass-2 answer ``x`` of this tetrahedral system with its report, if there is
-        one and its residual (checked here on the CPU) meets ``tol``; else None."""
-        if x is None:
-            return None
-        t0 = time.perf_counter()
-        system = self._fem_linear_system(scene)
-        if x.shape != (system.n, 3):
-            return None
-        res = system.residual(x.T.reshape(-1))
-        if not res <= scene.options.tol:
-            return None
-        return x, SolveReport("cached (residual checked on the CPU)", nodes=system.n, sweeps=0, residual=res,
-                              seconds=time.perf_counter() - t0, converged=True, history=[(0, res)])
 
     def _lattice_solver(self, scene: Scene) -> MultilevelDiffusion:
         opts = scene.options
@@ -645,33 +661,22 @@ class Renderer:
         return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
                           C=self._boundary_C(scene))
 
-    def _fem_rhs(self, scene: Scene, problem: TetProblem | None = None) -> NDArray[np.float64]:
-        """``(n_active, 3)`` right-hand side of the P1 system for the current source (boundary
-        source, plus the first-collision load with ``source = "volume"``)."""
-        b = tet_rhs(self._fem_problem(scene) if problem is None else problem, self._geo["tetgeo"])
-        if self._load is not None:
-            b = b + self._load[self._fem_active]
-        return b
-
-    def _fem_solver(self, scene: Scene) -> GlslSparseMultigrid:
-        if scene.options.precision != "fp32":
-            raise InputError(f"{scene.source}: [options].precision = {scene.options.precision!r}: the fem "
-                             "discretisation solves in fp32 only; use precision = \"fp32\"")
-        system = self._fem_linear_system(scene)
-        reuse = self._fem_reuse[0] if self._fem_reuse is not None else None   # an edit keeps the aggregates
-        return GlslSparseMultigrid([system.block(c)[0] for c in range(3)], system.b.reshape(3, -1).T, ctx=self.ctx,
-                                   prolongations=reuse)
-
     def _fem_linear_system(self, scene: Scene) -> LinearSystem:
-        """The P1 system of the current material, assembled once per material (a cached answer's
-        residual check and the GPU solver of a later frame share it); its ``b`` is replaced by
-        the current source's right-hand side."""
-        problem = self._fem_problem(scene)
-        if self._fem_system is None:
-            self._fem_system = assemble_tet(problem, self._geo["tetgeo"])
-            self._fem_active = self._fem_system.active
-        self._fem_system.b = self._fem_rhs(scene, problem).T.reshape(-1)
-        return self._fem_system
+        """The P1 system of the current material and source (:class:`TetPass2`: assembled once
+        per material, updated in place after edits)."""
+        pg = self._geo["pg"]
+        if self._tet is None or self._tet.geo is not self._geo["tetgeo"]:
+            if self._tet is not None:
+                self._tet.release()
+            self._tet = TetPass2(self.ctx, self._geo["tetgeo"], np.asarray(pg.active, dtype=bool))
+        C = self._boundary_C(scene)
+        key = (id(self._q), id(self._load), C, scene.material.eta)    # pass 1 makes new arrays for a new source
+        if getattr(self, "_fem_b", (None,))[0] != key:
+            b = tet_rhs(self._fem_problem(scene), self._geo["tetgeo"])
+            if self._load is not None:
+                b = b + self._load[self._tet.active]
+            self._fem_b = (key, b)
+        return self._tet.system(self._mat["kappa"], self._mat["mu"], C, self._fem_b[1])
 
     @staticmethod
     def _shader_lights(scene: Scene) -> list[DirectLight]:
@@ -683,7 +688,7 @@ class Renderer:
         geo, opts = self._geo, scene.options
         v, f, nrm = geo["vertices"], geo["faces"], geo["normals"]
         eta = scene.material.eta
-        eye, mvp = scene_camera(scene, geo["frame"])
+        eye, mvp = self._camera(scene)
         if opts.split:      # the subsurface radiance is view-dependent and >= 0 by construction
             ms = np.zeros_like(v)
             self._clamped, self._clamped_depth, self._clamped_deep = 0, 0.0, 0
@@ -792,7 +797,9 @@ class Renderer:
         if getattr(self, "_edited", False) or scene.material.volume or scene.material.nodes:
             nodes = np.flatnonzero(np.ones(len(pg.positions), bool) if self._geo["fem"]
                                    else np.asarray(pg.active).reshape(-1))
-            tree = cKDTree(np.asarray(pg.positions).reshape(-1, 3)[nodes])
+            if "node_tree" not in self._geo:      # once per grid, not per edit
+                self._geo["node_tree"] = cKDTree(np.asarray(pg.positions).reshape(-1, 3)[nodes])
+            tree = self._geo["node_tree"]
             k_all, m_all = (self._mat[n].reshape(-1, 3)[nodes] for n in ("kappa", "mu"))
 
             def edited(p: NDArray) -> tuple[NDArray, NDArray]:
@@ -1021,8 +1028,12 @@ class Renderer:
         rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], pg.h if self._geo["fem"] else pg.lattice.h,
                                 scene.options.model))
         rep.warnings = self._regime_warnings(scene)
-        eye = scene_camera(scene, self._geo["frame"])[0]
-        if bool(contains(self._geo["mesh"], eye[None, :])[0]):
+        eye = self._camera(scene)[0]
+        inside_key = _key(self._keys.get("geometry"), tuple(np.round(eye, 9)))
+        if self._keys.get("inside") != inside_key:     # a ray cast: once per camera, not per frame
+            self._inside = bool(contains(self._geo["mesh"], eye[None, :])[0])
+            self._keys["inside"] = inside_key
+        if self._inside:
             rep.warnings.append(f"the camera at ({eye[0]:.4g}, {eye[1]:.4g}, {eye[2]:.4g}) mm is inside the object: "
                                 "the image shows the inside of its surface, which no validated case covers (light "
                                 "reaching a camera inside the medium is not modelled); move [camera].position out")
@@ -1031,13 +1042,22 @@ class Renderer:
                                                    for k, v in info.items()))
         return img, rep
 
+    def _camera(self, scene: Scene) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """:func:`~glsldiff.render.camera.scene_camera` of the framed mesh, kept while the
+        camera, the image size and the geometry stay."""
+        key = _key(self._keys.get("geometry"), scene.camera, scene.output.width, scene.output.height)
+        if self._keys.get("camera") != key:
+            self._eye_mvp = scene_camera(scene, self._geo["frame"])
+            self._keys["camera"] = key
+        return self._eye_mvp
+
     # -- editing (Wang et al. 2008, section 5.4) --------------------------------------
     def edit_view(self, scene: Scene) -> EditView:
         """The scene camera as an edit plane (``[output]`` pixels), with the distance of the
         visible surface per pixel (a depth render, kept while the camera and geometry stay)."""
         if not self._geo:
             raise RuntimeError("render a frame before editing")
-        eye, mvp = scene_camera(scene, self._geo["frame"])
+        eye, mvp = self._camera(scene)
         size = (scene.output.width, scene.output.height)
         key = _key(self._keys.get("geometry"), tuple(np.round(mvp.ravel(), 9)), size)
         if self._surface is None or self._surface[0] != key:
@@ -1093,14 +1113,7 @@ class Renderer:
         a re-assembly of the P1 system next frame."""
         self._mat = {**self._mat, "kappa": kappa, "mu": mu}
         if self._geo["fem"]:
-            # the P1 matrix changes: re-assembled next frame, with the old solver's prolongations
-            # (pyamg's aggregation depends on the pattern, not on a local material change) and
-            # the last frame's solution as the start
-            if self._solver is not None and getattr(self, "_phi_active", None) is not None:
-                Ps = [lv.P for lv in self._solver.levels if lv.P is not None]
-                self._fem_reuse = (Ps, self._phi_active)
-            self._fem_system = None
-            self._drop_solver()
+            pass    # the P1 system follows the node material at the next pass 2, in place (TetPass2.system)
         elif self._solver is not None:
             self._solver.set_material(kappa, mu)
 

@@ -271,12 +271,14 @@ def _aligned(mats: Sequence[sp.csr_matrix]) -> tuple[NDArray, NDArray, NDArray]:
 
 
 def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
-             diagonal: bool) -> EllPack:
+             diagonal: bool, keep_zeros: bool = False, row_offset: int = 0, slots: int | None = None) -> EllPack:
     """The :class:`EllPack` of the ``rows x cols`` matrices ``mats`` (three channels; rows laid
     out in the ``size`` textures). ``diagonal=False``: the diagonal gets no slot (a system
     matrix: ``a_ii`` goes to its own texture); ``True``: every entry does (restriction,
-    prolongation, a dense inverse). Entries zero in all channels get no slot; ``cols`` must be
-    at most 2^24 (exact float indices)."""
+    prolongation, a dense inverse). Entries zero in all channels get no slot unless
+    ``keep_zeros`` (a pattern whose values change in place keeps its slots); ``cols`` must be
+    at most 2^24 (exact float indices). ``row_offset``: ``mats`` are the rows from that one on
+    of a larger matrix (a band re-packed after an update, ``slots`` its ``K``)."""
     W, H = size
     mats = [sp.csr_matrix(M, dtype=np.float64) for M in mats]
     for M in mats:
@@ -286,12 +288,16 @@ def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
     if n_rows > W * H or n_cols > MAX_NODES:
         raise InputError(f"a {n_rows} x {n_cols} matrix does not fit {W} x {H} texels / float indices")
     rows, cols, vals = _aligned(mats)
-    keep = np.any(vals != 0.0, axis=1)
+    keep = np.ones(len(rows), dtype=bool) if keep_zeros else np.any(vals != 0.0, axis=1)
     if not diagonal:
-        keep &= cols != rows
+        keep &= cols != rows + row_offset
     rows, cols, vals = rows[keep], cols[keep], vals[keep]
     counts = np.bincount(rows, minlength=n_rows)
     K = int(counts.max()) if counts.size else 0
+    if slots is not None:
+        if K > slots:
+            raise InputError(f"a row has {K} entries; the packed matrix has {slots} slots")
+        K = slots
     start = np.concatenate([[0], np.cumsum(counts)[:-1]])
     slot = np.arange(rows.size) - start[rows]
     coef = np.zeros((max(K, 1), H * W, 4), dtype=np.float32)

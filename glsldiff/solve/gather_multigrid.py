@@ -96,7 +96,7 @@ from glsldiff.oracle.solvers import Callback
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
                                    GatherSolver, Matrices, Start, block_diagonal, channel_matrices, check_symmetric,
                                    distinct, node_rhs, pack_ell, pack_nodes, parse_omega, texture_width, upload_ell)
-from glsldiff.system.report import MAXITER, RELAX_TOL, SolveReport
+from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparseMultigrid", "MultigridLevel", "smoother_omega", "SMOOTH_TARGET", "MAX_COARSE", "ACCELERATIONS"]
 
@@ -400,8 +400,8 @@ class GlslSparseMultigrid(GatherSolver):
         packs = []
         for l, lv in enumerate(self.levels):
             pk: dict[str, Any] = {"diag": np.stack([A.diagonal() for A in lv.A], axis=1)}
-            if l == 0 or not lv.coarsest:
-                pk["A"] = pack_ell(lv.A, lv.size, diagonal=False)
+            if l == 0 or not lv.coarsest:    # the finest keeps its zeros: update_fine re-packs it in place
+                pk["A"] = pack_ell(lv.A, lv.size, diagonal=False, keep_zeros=l == 0)
             if lv.coarsest:
                 pk["inverse"] = pack_ell([sp.csr_matrix(M) for M in lv.inverse], lv.size, diagonal=True)
                 lv.slots = pk["inverse"].slots
@@ -509,6 +509,88 @@ class GlslSparseMultigrid(GatherSolver):
         if self._cg is not None:
             self._cg.started = False     # conjugate gradients restart from the current x
 
+    # ---- in-place changes (interactive editing) ---------------------------------------------
+    def update_fine(self, matrices: Matrices, rows: ArrayLike, diagonal_only: bool = False) -> None:
+        """The finest matrix changed in ``rows`` only (same stored pattern as before): its
+        values, diagonal and first-sweep factors are re-packed for the texel rows those rows
+        sit in and written there (``diagonal_only``: only diagonal entries changed, the
+        off-diagonal slots are not rewritten); the coarse levels, the prolongations and the smoothing
+        damping are kept (a stale but still symmetric positive definite preconditioner for
+        a local change: conjugate gradients converge with it, the iteration count tells how
+        stale it is; :meth:`refresh` rebuilds the coarse operators). The next iteration restarts
+        conjugate gradients from the current iterate."""
+        fast = (isinstance(matrices, (list, tuple)) and len(matrices) == 3
+                and all(sp.issparse(M) and M.format == "csr" and M.dtype == np.float64 and M.has_sorted_indices
+                        for M in matrices))      # P1System.matrices(): checked below for the rows that changed
+        mats = list(matrices) if fast else channel_matrices(matrices, "GlslSparseMultigrid.update_fine")
+        lv = self.levels[0]
+        if (mats[0].shape != lv.A[0].shape or any(M.nnz != A.nnz for M, A in zip(mats, lv.A))
+                or any(not np.array_equal(M.indptr, mats[0].indptr) for M in mats[1:])):
+            raise InputError(f"update_fine needs the finest matrix's pattern ({lv.A[0].shape}, {lv.A[0].nnz} "
+                             "entries, one for all channels); build a new solver for a new pattern")
+        rows = np.unique(np.asarray(rows, dtype=np.int64))
+        if rows.size and (rows[0] < 0 or rows[-1] >= self.n):
+            raise InputError(f"rows must be in 0 .. {self.n - 1}")
+        lv.A = mats
+        n, nnz = self.n, mats[0].nnz
+        start, stop = mats[0].indptr[rows].astype(np.int64), mats[0].indptr[rows + 1].astype(np.int64)
+        counts = stop - start
+        pos = np.repeat(start - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
+        data = self.system.A.data
+        for c, M in enumerate(mats):
+            data[c * nnz + pos] = M.data[pos]       # the block-diagonal system: channel after channel
+        if fast and not all(np.isfinite(M.data[pos]).all() for M in mats):
+            raise InputError("update_fine: the updated rows have non-finite (NaN/inf) entries")
+        on_diag = mats[0].indices[pos] == np.repeat(rows, counts)
+        diag = np.stack([M.data[pos[on_diag]] for M in mats], axis=1)        # (rows, 3), rows ascending
+        if not np.all(diag > 0):
+            raise InputError("update_fine: the updated matrix has a non-positive diagonal entry")
+        for c in range(3):
+            self.system.diag[c * n + rows] = diag[:, c]
+        if rows.size:
+            self._write_rows(mats, rows, diagonal_only)
+        self._restart()
+
+    def _write_rows(self, mats: list[sp.csr_matrix], rows: NDArray[np.int64], diagonal_only: bool) -> None:
+        """Re-pack and upload the finest level's texel rows that hold ``rows`` (runs of texel
+        rows written as one band each)."""
+        g, lv = self._levels[0], self.levels[0]
+        W, _ = lv.size
+        y = np.unique(rows // W)
+        breaks = np.flatnonzero(np.diff(y) > 1)
+        gl.make_current(self.ctx)
+        for y0, y1 in zip(np.concatenate([[y[0]], y[breaks + 1]]), np.concatenate([y[breaks], [y[-1]]])):
+            r0, r1 = int(y0) * W, min(self.n, (int(y1) + 1) * W)
+            size = (W, int(y1 - y0) + 1)
+            band = [M[r0:r1] for M in mats]
+            if not diagonal_only:
+                coef = pack_ell(band, size, diagonal=False, keep_zeros=True, row_offset=r0, slots=lv.slots).coef
+                g.A.texture.write(coef.tobytes(), viewport=(0, int(y0), 0, W, size[1], coef.shape[0]), alignment=1)
+            d = np.stack([M.diagonal(k=r0) for M in band], axis=1)[: r1 - r0]
+            g.diag.write(pack_nodes(d, size, pad=1.0).tobytes(), viewport=(0, int(y0), W, size[1]), alignment=1)
+            if g.first is not None:
+                m = r1 - r0
+                first = [sp.csr_matrix((lv.omega / d[:, c], (np.arange(m), np.arange(r0, r1))), shape=(m, self.n))
+                         for c in range(3)]
+                fc = pack_ell(first, size, diagonal=True, slots=1).coef
+                g.first.texture.write(fc.tobytes(), viewport=(0, int(y0), 0, W, size[1], 1), alignment=1)
+
+    def smooth(self, sweeps: int) -> None:
+        """``sweeps`` damped Jacobi sweeps of the finest level on the iterate (no coarse
+        correction, no read-back): the cheap part of a frame while the matrix keeps changing
+        (painting); conjugate gradients restart from the result."""
+        gl.make_current(self.ctx)
+        t0 = time.perf_counter()
+        g, st = self._levels[0], self.state
+        with gl.keep_framebuffer(self.ctx):
+            for _ in range(sweeps):
+                self._pass.draw(JACOBI, st.dst, g.size, g.A, st.src, g.size, diag=g.diag, b=g.b,
+                                omega=self.levels[0].omega)
+                st.swap()
+            self.ctx.finish()
+        self.cycle_seconds += time.perf_counter() - t0
+        self._restart()
+
     # ---- cycles -----------------------------------------------------------------------------
     def _smooth(self, g: _GpuLevel, b: moderngl.Texture, omega: float, sweeps: int) -> None:
         for _ in range(sweeps):
@@ -614,7 +696,8 @@ class GlslSparseMultigrid(GatherSolver):
             The iteration diverged (not positive definite, or omega too large).
         """
         t0 = time.perf_counter()
-        self._restart()
+        if not (isinstance(x0, str) and x0 == CURRENT):
+            self._restart()       # CURRENT goes on with the conjugate gradients' directions (frame coherence)
         kind = f"V({self.pre},{self.post})" if self._cg is None else f"PCG,V({self.pre},{self.post})"
         seconds0 = self.level_seconds.copy()
         result = self._relax(self.cycle, x0, tol=tol, maxiter=maxiter, check_every=check_every, callback=callback,
