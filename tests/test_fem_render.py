@@ -66,7 +66,7 @@ def test_render_pass2_equals_the_direct_solve(tmp_path):
     with Renderer() as r:
         img, rep = r.render(scene)
         assert rep.solver.converged and rep.solver.method.startswith("glsl-gather")
-        phi_ref, _ = solve_tet_direct(r._fem_problem(scene))
+        phi_ref, _ = solve_tet_direct(r.fem_problem(scene))
         ref = phi_ref[r.polygrid.surface_nodes]
         assert np.linalg.norm(r.surface_fluence - ref) / np.linalg.norm(ref) < 1e-3
     assert np.isfinite(img).all() and img.max() > 0

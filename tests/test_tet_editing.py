@@ -1,4 +1,4 @@
-"""Interactive editing on the tetrahedral grid (glsldiff.render.tetrahedral): edits update the P1
+"""Interactive editing on the tetrahedral grid (glsldiff.render.backends.tetrahedral): edits update the P1
 system and the GPU multigrid's finest level in place; frames converge to the from-scratch
 answer; undo gives back the first image; the kept hierarchy's iteration counts stay bounded."""
 from __future__ import annotations

@@ -57,19 +57,10 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from glsldiff import gl
-from glsldiff.core import cache
-from glsldiff.core.errors import InputError, SolverError
+from glsldiff.core.errors import InputError
 from glsldiff.core.io import write_npz
-from glsldiff.grids.adapt import ADAPT_TOL, refine_for_source
-from glsldiff.grids.hierarchy import Hierarchy
-from glsldiff.grids.cache import cached_fem_grid, cached_polygrid
-from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
-from glsldiff.grids.fem_grid import FEM_MAX_NODES, SPLIT_LENGTH
-from glsldiff.grids.shapes import SHAPE_TARGET
-from glsldiff.grids.tetwild import cached_tetrahedralize
-from glsldiff.mesh import (GENERATED_MESHES, SAMPLE_MESHES, Mesh, generated_mesh, load_mesh, screened_smoothing,
-                           subdivide)
-from glsldiff.physics.editing import KAPPA_MIN, Edit, EditResult, EditView, apply_edit
+from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, generated_mesh, load_mesh, screened_smoothing, subdivide
+from glsldiff.physics.editing import Edit, EditResult, EditView
 from glsldiff.physics.exitance import (bracket_smoothing_lengths, deep_irradiance, exitance_coefficients,
                                        exitant_bracket, halfspace_bracket, local_bracket, source_from_irradiance)
 from glsldiff.physics.material import coefficients, optical_properties, regime
@@ -78,35 +69,27 @@ from glsldiff.mesh.raycast import first_hits
 from glsldiff.mesh.inside import contains
 from glsldiff.physics.optics import boundary_constant, moment_boundary_constant, refracted_cosine
 from glsldiff.physics.lights import AreaLight, DirectLight, EnvironmentLight, ProjectorLight, projector_factor
+from glsldiff.render.backends import GridBackend, Pass2Inputs, make_backend
 from glsldiff.render.camera import scene_camera
-from glsldiff.render.collision import first_collision_load, node_columns, surface_columns
+from glsldiff.render.editing import MaterialHistory
 from glsldiff.render.unscattered import sees_through, unscattered
-from glsldiff.render.editing import GpuMaterialEditor, MaterialHistory
 from glsldiff.render.materials import node_material, surface_reflectance
 from glsldiff.render.pass1 import incident_light, visibility
 from glsldiff.render.report import RenderReport
 from glsldiff.render.scene import TETRAHEDRAL, Scene
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import single_scattering_frame
-from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.split_frame import SplitInputs, SplitResult, split_radiance
-from glsldiff.render.tetrahedral import TetPass2, check_precision
-from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade, surface_interpolation, vertex_interpolation
-from glsldiff.solve.multilevel import MultilevelDiffusion
+from glsldiff.render.shading import MAX_SHADER_LIGHTS, shade
 from glsldiff.oracle.assembly import LinearSystem
-from glsldiff.oracle.fem import tet_geometry, tet_rhs
 from glsldiff.oracle.refined import RefinedComparison, RefinedError
-from glsldiff.system.problem import DiffusionProblem
 from glsldiff.system.tet_problem import TetProblem
 from glsldiff.system.transcut import paint_blend, paint_weights
-from glsldiff.system.report import CURRENT, SolveReport
 
 
 #: Largest boundary source pass 2 accepts: its float32 textures overflow near 3.4e38, and the
 #: sweeps multiply sources by stencil weights (mm^-2) before they are divided back.
 Q_MAX = 1e30
-#: Part of every cached pass-2 solution's key: bump it when the discrete system changes.
-SOLUTION_CACHE_VERSION = 2   # 2: the volume source solves with the Fresnel-moment boundary constant
 
 
 # ---------------------------------------------------------------- the renderer
@@ -156,7 +139,7 @@ class Renderer:
         self._status = status
         self._keys: dict[str, str] = {}
         self._geo: dict[str, Any] = {}
-        self._solver: Any = None
+        self._backend: GridBackend | None = None   # the grid family's set-up, material, edits and pass 2
         self._mat: dict[str, Any] = {}
         self._E_t: NDArray | None = None
         self._q: NDArray | None = None
@@ -168,14 +151,12 @@ class Renderer:
         self._phi_b: NDArray | None = None
         self._solve_report: Any = None
         self._from_cache = False
-        self._tet: TetPass2 | None = None          # tetrahedral grids: the P1 system and solver across frames
         self._load: NDArray | None = None
         self._flux_fields: tuple[NDArray, NDArray] | None = None   # (phi, q) of the exitant bracket
         self._flux_kind: str | None = None        # the [options].flux that _flux_fields were made for
         self._smoothers: Any = None                # flux = "smoothed": (phi, q) smoothing along the surface
         self._smoother_info = ""                  # the smoothers' lengths and set-up time, for the report
         self._flux_used = ""                      # what the last frame's bracket took its flux from (report)
-        self._editor: GpuMaterialEditor | None = None
         self._history = MaterialHistory()
         self._edit_version = 0
         self._surface: tuple[Any, NDArray] | None = None
@@ -191,8 +172,9 @@ class Renderer:
     @property
     def pass2_solver(self) -> Any:
         """The pass-2 solver of the last frame (lattice: :class:`MultilevelDiffusion`; tetrahedra:
-        :class:`~glsldiff.solve.gather_multigrid.GlslSparseMultigrid`; None before a solve or when a cached answer served it)."""
-        return self._tet.solver if self._tet is not None else self._solver
+        :class:`~glsldiff.solve.gather_multigrid.GlslSparseMultigrid`; None before a solve or when a
+        cached answer served it)."""
+        return None if self._backend is None else self._backend.solver
 
     @property
     def converged(self) -> bool:
@@ -207,26 +189,23 @@ class Renderer:
 
     @property
     def polygrid(self) -> Any:
-        return self._geo["pg"]
+        return self._grid
+
+    @property
+    def _grid(self) -> Any:
+        assert self._backend is not None
+        return self._backend.grid
 
     @property
     def fem_system(self) -> LinearSystem | None:
         """The P1 system (over the active nodes, with the last frame's source) a tetrahedral
         grid solved in pass 2; ``None`` on the lattice or before the first frame."""
-        return None if self._tet is None or self._tet.p1 is None else self._tet.p1.system
+        return getattr(self._backend, "system", None)
 
     def surface_values(self, x: NDArray) -> NDArray[np.float64]:
         """``(n_surface, 3)``: per-active-node values ``(n_active, 3)`` of a tetrahedral grid
         (e.g. a solution of :attr:`fem_system`) at its surface nodes."""
-        pg = self._geo["pg"]
-        full = np.zeros((len(pg.positions), 3))
-        full[self._fem_active] = x
-        return full[pg.surface_nodes]
-
-    @property
-    def _fem_active(self) -> NDArray[np.int64]:
-        assert self._tet is not None
-        return self._tet.active
+        return self._backend.surface_values(x)   # type: ignore[union-attr]
 
     @property
     def node_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -243,7 +222,7 @@ class Renderer:
     @property
     def cut_report(self) -> Any:
         """The :class:`~glsldiff.grids.tetcut.CutReport` of a scene's ``[cut]`` (None without one)."""
-        return getattr(self, "_cut_report", None)
+        return getattr(self._backend, "cut_report", None)
 
     @property
     def surface_fluence(self) -> NDArray[np.float64]:
@@ -254,93 +233,25 @@ class Renderer:
 
     # -- stages --------------------------------------------------------------------
     def _setup(self, scene: Scene) -> None:
-        m, g = scene.mesh, scene.polygrid
+        m = scene.mesh
         if m.source in GENERATED_MESHES:
             mesh = generated_mesh(m.source, m.size_mm)
         else:
             src = m.source if m.source in SAMPLE_MESHES else str(scene.resolve(m.source))
             mesh = load_mesh(src, size_mm=m.size_mm)
-        fem = g.discretisation in TETRAHEDRAL
-        t0 = time.perf_counter()
-        if g.discretisation == "tetwild":
-            what = "fTetWild tetrahedral mesh"
-            self._say(f"setup: {what} of {m.source} (edge {g.edge_mm:g} mm): building it takes seconds to many "
-                      "minutes the first time, then it is read from the cache")
-            pg, cached = cached_tetrahedralize(mesh, float(g.edge_mm), status=self._say)
-        else:
-            what = "tetrahedral polygrid" if fem else "polygrid"
-            self._say(f"setup: {what} of {m.source} (n = {g.n}, about {g.cubes} cubes): building it takes "
-                      "seconds to minutes the first time, then it is read from the cache")
-            pg, cached = (cached_fem_grid if fem else cached_polygrid)(mesh, n=g.n, n_cubes=g.cubes)
-        self._say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
-                  f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
-        if g.discretisation == "fem" and pg.quality.fine_reason:   # tetwild grids have no polycube
-            self._say(f"setup: built from {len(pg.polycube.cubes):,} cubes of {pg.complex.lattice.n} nodes per edge at "
-                      f"about the same spacing instead: with n = {g.n}, {pg.quality.fine_reason}")
-        self._adapt_report = None
-        if scene.refines:
-            pg = self._adapt(scene, mesh, pg)
+        if self._backend is not None:
+            self._backend.release()
+        self._backend = make_backend(scene, self.ctx, self._say, self.frame_sweeps, self.cache_solutions,
+                                     self.allow_unconverged)
         frame = np.asarray(mesh.vertices)           # the uncut surface frames the camera
-        crease, self._cut_report = None, None
-        if scene.cut is not None:
-            pg, mesh, crease = self._cut(scene, pg, frame)
-        hier = None if fem else Hierarchy.build(pg, g.levels)   # levels = 1: the polygrid alone
-        h = pg.h if fem else pg.lattice.h
-        render_mesh = subdivide(mesh if crease is None else crease, h)
+        mesh, crease = self._backend.setup(scene, mesh)
+        render_mesh = subdivide(mesh if crease is None else crease, self._backend.h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
-        interp = (surface_interpolation(v, pg.boundary_positions, pg.surface_triangles) if fem
-                  else vertex_interpolation(v, pg.boundary_positions))
-        self._geo = {"mesh": mesh, "render_mesh": render_mesh, "pg": pg, "hier": hier, "vertices": v, "faces": f,
-                     "normals": render_mesh.vertex_normals, "interp": interp, "fem": fem,
-                     "tetgeo": tet_geometry(pg) if fem else None, "frame": frame}
-
-    def _adapt(self, scene: Scene, mesh: Mesh, pg: Any) -> Any:
-        """The fem grid refined under the lights' sharp edges (:mod:`glsldiff.grids.adapt`),
-        marked by pass 1's source sampled at the surface nodes (shadows included)."""
-        def source(P: NDArray, N: NDArray) -> NDArray:
-            E_t, _ = incident_light(mesh, P, N, scene.lights, scene.material.eta, ctx=self.ctx)
-            return source_from_irradiance(np.asarray(E_t, dtype=np.float64), scene.material.eta, scene.options.exitant)
-        pg, rep = refine_for_source(pg, source, max_nodes=FEM_MAX_NODES)
-        self._adapt_report = rep
-        if rep.edges:
-            self._say(f"setup: {rep.line()} ({pg.n_active:,} nodes)")
-        return pg
-
-    def _cut(self, scene: Scene, tm: Any, frame: NDArray) -> tuple[Any, Mesh, Mesh]:
-        """TransCut's cut of the fTetWild mesh ``tm`` (``[cut]``), its report kept in
-        ``self._cut_report``: the cut mesh, its boundary as a triangle mesh (shadows, ray casts)
-        and as a render mesh whose cut faces have their own vertices (a crease: the cut face and
-        the old surface are shaded with their own normals)."""
-        c = scene.cut
-        assert c is not None
-        if c.plane is not None:
-            side = plane_side(c.plane[:3], c.plane[3] / float(np.linalg.norm(c.plane[:3])))   # n . x > d
-            what = f"plane {list(c.plane)}"
-        else:
-            _, mvp = scene_camera(scene, frame)
-            W, H = scene.output.width, scene.output.height
-
-            def project(X: NDArray) -> NDArray:
-                clip = np.concatenate([X, np.ones((len(X), 1))], axis=1) @ mvp.T
-                ndc = clip[:, :2] / clip[:, 3:4]
-                return np.stack([(ndc[:, 0] + 1.0) * 0.5 * W, (1.0 - ndc[:, 1]) * 0.5 * H], axis=1)
-            side = stroke_side(project, c.stroke)
-            what = f"stroke of {len(c.stroke or ())} points"
-        self._say(f"setup: cutting {len(tm.tets):,} tetrahedra by the {what}")
-        t0 = time.perf_counter()
-        cm, rep = cut_tets(tm, side, iterations=c.iterations)
-        self._cut_report = rep
-        self._cut_seconds = time.perf_counter() - t0
-        V, F = cm.boundary_positions, cm.surface_triangles
-        flat = Mesh(V, F, name=f"{scene.mesh.source} (cut)")
-        cf = F[cm.cut_faces]
-        used = np.unique(cf)
-        F2 = np.concatenate([F[~cm.cut_faces], len(V) + np.searchsorted(used, cf)])
-        keep, F2 = np.unique(F2, return_inverse=True)             # drop the copies no face uses
-        return cm, flat, Mesh(np.concatenate([V, V[used]])[keep], F2.reshape(-1, 3), name=flat.name)
+        self._geo = {"mesh": mesh, "render_mesh": render_mesh, "vertices": v, "faces": f,
+                     "normals": render_mesh.vertex_normals, "interp": self._backend.interpolation(v), "frame": frame}
 
     def _material(self, scene: Scene) -> None:
-        pg = self._geo["pg"]
+        pg = self._grid
         kappa, mu, info = node_material(scene, pg.positions, pg)
         for p in scene.paint:      # TransCut's paint, at the nodes (the P1 system's material lives there)
             w = paint_weights(pg.positions, p.points, p.radius_mm)
@@ -354,23 +265,11 @@ class Renderer:
                                  "nodes; paint positive values")
             kappa, mu = coefficients(sa, ss)
             info = {**info, "material": f"{info.get('material')} + {len(scene.paint)} paint stroke(s)"}
-        shape = (len(pg.positions),) if self._geo["fem"] else pg.shape
+        shape = self._backend.material_shape     # type: ignore[union-attr]
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
-        self._drop_solver()
-        if self._tet is not None:
-            self._tet.reset()
+        self._backend.set_material()             # type: ignore[union-attr]
         self._history = MaterialHistory()     # a new material starts a new edit history
         self._edited = False                  # the node material differs from the scene's (edits)
-
-    def _drop_solver(self) -> None:
-        if self._editor is not None:
-            self._editor.release()
-            self._editor = None
-        if self._solver is not None:
-            self._solver.release()
-            self._solver = None
-        if self._tet is not None:
-            self._tet.release()
 
     def _effective(self, scene: Scene) -> Scene:
         """``scene`` with its options made concrete for the current grid and material: the source
@@ -386,9 +285,8 @@ class Renderer:
             self._model_note = (f"model: eta = {scene.material.eta:g} < 1 has no half-space tables; rendered with "
                                 "model = \"diffusion\"")
             o = replace(o, model="diffusion", source="surface" if o.source == "auto" else o.source)
-        fem = bool(self._geo.get("fem"))
         if o.source == "auto":
-            resolved = fem and self._h_sigma_t() <= GATHER_MAX_H_SIGMA
+            resolved = self._backend.volume_source and self._h_sigma_t() <= GATHER_MAX_H_SIGMA   # type: ignore[union-attr]
             o = replace(o, source="volume" if o.split and resolved else "surface")
         if o.single_scattering == "auto":      # interactive frames (the viewer) take the split's closed form
             o = replace(o, single_scattering=o.split and self.frame_sweeps is None)
@@ -397,17 +295,15 @@ class Renderer:
     def _h_sigma_t(self) -> float:
         """The grid's node spacing (mm) times the largest sigma_t' (mm^-1) of the node material:
         below :data:`GATHER_MAX_H_SIGMA` the grid resolves the transport mean free path."""
-        pg = self._geo["pg"]
-        h = pg.h if self._geo["fem"] else pg.lattice.h
-        return h * float(np.max(1.0 / (3.0 * self._mat["kappa"])))
+        return self._backend.h * float(np.max(1.0 / (3.0 * self._mat["kappa"])))   # type: ignore[union-attr]
 
     def _pass1(self, scene: Scene) -> None:
-        pg = self._geo["pg"]
+        pg = self._grid
         volume = scene.options.source == "volume"
         beams: list | None = [] if volume or scene.options.split or self._splits_incidence(scene) else None
         E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, scene.lights,
                                    scene.material.eta, ctx=self.ctx, beams=beams,
-                                   triangles=pg.surface_triangles if self._geo["fem"] else None)
+                                   triangles=self._backend.surface_triangles)   # type: ignore[union-attr]
         self._E_t = np.asarray(E_t, dtype=np.float64)
         q = source_from_irradiance(self._E_t, scene.material.eta, scene.options.exitant)
         if not np.all(np.isfinite(q)) or q.max() > Q_MAX:
@@ -429,13 +325,7 @@ class Renderer:
         self._load = None
         if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
             t0 = time.perf_counter()
-            if "columns" not in self._geo:      # geometry only: once per grid, not per light
-                self._say("pass 1: the surface's columns and each node's place in them (once per grid)")
-                self._geo["columns"] = surface_columns(pg)
-                self._geo["node_columns"] = node_columns(pg, self._geo["columns"])
-            self._load = first_collision_load(pg, self._mat["kappa"], self._mat["mu"], beams,
-                                              self._geo["tetgeo"].node_volumes, self._geo["columns"],
-                                              self._geo["node_columns"])
+            self._load = self._backend.volume_load(self._mat["kappa"], self._mat["mu"], beams or [])  # type: ignore
             info.append({"light": "first-collision source", "beams": len(beams or ()),
                          "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         self._light_info = info
@@ -449,11 +339,9 @@ class Renderer:
 
     def _boundary_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(kappa, mu)`` ``(n_boundary, 3)`` at the surface (boundary) nodes."""
-        pg = self._geo["pg"]
-        if self._geo["fem"]:
-            return self._mat["kappa"][pg.surface_nodes], self._mat["mu"][pg.surface_nodes]
-        return (self._mat["kappa"].reshape(-1, 3)[pg.lattice.boundary],
-                self._mat["mu"].reshape(-1, 3)[pg.lattice.boundary])
+        b = self._backend
+        assert b is not None
+        return b.boundary(self._mat["kappa"]), b.boundary(self._mat["mu"])
 
     def _split_incidence(self, scene: Scene) -> None:
         """The diffusion's load from pass 1's beams and the node material (each beam's share
@@ -487,7 +375,7 @@ class Renderer:
         camera moves)."""
         if self._incidence is None:
             return self._q
-        pg = self._geo["pg"]
+        pg = self._grid
         key = tuple(np.round(np.asarray(eye, dtype=np.float64), 9))
         if self._local_key != key:
             d = np.asarray(eye, dtype=np.float64)[None, :] - pg.boundary_positions
@@ -503,116 +391,18 @@ class Renderer:
         if self._status is not None:
             self._status(line)
 
-    def _paint_sweeps(self, pg: Any) -> None:
-        """Pass 2 of a frame with a new edit while painting (``frame_sweeps``): the sweeps alone,
-        from the previous frame's solution, and no residual check (it needs the CPU system of the
-        new material); frames without a new edit check it again."""
-        t0 = time.perf_counter()
-        fine = self._solver.finest
-        fine.sweep(self.frame_sweeps)
-        phi = fine.fluence()
-        self._partial = True
-        self._finish_pass2(pg, phi, SolveReport(f"glsl-frame-coherent-{fine.precision} (painting: no residual check)",
-                                                nodes=int(pg.n_active), sweeps=int(self.frame_sweeps),
-                                                seconds=time.perf_counter() - t0, status="budget"), False)
-
     def _pass2(self, scene: Scene, warm: bool, painting: bool = False) -> None:
-        pg, opts, fem = self._geo["pg"], scene.options, self._geo["fem"]
-        if fem:
-            self._tet_pass2(scene, warm, painting)
-            return
-        if painting and self.frame_sweeps is not None and self._solver is not None:
-            self._paint_sweeps(pg)
-            return
-        self._say(f"pass 2: {opts.scheme} diffusion solve of {pg.n_active:,} nodes to tol {opts.tol:g}")
-        gl.make_current(self.ctx)
-        x0: Any = CURRENT if warm and opts.scheme != "multigrid" else None
-        key = self._solution_key(scene)
-        warm_from_disk = opts.scheme != "adaptive" and (x0 is None or self._solver is None)   # (adaptive: below)
-        stored = cache.load("pass2", key, np.ndarray) if self.cache_solutions and warm_from_disk else None
-        if self._solver is None:
-            self._solver = self._lattice_solver(scene)
-            x0 = None
-        else:
-            self._solver.set_q(self._q)
-        self._from_cache = False
-        if x0 is None and opts.scheme != "adaptive":   # adaptive needs its coarse-to-fine start
-            x0 = stored
-            self._from_cache = x0 is not None
-        budget: dict[str, Any] = {}
-        partial = self.frame_sweeps is not None and isinstance(x0, str)   # x0 = CURRENT
-        if partial:      # frame coherence: a few sweeps now, more next frame
-            budget = {"maxiter": self.frame_sweeps, "check_every": self.frame_sweeps}
-        try:
-            phi, rep = self._solver.solve(tol=opts.tol, x0=x0, **budget)
-        except SolverError as exc:   # diverged: no image to keep, whatever allow_unconverged says
-            raise SolverError(f"pass 2 did not converge: {exc}; {self._PASS2_HINT}") from exc
-        self._partial = partial and rep.status not in ("converged", "stalled")
-        self._check_converged(scene, rep)
-        if rep.status == "converged" and not self._from_cache and self.cache_solutions:
-            cache.store("pass2", key, np.asarray(phi))
-        self._finish_pass2(pg, phi, rep, fem)
-
-    _PASS2_HINT = ("the object may be optically too small or thin for its material (size_mm, sigma), or "
-                   "[options].tol too tight")
-
-    def _solution_key(self, scene: Scene) -> str:
-        """The disk cache's key of this frame's converged pass-2 answer."""
-        pg, opts, fem = self._geo["pg"], scene.options, self._geo["fem"]
-        return cache.digest(f"pass2 v{SOLUTION_CACHE_VERSION}", scene.polygrid.discretisation, pg.positions,
-                            pg.tets if fem else pg.weights, self._mat["kappa"], self._mat["mu"], self._q, self._load,
-                            scene.material.eta, opts.scheme, opts.precision, opts.tol)
-
-    def _check_converged(self, scene: Scene, rep: SolveReport) -> None:
-        if rep.status not in ("converged", "stalled") and not self.allow_unconverged and not self._partial:
-            raise SolverError(f"pass 2 did not converge: residual {rep.residual:.3g} > tol {scene.options.tol:g} "
-                              f"after {rep.sweeps} iterations ({rep.status}); {self._PASS2_HINT}; "
-                              "--allow-unconverged writes the unconverged image")
-
-    def _tet_pass2(self, scene: Scene, warm: bool, painting: bool) -> None:
-        """Pass 2 on tetrahedra (:mod:`glsldiff.render.tetrahedral`): the P1 system updated in
-        place after edits, the GPU solver kept; under ``frame_sweeps`` (interactive) a frame
-        with a new edit runs a few Jacobi sweeps and the next ones a CG iteration each."""
-        pg, opts = self._geo["pg"], scene.options
-        check_precision(opts.precision, str(scene.source))
-        gl.make_current(self.ctx)
-        self._fem_linear_system(scene)
-        tet = self._tet
-        assert tet is not None
-        interactive = self.frame_sweeps is not None
-        if not (interactive and warm):
-            self._say(f"pass 2: multigrid-preconditioned CG (tetrahedra) diffusion solve of {pg.n_active:,} nodes "
-                      f"to tol {opts.tol:g}")
-        key = self._solution_key(scene) if self.cache_solutions and not (interactive and warm) else None
-        stored = cache.load("pass2", key, np.ndarray) if key is not None and tet.solver is None else None
-        frame = tet.cached(stored, opts.tol) if tet.solver is None else None
-        if frame is None:
-            try:
-                frame = tet.solve(opts.tol, warm=warm, painting=painting, frame_budget=interactive, x0=stored)
-            except SolverError as exc:
-                raise SolverError(f"pass 2 did not converge: {exc}; {self._PASS2_HINT}") from exc
-        self._from_cache = frame.from_cache
-        self._partial = frame.partial
-        self._check_converged(scene, frame.report)
-        if key is not None and frame.report.status == "converged" and not frame.from_cache:
-            cache.store("pass2", key, np.asarray(frame.phi))
-        self._finish_pass2(pg, frame.phi, frame.report, True)
-
-    def _finish_pass2(self, pg: Any, phi: NDArray, rep: SolveReport, fem: bool) -> None:
+        """One frame's pass 2 by the grid's backend (:mod:`glsldiff.render.backends`)."""
+        frame = self._backend.solve(self._pass2_inputs(scene, warm, painting))   # type: ignore[union-attr]
+        self._partial, self._from_cache = frame.partial, frame.from_cache
         self._flux_fields = None
         self._solutions = getattr(self, "_solutions", 0) + 1     # pass 3's caches follow every new phi
-        if fem:
-            self._phi_b = self.surface_values(phi)
-            self._phi_active = np.asarray(phi, dtype=np.float64)
-        else:
-            self._phi_b = np.asarray(phi, dtype=np.float64).reshape(-1, 3)[pg.lattice.boundary]
-        self._solve_report = rep
+        self._phi_b = frame.phi_b
+        self._solve_report = frame.report
 
-    def _lattice_solver(self, scene: Scene) -> MultilevelDiffusion:
-        opts = scene.options
-        problem = DiffusionProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q,
-                                   eta=scene.material.eta, stencil=scene.polygrid.discretisation)
-        return MultilevelDiffusion(self._geo["hier"], problem, opts.scheme, ctx=self.ctx, precision=opts.precision)
+    def _pass2_inputs(self, scene: Scene, warm: bool = False, painting: bool = False) -> Pass2Inputs:
+        return Pass2Inputs(scene, self._mat["kappa"], self._mat["mu"], self._q, self._load, self._boundary_C(scene),
+                           warm, painting)
 
     @staticmethod
     def _boundary_C(scene: Scene) -> float:
@@ -627,15 +417,15 @@ class Renderer:
         """The last frame's P1 problem of ``scene`` (grid, node material, boundary source, eta
         and the Robin constant C) on a tetrahedral grid; without the first-collision load of
         ``source = "volume"``."""
-        if not self._geo.get("fem") or self._q is None:
+        if not hasattr(self._backend, "problem") or self._q is None:
             raise RuntimeError("no frame of a tetrahedral grid rendered yet")
-        return self._fem_problem(scene)
+        return self._backend.problem(self._pass2_inputs(scene))   # type: ignore[union-attr]
 
     @staticmethod
     def check_discretisation_scene(scene: Scene) -> None:
         """Refuse (:class:`InputError`, one line) a scene :meth:`discretisation_error` cannot
         check, before any work: a lattice grid, or the first-collision volume source."""
-        if scene.polygrid.discretisation not in ("fem", "tetwild"):
+        if scene.polygrid.discretisation not in TETRAHEDRAL:
             raise InputError(f"the discretisation check needs a tetrahedral grid; this scene's is "
                              f"{scene.polygrid.discretisation!r} (set [polygrid] discretisation = \"fem\")")
         if scene.options.source == "volume":
@@ -656,27 +446,6 @@ class Renderer:
         rc = RefinedComparison(self.fem_problem(scene), channel)
         err = rc.compare()[0]
         return err, rc.nodes[1], time.perf_counter() - t0
-
-    def _fem_problem(self, scene: Scene) -> TetProblem:
-        return TetProblem(self._geo["pg"], self._mat["kappa"], self._mat["mu"], self._q, eta=scene.material.eta,
-                          C=self._boundary_C(scene))
-
-    def _fem_linear_system(self, scene: Scene) -> LinearSystem:
-        """The P1 system of the current material and source (:class:`TetPass2`: assembled once
-        per material, updated in place after edits)."""
-        pg = self._geo["pg"]
-        if self._tet is None or self._tet.geo is not self._geo["tetgeo"]:
-            if self._tet is not None:
-                self._tet.release()
-            self._tet = TetPass2(self.ctx, self._geo["tetgeo"], np.asarray(pg.active, dtype=bool))
-        C = self._boundary_C(scene)
-        key = (id(self._q), id(self._load), C, scene.material.eta)    # pass 1 makes new arrays for a new source
-        if getattr(self, "_fem_b", (None,))[0] != key:
-            b = tet_rhs(self._fem_problem(scene), self._geo["tetgeo"])
-            if self._load is not None:
-                b = b + self._load[self._tet.active]
-            self._fem_b = (key, b)
-        return self._tet.system(self._mat["kappa"], self._mat["mu"], C, self._fem_b[1])
 
     @staticmethod
     def _shader_lights(scene: Scene) -> list[DirectLight]:
@@ -737,9 +506,10 @@ class Renderer:
         ``-kappa dphi/dn`` of the solution's recovered gradient (volume-weighted mean of the
         tetrahedra's gradients at each surface node)."""
         flux = scene.options.flux
-        if flux == "boundary" or not self._geo["fem"] or (flux == "smoothed" and not self._q.any()):
+        flat = self._backend.surface_triangles is None      # type: ignore[union-attr]
+        if flux == "boundary" or flat or (flux == "smoothed" and not self._q.any()):
             self._flux_used = (flux if flux != "smoothed" else
-                               "boundary (the lattice has no surface triangles to smooth on)" if not self._geo["fem"]
+                               "boundary (the lattice has no surface triangles to smooth on)" if flat
                                else "smoothed: no light enters through the surface here (volume source), so the "
                                     "local bracket")
             return self._phi_b, self._bracket_q(scene, eye)
@@ -747,7 +517,7 @@ class Renderer:
         if self._flux_kind != flux:          # the kept fields are the other option's
             self._flux_fields, self._flux_kind = None, flux
         if self._flux_fields is None and flux == "smoothed":
-            pg = self._geo["pg"]
+            pg = self._grid
             key = _key(self._keys.get("geometry"), self._keys.get("material"))
             if self._keys.get("smoother") != key:
                 t0 = time.perf_counter()
@@ -760,11 +530,7 @@ class Renderer:
                 self._keys["smoother"] = key
             self._flux_fields = (self._smoothers[0](self._phi_b), self._smoothers[1](q_bracket))
         elif self._flux_fields is None:
-            pg, geo = self._geo["pg"], self._geo["tetgeo"]
-            full = np.zeros((len(pg.positions), 3))
-            full[self._fem_active] = self._phi_active
-            grad = geo.recovered_gradient(full)[pg.surface_nodes]                    # (S, 3, 3)
-            normal_flux = -self._boundary_material()[0] * np.einsum("sjc,sj->sc", grad, pg.normals)
+            normal_flux = -self._boundary_material()[0] * self._backend.normal_gradient()   # type: ignore[union-attr]
             self._flux_fields = (self._phi_b, self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux
                                  - (self._q - q_bracket))
         self._flux_used = self._smoother_info if flux == "smoothed" else flux
@@ -778,7 +544,7 @@ class Renderer:
         geo = self._geo
         rho_key = _key(self._keys.get("geometry"), scene.material.reflectance, scene.material.volume)
         if self._keys.get("rho") != rho_key:
-            self._rho, self._keys["rho"] = geo["interp"] @ surface_reflectance(scene, geo["pg"]), rho_key
+            self._rho, self._keys["rho"] = geo["interp"] @ surface_reflectance(scene, self._grid), rho_key
         key = _key(rho_key, self._keys.get("light"))
         if self._keys.get("diffuse") != key:
             E, _ = incident_light(geo["mesh"], geo["vertices"], geo["normals"], scene.lights, None,
@@ -792,11 +558,10 @@ class Renderer:
         ``(M, 3)``, evaluated in the nodes' unit box; after edits, the edited node material at
         the nearest node (and so for a block volume or a node material: their values exist at the
         nodes only)."""
-        pg = self._geo["pg"]
+        pg = self._grid
         lo, hi = pg.positions.min(axis=0), pg.positions.max(axis=0)
         if getattr(self, "_edited", False) or scene.material.volume or scene.material.nodes:
-            nodes = np.flatnonzero(np.ones(len(pg.positions), bool) if self._geo["fem"]
-                                   else np.asarray(pg.active).reshape(-1))
+            nodes = np.flatnonzero(self._backend.active)     # type: ignore[union-attr]
             if "node_tree" not in self._geo:      # once per grid, not per edit
                 self._geo["node_tree"] = cKDTree(np.asarray(pg.positions).reshape(-1, 3)[nodes])
             tree = self._geo["node_tree"]
@@ -836,11 +601,11 @@ class Renderer:
         albedo, eta and thin parts, the object's thickness along the inward normal at up to
         :data:`THICKNESS_SAMPLES` surface nodes (ray cast once per grid) over the transport mean
         free path of their most transparent channel."""
-        geo, pg = self._geo, self._geo["pg"]
+        geo, pg = self._geo, self._grid
         if "thickness" not in geo:
             S = len(pg.boundary_positions)
             pick = np.unique(np.linspace(0, S - 1, min(S, THICKNESS_SAMPLES)).astype(np.int64))
-            h = pg.h if geo["fem"] else pg.lattice.h
+            h = self._backend.h     # type: ignore[union-attr]
             T, _ = first_hits(geo["mesh"], pg.boundary_positions[pick], -np.asarray(pg.normals)[pick], t_min=0.5 * h)
             geo["thickness"] = (pick, T)
         pick, T = geo["thickness"]
@@ -868,14 +633,8 @@ class Renderer:
         far = "gather" if o.source == "volume" else "surface"
         fluence = None
         if far == "gather":
-            pg = geo["pg"]
-            if "lattice" not in geo:
-                self._say("pass 3: sampling lattice of the tetrahedral grid for the gather (once per grid)")
-                geo["lattice"] = FluenceLattice(pg.positions, pg.tets)
-            full = np.zeros((len(pg.positions), 3))
-            full[self._fem_active] = self._phi_active
-            geo["lattice"].set_values(full)
-            fluence = geo["lattice"]
+            pg = self._grid
+            fluence = self._backend.fluence_lattice()     # type: ignore[union-attr]
             light = self._keys.get("light")
             if getattr(self, "_lit_distance", (None,))[0] != light:   # mm, once per lighting, not per camera
                 Et = self._E_t.sum(axis=1)
@@ -974,39 +733,11 @@ class Renderer:
         img = self._pass3(scene)
         rep.seconds["t3"] = time.perf_counter() - t0
         rep.passes.append({"pass": "pass3", "ran": True, "seconds": rep.seconds["t3"], "why": "every frame"})
-        pg = self._geo["pg"]
+        pg = self._grid
         rep.nodes, rep.boundary_nodes = int(pg.n_active), int(len(pg.boundary_positions))
         rep.solver = self._solve_report
         rep.clamped_vertices, rep.clamped_depth, rep.clamped_deep = self._clamped, self._clamped_depth, self._clamped_deep
-        if scene.cut is not None:
-            cr = self._cut_report
-            rep.notes.append(f"cut: {cr.tets_removed:,} of {cr.tets_before:,} tetrahedra removed, {cr.nodes_on_cut} of "
-                             f"{cr.nodes_to_relax} vertices relaxed onto the cut ({cr.iterations} iterations, "
-                             f"{cr.moves_refused} moves refused), at most {cr.max_past_cut:.3g} past it, "
-                             f"{self._cut_seconds:.2f} s")
-        if scene.polygrid.discretisation == "tetwild":
-            q = pg.quality
-            rep.notes.append(f"grid: tetrahedral (fTetWild), edge {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, "
-                             f"{q.inverted} inverted, worst dihedral angle {q.min_dihedral_deg:.3g} deg, {q.slivers} "
-                             f"slivers; boundary within {q.surface_distance_max:.3g} mm of the surface"
-                             f"{' (before the cut)' if scene.cut is not None else ''}")
-        elif self._geo["fem"]:
-            q = pg.quality
-            rep.notes.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.polycube.cubes):,} cubes of "
-                             f"{pg.complex.lattice.n} nodes per edge"
-                             f"{f' (n = {q.requested_n} asked for: {q.fine_reason})' if q.fine_reason else ''}"
-                             f"{f', {q.retries} rebuilds with other cube sizes (kept: x{q.size_factor:g})' if q.retries else ''}, "
-                             f"{len(pg.tets):,} tetrahedra, {q.inverted} "
-                             f"inverted, worst quality {q.worst_quality:.3g} ({q.poor_before:,} -> {q.poor:,} below "
-                             f"{SHAPE_TARGET:g} by the shape step), {q.split_edges:,} edges longer than "
-                             f"{SPLIT_LENGTH:g} h split; coverage: mesh vertices within "
-                             f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
-            ar = self._adapt_report
-            rep.notes.append("adapt: off ([polygrid] adapt = true refines under the lights' sharp edges; \"auto\", "
-                             "the default, only under a spot's or projector's)"
-                             if ar is None else f"adapt: {ar.line()}" if ar.edges else
-                             f"adapt: the source is linear along every surface edge (to {ADAPT_TOL:.0%} of its "
-                             "largest value): grid not refined")
+        rep.notes.extend(self._backend.notes(scene))     # type: ignore[union-attr]
         through = scene.options.unscattered and sees_through(scene.lights)
         if scene.options.split:
             sr = self._split_result
@@ -1025,7 +756,7 @@ class Renderer:
                          f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "
                          f"{'off' if scene.material.reflectance is None else scene.material.reflectance}")
-        rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], pg.h if self._geo["fem"] else pg.lattice.h,
+        rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], self._backend.h,   # type: ignore[union-attr]
                                 scene.options.model))
         rep.warnings = self._regime_warnings(scene)
         eye = self._camera(scene)[0]
@@ -1081,27 +812,9 @@ class Renderer:
         if not self._mat:
             raise RuntimeError("render a frame before editing")
         t0 = time.perf_counter()
-        pg = self._geo["pg"]
         before = (self._mat["kappa"], self._mat["mu"])
-        gpu = (not self._geo["fem"] and self._solver is not None
-               and self._solver.finest.material_bits == 32)
-        if gpu:
-            if self._editor is None:
-                self._editor = GpuMaterialEditor(self._solver.finest, pg.positions)
-            self._editor.apply(edit, view)
-            kappa, mu = self._editor.read()
-            self._solver.set_material(kappa, mu, finest_uploaded=True)
-            self._mat = {**self._mat, "kappa": kappa, "mu": mu}
-            x, x0 = (kappa, before[0]) if edit.prop == "kappa" else (mu, before[1])
-            act = np.asarray(pg.active)
-            changed = np.any(x != x0, axis=-1) & act
-            floor = KAPPA_MIN if edit.prop == "kappa" else 0.0
-            result = EditResult(int(changed.sum()), int((np.any(x <= floor, axis=-1) & changed).sum()),
-                                int((np.any(3.0 * kappa * mu > 1.0 + 1e-6, axis=-1) & changed).sum()))
-        else:
-            active = None if self._geo["fem"] else np.asarray(pg.active).reshape(-1)
-            kappa, mu, result = apply_edit(edit, before[0], before[1], pg.positions, view, active)
-            self._set_edited_material(kappa, mu)
+        kappa, mu, result = self._backend.edit(edit, view, *before)   # type: ignore[union-attr]
+        self._mat = {**self._mat, "kappa": kappa, "mu": mu}
         if history or self._history.counts[0] == 0:
             self._history.push(*before)
         self._edit_version += 1
@@ -1109,13 +822,9 @@ class Renderer:
         return replace(result, seconds=time.perf_counter() - t0)
 
     def _set_edited_material(self, kappa: NDArray, mu: NDArray) -> None:
-        """Hand a CPU-side material to pass 2: the lattice solver's textures (every level), or
-        a re-assembly of the P1 system next frame."""
+        """Hand a changed node material (undo, redo) to the backend."""
         self._mat = {**self._mat, "kappa": kappa, "mu": mu}
-        if self._geo["fem"]:
-            pass    # the P1 system follows the node material at the next pass 2, in place (TetPass2.system)
-        elif self._solver is not None:
-            self._solver.set_material(kappa, mu)
+        self._backend.edited(kappa, mu)     # type: ignore[union-attr]
 
     def undo(self) -> bool:
         """Return to the material before the last edit; False when there is none."""
@@ -1142,14 +851,15 @@ class Renderer:
         file a scene renders (``glsldiff render``) and ``glsldiff edit`` edits."""
         if not self._mat:
             raise RuntimeError("render a frame before saving its material")
-        pg = self._geo["pg"]
-        act = np.ones(len(pg.positions), bool) if self._geo["fem"] else np.asarray(pg.active).reshape(-1)
+        pg = self._grid
+        act = self._backend.active     # type: ignore[union-attr]
         k, m = (self._mat[n].reshape(-1, 3)[act] for n in ("kappa", "mu"))
         return write_npz(path, kappa=k, mu=m, positions_mm=np.asarray(pg.positions)[act],
                          source=str(self._mat["info"].get("material")))
 
     def release(self) -> None:
-        self._drop_solver()
+        if self._backend is not None:
+            self._backend.release()
 
     def __enter__(self) -> "Renderer":
         return self

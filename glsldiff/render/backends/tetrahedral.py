@@ -1,0 +1,438 @@
+"""The tetrahedral backend: P1 finite elements on the pillowed polycube (``[polygrid]
+discretisation = "fem"``, :func:`glsldiff.grids.fem_grid.build_fem_grid`, refined under the
+lights' sharp edges with ``adapt``) or on an fTetWild mesh (``"tetwild"``, with TransCut's
+``[cut]``), solved on the GPU by multigrid-preconditioned CG.
+
+Pass 2, frame after frame (:class:`TetPass2`): the P1 system kept across material edits
+(:class:`glsldiff.oracle.fem_update.P1System`: an edit re-sums only the entries around the
+edited nodes) and the GPU multigrid-preconditioned CG
+(:class:`glsldiff.solve.gather_multigrid.GlslSparseMultigrid`) kept with it (an edit re-packs the
+finest level's changed texel rows; the aggregation, coarse operators and smoothing damping stay:
+a stale preconditioner, still symmetric positive definite, for a local change).
+
+Frame budget while editing (``frame_sweeps`` set, the viewer): a frame with a new edit runs
+:data:`PAINT_SWEEPS` damped Jacobi sweeps of the new finest matrix from the last frame's
+fluence and skips the residual check (no CPU residual); each later frame runs
+:data:`FRAME_ITERATIONS` preconditioned CG iterations and checks the residual, until ``tol``
+(the image converges over frames). Without a budget every frame is solved to ``tol``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import moderngl
+import numpy as np
+from numpy.typing import NDArray
+
+from glsldiff import gl
+from glsldiff.core import cache
+from glsldiff.core.errors import InputError, SolverError
+from glsldiff.grids.adapt import ADAPT_TOL, refine_for_source
+from glsldiff.grids.cache import cached_fem_grid
+from glsldiff.grids.fem_grid import FEM_MAX_NODES, SPLIT_LENGTH
+from glsldiff.grids.shapes import SHAPE_TARGET
+from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
+from glsldiff.grids.tetwild import cached_tetrahedralize
+from glsldiff.mesh import Mesh
+from glsldiff.oracle.assembly import LinearSystem
+from glsldiff.oracle.fem import TetGeometry, tet_geometry, tet_rhs
+from glsldiff.oracle.fem_update import P1System
+from glsldiff.physics.editing import Edit, EditResult, EditView, apply_edit
+from glsldiff.physics.exitance import source_from_irradiance
+from glsldiff.render.backends import PASS2_HINT, GridBackend, Pass2Frame, Pass2Inputs
+from glsldiff.render.camera import scene_camera
+from glsldiff.render.collision import first_collision_load, node_columns, surface_columns
+from glsldiff.render.fluence import FluenceLattice
+from glsldiff.render.pass1 import incident_light
+from glsldiff.render.scene import TETRAHEDRAL, Scene
+from glsldiff.render.shading import surface_interpolation
+from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
+from glsldiff.system.report import CURRENT, SolveReport
+from glsldiff.system.tet_problem import TetProblem
+
+__all__ = ["FEM_MAXITER", "FRAME_ITERATIONS", "PAINT_SWEEPS", "REBUILD_SHARE", "TetBackend", "TetPass2", "TetFrame"]
+
+#: Pass 2's iteration budget on tetrahedra: multigrid-preconditioned CG takes 10-20 iterations
+#: on the scenes measured (bunny, cow, spheres, tile); a system it cannot solve in this many is
+#: reported as not converged instead of running the relaxations' 20,000-sweep budget.
+FEM_MAXITER = 300
+#: Damped Jacobi sweeps of the finest level in a frame with a new edit (painting).
+PAINT_SWEEPS = 1
+#: Preconditioned CG iterations (one V-cycle each) per frame while the image converges after edits.
+FRAME_ITERATIONS = 1
+#: An edit changing more than this share of the nodes rebuilds the multigrid (the kept one
+#: would precondition a different material).
+REBUILD_SHARE = 0.25
+
+
+@dataclass(frozen=True)
+class TetFrame:
+    """One frame's pass 2: ``phi`` ``(n_active, 3)``, the report, whether the frame stopped at
+    its budget before ``tol`` (``partial``) and whether ``phi`` came from the disk cache."""
+
+    phi: NDArray[np.float64]
+    report: SolveReport
+    partial: bool
+    from_cache: bool
+
+
+class TetPass2:
+    """The P1 system and its GPU solver of one tetrahedral grid, kept across frames.
+
+    ``ctx`` the GL context, ``geo`` the grid's :class:`~glsldiff.oracle.fem.TetGeometry`,
+    ``active`` ``(n,)`` bool. GPU objects belong to this object (:meth:`release`)."""
+
+    def __init__(self, ctx: moderngl.Context, geo: TetGeometry, active: NDArray[np.bool_]) -> None:
+        self.ctx, self.geo, self.active_mask = ctx, geo, np.asarray(active, dtype=bool)
+        self.p1: P1System | None = None
+        self.solver: GlslSparseMultigrid | None = None
+        self.phi: NDArray[np.float64] | None = None        # the last frame's fluence (n_active, 3)
+        self.rebuilds = 0                                  # multigrid builds after the first
+        self.stale_rows = 0                                # finest rows updated since the last build
+
+    @property
+    def active(self) -> NDArray[np.int64]:
+        return np.flatnonzero(self.active_mask)
+
+    def reset(self) -> None:
+        """A new material: the system and solver are rebuilt at the next frame."""
+        self.release()
+        self.p1, self.phi = None, None
+
+    def system(self, kappa: NDArray, mu: NDArray, C: float, b: NDArray[np.float64]) -> LinearSystem:
+        """The P1 system of node material ``(kappa, mu)`` ``(n, 3)``, Robin constant ``C`` and
+        right-hand side ``b`` ``(n_active, 3)``: assembled once, then updated in place where the
+        material changed (and the solver's finest level with it)."""
+        if self.p1 is None or self.p1.C != C:
+            self.release()
+            self.p1 = P1System(self.geo, self.active_mask, C, kappa, mu)
+        else:
+            up = self.p1.set_material(kappa, mu)
+            if self.solver is not None and up.rows.size:
+                if up.nodes.size > REBUILD_SHARE * len(self.active_mask):
+                    self.release()
+                else:
+                    self.solver.update_fine(self.p1.matrices(), up.rows, diagonal_only=up.diagonal_only)
+                    self.stale_rows += int(up.rows.size)
+        if not np.array_equal(self.p1.system.b, np.asarray(b, dtype=np.float64).T.reshape(-1)):
+            self.p1.set_rhs(b)
+            if self.solver is not None:     # a new source restarts CG; the same one lets it go on
+                self.solver.set_b(b)
+        return self.p1.system
+
+    def cached(self, x: NDArray | None, tol: float) -> TetFrame | None:
+        """The frame of a cached answer ``x`` of the current :meth:`system` if its residual
+        (checked on the CPU) meets ``tol``; else None."""
+        if x is None or self.p1 is None:
+            return None
+        t0 = time.perf_counter()
+        s = self.p1.system
+        if x.shape != (s.n, 3):
+            return None
+        res = s.residual(x.T.reshape(-1))
+        if not res <= tol:
+            return None
+        self.phi = np.asarray(x, dtype=np.float64)
+        rep = SolveReport("cached (residual checked on the CPU)", nodes=s.n, sweeps=0, residual=res,
+                          seconds=time.perf_counter() - t0, converged=True, history=[(0, res)])
+        return TetFrame(self.phi, rep, False, True)
+
+    def _build(self, x0: NDArray | None) -> None:
+        assert self.p1 is not None
+        s = self.p1.system
+        if self.solver is None:
+            self.rebuilds += self.phi is not None
+            self.solver = GlslSparseMultigrid(self.p1.matrices(), s.b.reshape(3, -1).T, ctx=self.ctx)
+            self.stale_rows = 0
+            if x0 is not None:
+                self.solver.set_initial(x0)
+
+    def solve(self, tol: float, *, warm: bool, painting: bool = False, frame_budget: bool = False,
+              x0: NDArray | None = None) -> TetFrame:
+        """Pass 2 of a frame (module docstring): ``warm`` starts from the last frame's fluence,
+        ``painting`` (a frame with a new edit, under ``frame_budget``) runs Jacobi sweeps
+        only; ``x0`` a start for a cold solve (e.g. the disk cache's answer of another tol)."""
+        if self.p1 is None:
+            raise RuntimeError("TetPass2.solve before system()")
+        start = self.phi if warm and self.phi is not None else x0
+        fresh = self.solver is None
+        self._build(start)
+        solver = self.solver
+        assert solver is not None
+        if painting and frame_budget and not fresh:
+            t0 = time.perf_counter()
+            solver.smooth(PAINT_SWEEPS)
+            self.phi = solver.unknown()
+            rep = SolveReport(f"glsl-frame-coherent Jacobi (painting: {PAINT_SWEEPS} sweeps of the finest level, "
+                              "no residual check)", nodes=solver.n, sweeps=PAINT_SWEEPS,
+                              seconds=time.perf_counter() - t0, status="budget")
+            return TetFrame(self.phi, rep, True, False)
+        budget = FRAME_ITERATIONS if frame_budget and warm else FEM_MAXITER
+        try:
+            phi, rep = solver.solve(tol=tol, maxiter=budget, x0=CURRENT if (warm or start is not None) else None)
+        except SolverError:
+            raise
+        self.phi = phi
+        partial = frame_budget and warm and rep.status not in ("converged", "stalled")
+        return TetFrame(phi, rep, partial, False)
+
+    def release(self) -> None:
+        if self.solver is not None:
+            self.solver.release()
+            self.solver = None
+
+    def describe(self) -> dict[str, Any]:
+        """The solver's state for reports: rebuilds and finest rows updated since the last build."""
+        return {"rebuilds": self.rebuilds, "stale_rows": self.stale_rows}
+
+
+class TetBackend(GridBackend):
+    """The tetrahedral grids behind the renderer (module docstring)."""
+
+    kind = "tetrahedral"
+    volume_source = True
+
+    @staticmethod
+    def handles(discretisation: str) -> bool:
+        return discretisation in TETRAHEDRAL
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.geo: TetGeometry | None = None
+        self.pass2: TetPass2 | None = None
+        self.adapt_report: Any = None
+        self.cut_report: Any = None
+        self.cut_seconds = 0.0
+        self._b: tuple[Any, NDArray[np.float64]] | None = None
+        self._columns: tuple[Any, Any] | None = None
+        self._fluence: FluenceLattice | None = None
+
+    # ---- set-up -------------------------------------------------------------------------------
+    def setup(self, scene: Scene, mesh: Mesh) -> tuple[Mesh, Mesh | None]:
+        m, g = scene.mesh, scene.polygrid
+        t0 = time.perf_counter()
+        if g.discretisation == "tetwild":
+            what = "fTetWild tetrahedral mesh"
+            self.say(f"setup: {what} of {m.source} (edge {g.edge_mm:g} mm): building it takes seconds to many "
+                     "minutes the first time, then it is read from the cache")
+            pg, cached = cached_tetrahedralize(mesh, float(g.edge_mm), status=self.say)
+        else:
+            what = "tetrahedral polygrid"
+            self.say(f"setup: {what} of {m.source} (n = {g.n}, about {g.cubes} cubes): building it takes "
+                     "seconds to minutes the first time, then it is read from the cache")
+            pg, cached = cached_fem_grid(mesh, n=g.n, n_cubes=g.cubes)
+        self.say(f"setup: {what} {'read from the cache' if cached else 'built'} in "
+                 f"{time.perf_counter() - t0:.1f} s ({pg.n_active:,} nodes)")
+        if g.discretisation == "fem" and pg.quality.fine_reason:   # tetwild grids have no polycube
+            self.say(f"setup: built from {len(pg.polycube.cubes):,} cubes of {pg.complex.lattice.n} nodes per edge at "
+                     f"about the same spacing instead: with n = {g.n}, {pg.quality.fine_reason}")
+        if scene.refines:
+            pg = self._adapt(scene, mesh, pg)
+        crease = None
+        if scene.cut is not None:
+            pg, mesh, crease = self._cut(scene, pg, np.asarray(mesh.vertices))
+        self.grid, self.h = pg, float(pg.h)
+        self.surface_triangles = pg.surface_triangles
+        self.geo = tet_geometry(pg)
+        self.pass2 = TetPass2(self.ctx, self.geo, np.asarray(pg.active, dtype=bool))
+        return mesh, crease
+
+    def _adapt(self, scene: Scene, mesh: Mesh, pg: Any) -> Any:
+        """The fem grid refined under the lights' sharp edges (:mod:`glsldiff.grids.adapt`),
+        marked by pass 1's source sampled at the surface nodes (shadows included)."""
+        def source(P: NDArray, N: NDArray) -> NDArray:
+            E_t, _ = incident_light(mesh, P, N, scene.lights, scene.material.eta, ctx=self.ctx)
+            return source_from_irradiance(np.asarray(E_t, dtype=np.float64), scene.material.eta, scene.options.exitant)
+        pg, rep = refine_for_source(pg, source, max_nodes=FEM_MAX_NODES)
+        self.adapt_report = rep
+        if rep.edges:
+            self.say(f"setup: {rep.line()} ({pg.n_active:,} nodes)")
+        return pg
+
+    def _cut(self, scene: Scene, tm: Any, frame: NDArray) -> tuple[Any, Mesh, Mesh]:
+        """TransCut's cut of the fTetWild mesh ``tm`` (``[cut]``), its report kept in
+        :attr:`cut_report`: the cut mesh, its boundary as a triangle mesh (shadows, ray casts)
+        and as a render mesh whose cut faces have their own vertices (a crease: the cut face and
+        the old surface are shaded with their own normals)."""
+        c = scene.cut
+        assert c is not None
+        if c.plane is not None:
+            side = plane_side(c.plane[:3], c.plane[3] / float(np.linalg.norm(c.plane[:3])))   # n . x > d
+            what = f"plane {list(c.plane)}"
+        else:
+            _, mvp = scene_camera(scene, frame)
+            W, H = scene.output.width, scene.output.height
+
+            def project(X: NDArray) -> NDArray:
+                clip = np.concatenate([X, np.ones((len(X), 1))], axis=1) @ mvp.T
+                ndc = clip[:, :2] / clip[:, 3:4]
+                return np.stack([(ndc[:, 0] + 1.0) * 0.5 * W, (1.0 - ndc[:, 1]) * 0.5 * H], axis=1)
+            side = stroke_side(project, c.stroke)
+            what = f"stroke of {len(c.stroke or ())} points"
+        self.say(f"setup: cutting {len(tm.tets):,} tetrahedra by the {what}")
+        t0 = time.perf_counter()
+        cm, rep = cut_tets(tm, side, iterations=c.iterations)
+        self.cut_report = rep
+        self.cut_seconds = time.perf_counter() - t0
+        V, F = cm.boundary_positions, cm.surface_triangles
+        flat = Mesh(V, F, name=f"{scene.mesh.source} (cut)")
+        cf = F[cm.cut_faces]
+        used = np.unique(cf)
+        F2 = np.concatenate([F[~cm.cut_faces], len(V) + np.searchsorted(used, cf)])
+        keep, F2 = np.unique(F2, return_inverse=True)             # drop the copies no face uses
+        return cm, flat, Mesh(np.concatenate([V, V[used]])[keep], F2.reshape(-1, 3), name=flat.name)
+
+    def interpolation(self, vertices: NDArray[np.float64]) -> Any:
+        return surface_interpolation(vertices, self.grid.boundary_positions, self.grid.surface_triangles)
+
+    @property
+    def material_shape(self) -> tuple[int, ...]:
+        return (len(self.grid.positions),)
+
+    @property
+    def active(self) -> NDArray[np.bool_]:
+        return np.asarray(self.grid.active, dtype=bool).reshape(-1)
+
+    def boundary(self, values: NDArray[np.float64]) -> NDArray[np.float64]:
+        return np.asarray(values)[self.grid.surface_nodes]
+
+    def set_material(self) -> None:
+        assert self.pass2 is not None
+        self.pass2.reset()
+        self._b = None
+
+    def edit(self, edit: Edit, view: EditView | None, kappa: NDArray, mu: NDArray
+             ) -> tuple[NDArray, NDArray, EditResult]:
+        """The numpy edit; the P1 system follows the new material at the next pass 2, in place."""
+        return apply_edit(edit, kappa, mu, self.grid.positions, view, None)
+
+    # ---- what the tetrahedral models need -----------------------------------------------------
+    def volume_load(self, kappa: NDArray, mu: NDArray, beams: list) -> NDArray[np.float64]:
+        """The first-collision load ``(n, 3)`` of pass 1's ``beams`` (:mod:`glsldiff.render.collision`)."""
+        assert self.geo is not None
+        if self._columns is None:      # geometry only: once per grid, not per light
+            self.say("pass 1: the surface's columns and each node's place in them (once per grid)")
+            cols = surface_columns(self.grid)
+            self._columns = (cols, node_columns(self.grid, cols))
+        return first_collision_load(self.grid, kappa, mu, beams, self.geo.node_volumes, *self._columns)
+
+    def node_fluence(self) -> NDArray[np.float64]:
+        """``(n, 3)`` the last frame's fluence at every node (0 at inactive ones)."""
+        assert self.pass2 is not None and self.pass2.phi is not None
+        full = np.zeros((len(self.grid.positions), 3))
+        full[self.pass2.active] = self.pass2.phi
+        return full
+
+    def fluence_lattice(self) -> FluenceLattice:
+        """The last frame's fluence on the sampling lattice of the split's gather."""
+        if self._fluence is None:
+            self.say("pass 3: sampling lattice of the tetrahedral grid for the gather (once per grid)")
+            self._fluence = FluenceLattice(self.grid.positions, self.grid.tets)
+        self._fluence.set_values(self.node_fluence())
+        return self._fluence
+
+    def normal_gradient(self) -> NDArray[np.float64]:
+        """``(n_boundary, 3)`` the recovered gradient of the last fluence along the outward normal."""
+        assert self.geo is not None
+        grad = self.geo.recovered_gradient(self.node_fluence())[self.grid.surface_nodes]      # (S, 3, 3)
+        return np.einsum("sjc,sj->sc", grad, self.grid.normals)
+
+    def problem(self, inp: Pass2Inputs) -> TetProblem:
+        """The frame's P1 problem (grid, node material, boundary source, eta, C)."""
+        return TetProblem(self.grid, inp.kappa, inp.mu, inp.q, eta=inp.scene.material.eta, C=inp.C)
+
+    def surface_values(self, x: NDArray) -> NDArray[np.float64]:
+        """``(n_surface, 3)``: per-active-node values ``(n_active, 3)`` at the surface nodes."""
+        assert self.pass2 is not None
+        full = np.zeros((len(self.grid.positions), 3))
+        full[self.pass2.active] = x
+        return full[self.grid.surface_nodes]
+
+    @property
+    def system(self) -> LinearSystem | None:
+        """The P1 system of the last frame (``None`` before one)."""
+        return None if self.pass2 is None or self.pass2.p1 is None else self.pass2.p1.system
+
+    # ---- pass 2 -------------------------------------------------------------------------------
+    @property
+    def solver(self) -> GlslSparseMultigrid | None:
+        return None if self.pass2 is None else self.pass2.solver
+
+    def _cache_parts(self) -> tuple[Any, ...]:
+        return (self.grid.tets,)
+
+    def linear_system(self, inp: Pass2Inputs) -> LinearSystem:
+        """The P1 system of the frame's material and source (assembled once per material,
+        updated in place after edits; ``b`` recomputed only for a new source)."""
+        assert self.pass2 is not None
+        key = (id(inp.q), id(inp.load), inp.C, inp.scene.material.eta)   # pass 1 makes new arrays for a new source
+        if self._b is None or self._b[0] != key:
+            b = tet_rhs(self.problem(inp), self.geo)
+            if inp.load is not None:
+                b = b + inp.load[self.pass2.active]
+            self._b = (key, b)
+        return self.pass2.system(inp.kappa, inp.mu, inp.C, self._b[1])
+
+    def solve(self, inp: Pass2Inputs) -> Pass2Frame:
+        scene, opts = inp.scene, inp.scene.options
+        if opts.precision != "fp32":
+            raise InputError(f"{scene.source}: [options].precision = {opts.precision!r}: the fem discretisation "
+                             "solves in fp32 only; use precision = \"fp32\"")
+        interactive = self.frame_sweeps is not None
+        if not (interactive and inp.warm):
+            self.say(f"pass 2: multigrid-preconditioned CG (tetrahedra) diffusion solve of {self.grid.n_active:,} "
+                     f"nodes to tol {opts.tol:g}")
+        gl.make_current(self.ctx)
+        self.linear_system(inp)
+        tet = self.pass2
+        assert tet is not None
+        key = self.solution_key(inp) if self.cache_solutions and not (interactive and inp.warm) else None
+        stored = cache.load("pass2", key, np.ndarray) if key is not None and tet.solver is None else None
+        frame = tet.cached(stored, opts.tol) if tet.solver is None else None
+        if frame is None:
+            try:
+                frame = tet.solve(opts.tol, warm=inp.warm, painting=inp.painting, frame_budget=interactive, x0=stored)
+            except SolverError as exc:
+                raise SolverError(f"pass 2 did not converge: {exc}; {PASS2_HINT}") from exc
+        self.check(scene, frame.report, frame.partial)
+        if key is not None and frame.report.status == "converged" and not frame.from_cache:
+            cache.store("pass2", key, np.asarray(frame.phi))
+        return Pass2Frame(self.surface_values(frame.phi), frame.report, frame.partial, frame.from_cache)
+
+    def notes(self, scene: Scene) -> list[str]:
+        pg, out = self.grid, []
+        if scene.cut is not None:
+            cr = self.cut_report
+            out.append(f"cut: {cr.tets_removed:,} of {cr.tets_before:,} tetrahedra removed, {cr.nodes_on_cut} of "
+                       f"{cr.nodes_to_relax} vertices relaxed onto the cut ({cr.iterations} iterations, "
+                       f"{cr.moves_refused} moves refused), at most {cr.max_past_cut:.3g} past it, "
+                       f"{self.cut_seconds:.2f} s")
+        q = pg.quality
+        if scene.polygrid.discretisation == "tetwild":
+            out.append(f"grid: tetrahedral (fTetWild), edge {pg.h:.3g} mm, {len(pg.tets):,} tetrahedra, "
+                       f"{q.inverted} inverted, worst dihedral angle {q.min_dihedral_deg:.3g} deg, {q.slivers} "
+                       f"slivers; boundary within {q.surface_distance_max:.3g} mm of the surface"
+                       f"{' (before the cut)' if scene.cut is not None else ''}")
+            return out
+        out.append(f"grid: tetrahedral (fem), h {pg.h:.3g} mm, {len(pg.polycube.cubes):,} cubes of "
+                   f"{pg.complex.lattice.n} nodes per edge"
+                   f"{f' (n = {q.requested_n} asked for: {q.fine_reason})' if q.fine_reason else ''}"
+                   f"{f', {q.retries} rebuilds with other cube sizes (kept: x{q.size_factor:g})' if q.retries else ''}, "
+                   f"{len(pg.tets):,} tetrahedra, {q.inverted} "
+                   f"inverted, worst quality {q.worst_quality:.3g} ({q.poor_before:,} -> {q.poor:,} below "
+                   f"{SHAPE_TARGET:g} by the shape step), {q.split_edges:,} edges longer than "
+                   f"{SPLIT_LENGTH:g} h split; coverage: mesh vertices within "
+                   f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
+        ar = self.adapt_report
+        out.append("adapt: off ([polygrid] adapt = true refines under the lights' sharp edges; \"auto\", "
+                   "the default, only under a spot's or projector's)"
+                   if ar is None else f"adapt: {ar.line()}" if ar.edges else
+                   f"adapt: the source is linear along every surface edge (to {ADAPT_TOL:.0%} of its "
+                   "largest value): grid not refined")
+        return out
+
+    def release(self) -> None:
+        if self.pass2 is not None:
+            self.pass2.release()
