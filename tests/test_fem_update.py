@@ -9,7 +9,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.grids.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import assemble_tet, tet_geometry
-from glsldiff.oracle.fem_update import P1System
+from glsldiff.oracle.fem_update import P1Pattern, P1System, cached_p1_pattern
 from glsldiff.system.tet_problem import TetProblem
 
 
@@ -88,3 +88,27 @@ def test_bad_material_is_refused(grid):
         P.set_rhs(np.zeros((3, P.n)))
     with pytest.raises(InputError, match="zero volume"):
         P.set_material(kappa, np.where(np.arange(len(mu))[:, None] == 0, -1e6, mu))
+
+
+def test_lumped_boundary_mass_equals_assemble_tet(grid):
+    kappa, mu = _material(grid, 5)
+    P = P1System(tet_geometry(grid), grid.active, 1.7, kappa, mu, boundary_mass="lumped")
+    ref = assemble_tet(TetProblem(grid, kappa, mu, np.zeros((len(grid.surface_nodes), 3)), C=1.7,
+                                  boundary_mass="lumped"))
+    assert _dense_equal(P, ref) < 1e-13
+
+
+def test_cached_pattern_equals_a_built_one(grid, tmp_path, monkeypatch):
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path))
+    geo = tet_geometry(grid)
+    built = P1Pattern.build(geo, np.asarray(grid.active, bool))
+    first = cached_p1_pattern(geo, grid.active)        # computed and stored
+    again = cached_p1_pattern(geo, grid.active)        # read back
+    assert list(tmp_path.glob("p1pattern-*"))
+    for name in ("index", "indptr", "indices", "pos_ij", "pos_ji", "pos_ii", "surface_mass", "node_tets", "node_ptr"):
+        assert np.array_equal(getattr(first, name), getattr(built, name))
+        assert np.array_equal(getattr(again, name), getattr(built, name))
+    kappa, mu = _material(grid, 6)
+    a = P1System(geo, grid.active, 2.0, kappa, mu, pattern=again)
+    b = P1System(geo, grid.active, 2.0, kappa, mu)
+    assert np.array_equal(a.values, b.values)

@@ -1,5 +1,6 @@
 """The on-disk cache folder and its entries: results that take seconds to recompute and are
-the same every run (built polygrids, converged pass-2 solutions).
+the same every run (built polygrids, converged pass-2 solutions, a grid's P1 geometric factors
+and render-mesh interpolation, the half-space tables).
 
 The folder is ``$GLSLDIFF_CACHE``, else ``$XDG_CACHE_HOME/glsldiff``, else
 ``~/.cache/glsldiff``; ``GLSLDIFF_CACHE=off`` turns the cache off. Entries are Python pickles
@@ -14,13 +15,15 @@ import logging
 import os
 import pickle
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, TypeVar
 
 import numpy as np
 
 from glsldiff.core.io import atomic_path
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 
 def cache_dir() -> Path | None:
@@ -79,3 +82,12 @@ def store(kind: str, key: str, value: Any) -> None:
             pickle.dump(value, f, protocol=pickle.HIGHEST_PROTOCOL)
     except OSError as exc:
         log.warning("cache %s not written (%s)", path, exc)
+
+
+def memo(kind: str, key: str, expect: type | tuple[type, ...], compute: Callable[[], T]) -> T:
+    """The cached ``kind`` entry for ``key``; else ``compute()``, stored under it."""
+    value = load(kind, key, expect)
+    if value is None:
+        value = compute()
+        store(kind, key, value)
+    return value

@@ -9,7 +9,7 @@ surface. Modules:
     structures); array-level geometry and topology helpers.
 ``load``
     :func:`load_mesh`, :func:`mesh_from_arrays` (pymeshlab read, repair, topology checks),
-    the built-in :data:`SAMPLE_MESHES`.
+    :func:`cached_load_mesh` (the same through the on-disk cache), the built-in :data:`SAMPLE_MESHES`.
 ``primitives``
     :func:`sphere_mesh`, :func:`box_mesh`, :func:`torus_mesh`.
 ``accel``
@@ -25,7 +25,7 @@ surface. Modules:
 """
 from glsldiff.mesh.closest import closest_points
 from glsldiff.mesh.inside import axis_hits, contains, contains_grid
-from glsldiff.mesh.load import (COMPONENT_MODES, MAX_HOLE_EDGES, SAMPLE_MESHES, load_mesh,
+from glsldiff.mesh.load import (COMPONENT_MODES, MAX_HOLE_EDGES, SAMPLE_MESHES, cached_load_mesh, load_mesh,
                                 mesh_from_arrays, sample_mesh_path)
 from glsldiff.mesh.ops import subdivide, surface_samples
 from glsldiff.mesh.primitives import GENERATED_MESHES, box_mesh, generated_mesh, sphere_mesh, torus_mesh
@@ -36,6 +36,7 @@ __all__ = [
     "Mesh",
     "screened_smoothing",
     "load_mesh",
+    "cached_load_mesh",
     "mesh_from_arrays",
     "sample_mesh_path",
     "SAMPLE_MESHES",

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import importlib.metadata
 import logging
 import os
 import re
@@ -23,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core import cache
 from glsldiff.core.checks import choice, real
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import not_a_file
@@ -85,14 +87,7 @@ def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: b
         ``'error'``: several connected components raise InputError; ``'largest'``: keep
         the component of largest volume (counted as ``removed_components``).
     """
-    if isinstance(source, str) and source in SAMPLE_MESHES and not Path(source).exists():
-        path, name = sample_mesh_path(source), source
-    else:
-        path = Path(source)
-        name = path.name
-        if not path.is_file():
-            raise InputError(f"mesh file {str(path)!r} {not_a_file(path)}; pass an existing file "
-                             f"or one of the sample names {', '.join(SAMPLE_MESHES)}")
+    path, name = _mesh_file(source)
     _check_file_numbers(path)
     ms = _meshset()
     try:
@@ -102,6 +97,37 @@ def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: b
         raise InputError(f"mesh file {str(path)!r} could not be read by pymeshlab ({exc}); "
                          "check the file format (obj, ply, stl, off, ...)") from exc
     return _finish(ms, name, size_mm, repair, component, file_units=True)
+
+
+def _mesh_file(source: str | os.PathLike) -> tuple[Path, str]:
+    """The file and the name of a :func:`load_mesh` source (a path or a sample name)."""
+    if isinstance(source, str) and source in SAMPLE_MESHES and not Path(source).exists():
+        return sample_mesh_path(source), source
+    path = Path(source)
+    if not path.is_file():
+        raise InputError(f"mesh file {str(path)!r} {not_a_file(path)}; pass an existing file "
+                         f"or one of the sample names {', '.join(SAMPLE_MESHES)}")
+    return path, path.name
+
+
+#: Part of every cached mesh's key: bump it when reading, repairing or checking a mesh changes.
+LOAD_CACHE_VERSION = 1
+
+
+def cached_load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: bool = True,
+                     component: str = "error") -> Mesh:
+    """:func:`load_mesh` through the on-disk cache (:mod:`glsldiff.core.cache`), keyed by the
+    file's bytes, name and suffix, the arguments and pymeshlab's version (0.5 s of reading,
+    checks and repair for the bunny). A file that does not load raises every time (nothing
+    is cached for it)."""
+    path, name = _mesh_file(source)
+    try:
+        reader = importlib.metadata.version("pymeshlab")
+    except importlib.metadata.PackageNotFoundError:
+        return load_mesh(source, size_mm, repair, component)     # which says what to install
+    key = cache.digest(f"mesh v{LOAD_CACHE_VERSION}", path.read_bytes(), name, path.suffix.lower(), size_mm,
+                       repair, component, reader)
+    return cache.memo("mesh", key, Mesh, lambda: load_mesh(source, size_mm, repair, component))
 
 
 def mesh_from_arrays(vertices: ArrayLike, faces: ArrayLike, size_mm: float | None = None,

@@ -21,12 +21,16 @@ import numpy as np
 import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core import cache
 from glsldiff.core.errors import InputError
 from glsldiff.grids.pillow import TET_EDGES
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.fem import TetGeometry
 
-__all__ = ["P1System", "P1Update"]
+__all__ = ["P1Pattern", "P1System", "P1Update", "cached_p1_pattern"]
+
+#: Part of every cached pattern's key: bump it when :class:`P1Pattern` changes.
+PATTERN_CACHE_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -45,6 +49,74 @@ class P1Update:
         return self.tetrahedra == 0
 
 
+@dataclass(frozen=True, eq=False)
+class P1Pattern:
+    """The fixed sparsity pattern of a grid's P1 matrix over its active nodes and where each
+    element's entries go in it (a function of the grid alone: :func:`cached_p1_pattern` keeps it
+    on disk with the grid). ``index`` grid node -> active index (-1: inactive); ``indptr``,
+    ``indices`` the CSR pattern (every edge between active nodes both ways, and the diagonal);
+    ``pos_ij``, ``pos_ji`` each unique edge's two positions (-1: an edge to an inactive node),
+    ``pos_ii`` each node's diagonal position; ``surface_mass`` the consistent surface mass on the
+    pattern (mm^2); ``node_tets``, ``node_ptr`` the tetrahedra of each node (CSR)."""
+
+    index: NDArray[np.int64]
+    indptr: NDArray[np.int32]
+    indices: NDArray[np.int32]
+    pos_ij: NDArray[np.int64]
+    pos_ji: NDArray[np.int64]
+    pos_ii: NDArray[np.int64]
+    surface_mass: NDArray[np.float64]
+    node_tets: NDArray[np.int64]
+    node_ptr: NDArray[np.int64]
+
+    @classmethod
+    def build(cls, geo: TetGeometry, active: NDArray[np.bool_]) -> "P1Pattern":
+        n_all = len(geo.positions)
+        act = np.flatnonzero(active)
+        n = act.size
+        index = np.full(n_all, -1, dtype=np.int64)
+        index[act] = np.arange(n)
+        edges = geo._edges[0]
+        ai, aj = index[edges[:, 0]], index[edges[:, 1]]
+        live = (ai >= 0) & (aj >= 0)
+        d = np.arange(n)
+        rows = np.concatenate([ai[live], aj[live], d])
+        cols = np.concatenate([aj[live], ai[live], d])
+        order = np.lexsort((cols, rows))
+        inv = np.empty_like(order)
+        inv[order] = np.arange(order.size)
+        ne = int(live.sum())
+        pos_ij = np.full(len(edges), -1, dtype=np.int64)
+        pos_ji = np.full(len(edges), -1, dtype=np.int64)
+        pos_ij[live], pos_ji[live] = inv[:ne], inv[ne:2 * ne]
+        pos_ii = np.full(n_all, -1, dtype=np.int64)
+        pos_ii[act] = inv[2 * ne:]
+        indices = cols[order].astype(np.int32)
+        indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))]).astype(np.int32)
+        sm = geo.surface_mass.tocoo()
+        r, c = index[sm.row], index[sm.col]
+        ok = (r >= 0) & (c >= 0)
+        keys = np.repeat(np.arange(n, dtype=np.int64), np.diff(indptr)) * n + indices
+        want = r[ok] * n + c[ok]
+        at = np.searchsorted(keys, want)
+        if at.size and (np.any(at >= keys.size) or np.any(keys[np.minimum(at, keys.size - 1)] != want)):
+            raise InputError("a surface triangle's edge is not an edge of a tetrahedron: the grid's surface does not "
+                             "match its tetrahedra")
+        flat = geo.tets.ravel()
+        return cls(index, indptr, indices, pos_ij, pos_ji, pos_ii,
+                   np.bincount(at, sm.data[ok], minlength=indices.size),
+                   np.argsort(flat, kind="stable") // 4,
+                   np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n_all))]))
+
+
+def cached_p1_pattern(geo: TetGeometry, active: ArrayLike) -> P1Pattern:
+    """:meth:`P1Pattern.build` through the on-disk cache (:mod:`glsldiff.core.cache`), keyed by
+    the grid's positions, tetrahedra, surface and active nodes."""
+    act = np.asarray(active, dtype=bool)
+    key = cache.digest(f"p1 pattern v{PATTERN_CACHE_VERSION}", geo.positions, geo.tets, geo.surface, act)
+    return cache.memo("p1pattern", key, P1Pattern, lambda: P1Pattern.build(geo, act))
+
+
 class P1System:
     """The P1 system of one grid over its active nodes with a material that changes in place.
 
@@ -58,6 +130,11 @@ class P1System:
         The Robin boundary constant.
     kappa, mu
         ``(n, 3)`` node material (mm, mm^-1).
+    boundary_mass
+        The Robin term: ``"consistent"`` (the surface mass) or ``"lumped"`` (its row sums), as
+        :class:`~glsldiff.system.tet_problem.TetProblem`.
+    pattern
+        The grid's :class:`P1Pattern` (e.g. :func:`cached_p1_pattern`); default: built here.
 
     Attributes
     ----------
@@ -69,50 +146,27 @@ class P1System:
     """
 
     def __init__(self, geo: TetGeometry, active: ArrayLike, C: float, kappa: ArrayLike, mu: ArrayLike,
-                 boundary_mass: str = "consistent") -> None:
+                 boundary_mass: str = "consistent", pattern: "P1Pattern | None" = None) -> None:
         n_all = len(geo.positions)
         act = np.asarray(active, dtype=bool)
         if act.shape != (n_all,):
             raise InputError(f"active has shape {act.shape}; expected ({n_all},)")
-        self.geo, self.C = geo, float(C)
+        pat = P1Pattern.build(geo, act) if pattern is None else pattern
+        self.geo, self.C, self.pattern = geo, float(C), pat
         self.active = np.flatnonzero(act)
+        self._index, self._tet_edges = pat.index, geo._edges[1]
+        self._pos_ij, self._pos_ji, self._pos_ii = pat.pos_ij, pat.pos_ji, pat.pos_ii
+        self.indices, self.indptr = pat.indices, pat.indptr
         n = self.active.size
-        self._index = np.full(n_all, -1, dtype=np.int64)
-        self._index[self.active] = np.arange(n)
-        edges, self._tet_edges = geo._edges
-        ai, aj = self._index[edges[:, 0]], self._index[edges[:, 1]]
-        live = (ai >= 0) & (aj >= 0)
-        d = np.arange(n)
-        rows = np.concatenate([ai[live], aj[live], d])
-        cols = np.concatenate([aj[live], ai[live], d])
-        order = np.lexsort((cols, rows))
-        inv = np.empty_like(order)
-        inv[order] = np.arange(order.size)
-        ne = int(live.sum())
-        # CSR position of every edge's two entries (-1: an edge to an inactive node) and of the diagonal
-        self._pos_ij = np.full(len(edges), -1, dtype=np.int64)
-        self._pos_ji = np.full(len(edges), -1, dtype=np.int64)
-        self._pos_ij[live], self._pos_ji[live] = inv[:ne], inv[ne:2 * ne]
-        self._pos_ii = np.full(n_all, -1, dtype=np.int64)
-        self._pos_ii[self.active] = inv[2 * ne:]
-        self.indices = cols[order].astype(np.int32)
-        self.indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))]).astype(np.int32)
-        nnz = self.indices.size
         # the material-independent part: the Robin term on the pattern
         if boundary_mass == "lumped":
-            robin = sp.diags(geo.node_areas / (2.0 * self.C)).tocoo()
+            self._robin = np.zeros(self.indices.size)
+            self._robin[self._pos_ii[self.active]] = geo.node_areas[self.active] / (2.0 * self.C)
         else:
-            robin = (geo.surface_mass / (2.0 * self.C)).tocoo()
-        r, c = self._index[robin.row], self._index[robin.col]
-        ok = (r >= 0) & (c >= 0)
-        at = self._find(r[ok], c[ok])
-        self._robin = np.bincount(at, robin.data[ok], minlength=nnz)
-        # node -> tetrahedra incidence (which tetrahedra an edit re-sums)
-        flat = geo.tets.ravel()
-        self._node_tets = np.argsort(flat, kind="stable") // 4
-        self._node_ptr = np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n_all))])
+            self._robin = pat.surface_mass / (2.0 * self.C)
+        self._node_tets, self._node_ptr = pat.node_tets, pat.node_ptr
         self._Kl = geo.local_stiffness
-        self.values = np.zeros((3, nnz))
+        self.values = np.zeros((3, self.indices.size))
         self.kappa = np.zeros((n_all, 3))
         self.mu = np.zeros((n_all, 3))
         self.system = LinearSystem(sp.csr_matrix((self.values.reshape(-1), self._block_indices(),
@@ -126,15 +180,6 @@ class P1System:
     def n(self) -> int:
         """Unknowns per channel."""
         return int(self.active.size)
-
-    def _find(self, r: NDArray[np.int64], c: NDArray[np.int64]) -> NDArray[np.int64]:
-        """CSR positions of the entries ``(r, c)`` (active indices), which must be in the pattern."""
-        keys = np.repeat(np.arange(self.n, dtype=np.int64), np.diff(self.indptr)) * self.n + self.indices
-        at = np.searchsorted(keys, r * self.n + c)
-        if at.size and (np.any(at >= keys.size) or np.any(keys[np.minimum(at, keys.size - 1)] != r * self.n + c)):
-            raise InputError("a surface triangle's edge is not an edge of a tetrahedron: the grid's surface does not "
-                             "match its tetrahedra")
-        return at
 
     def _block_indices(self) -> NDArray[np.int64]:
         return np.concatenate([self.indices.astype(np.int64) + c * self.n for c in range(3)])
@@ -172,11 +217,22 @@ class P1System:
         n_all = len(self.geo.positions)
         self.kappa[:] = np.broadcast_to(kappa, (n_all, 3))
         self.mu[:] = np.broadcast_to(mu, (n_all, 3))
-        tets = np.arange(len(self.geo.tets))
-        pos, val = self._stiffness_terms(tets, self.kappa[self.geo.tets].mean(axis=1))
-        nnz = self.indices.size
+        # per unique edge and per node first (edge-length arrays), then onto the pattern: no
+        # (16 T, 3) temporaries (a fresh bunny grid's 790k tetrahedra made ~1 GB of them)
+        tets, Kl = self.geo.tets, self._Kl
+        kt = self.kappa[tets].mean(axis=1)                                  # (T, 3)
+        off = Kl[:, TET_EDGES[:, 0], TET_EDGES[:, 1]]                       # (T, 6)
+        dia = np.diagonal(Kl, axis1=1, axis2=2)                             # (T, 4)
+        live = self._pos_ij >= 0
+        n_edges = len(self._pos_ij)
         for c in range(3):
-            self.values[c] = np.bincount(pos, val[c], minlength=nnz) + self._robin
+            v = self._robin.copy()
+            e = np.bincount(self._tet_edges.ravel(), (off * kt[:, c, None]).ravel(), minlength=n_edges)
+            v[self._pos_ij[live]] += e[live]
+            v[self._pos_ji[live]] += e[live]
+            d = np.bincount(tets.ravel(), (dia * kt[:, c, None]).ravel(), minlength=n_all)
+            v[self._pos_ii[self.active]] += d[self.active]
+            self.values[c] = v
         da = self._pos_ii[self.active]
         self.values[:, da] += (self.mu[self.active] * self.geo.node_volumes[self.active, None]).T
         self._check_diagonal(self.active)

@@ -50,6 +50,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core import cache
 from glsldiff.core.errors import InputError
 from glsldiff.physics.optics import fresnel_transmittance
 
@@ -68,6 +69,8 @@ _DEPTH = 2.0 ** 22
 #: Depths (mean free paths) of the slabs whose transmission gives the escape distribution; the
 #: last one stands for every larger depth (the deep field's shape).
 ESCAPE_DEPTHS = (1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 16.0)
+#: Part of every cached table's key (with the sizes above): bump it when the tables' method changes.
+TABLES_CACHE_VERSION = 1
 
 
 @dataclass(frozen=True)
@@ -282,11 +285,18 @@ def _linear_ends(table: NDArray[np.float64], nu: NDArray[np.float64], dims: int)
 
 @lru_cache(maxsize=8)
 def halfspace_tables(eta: float) -> HalfspaceTables:
-    """The half-space tables of relative index ``eta`` (>= 1; computed once per process and
-    eta: about a second)."""
+    """The half-space tables of relative index ``eta`` (>= 1): computed once per eta (0.2 s)
+    and kept in the on-disk cache (:mod:`glsldiff.core.cache`), then once per process."""
     eta = float(eta)
     if not (eta >= 1.0 and np.isfinite(eta)):
         raise InputError(f"eta = {eta!r}: the half-space tables need a relative index >= 1")
+    key = cache.digest(f"halfspace tables v{TABLES_CACHE_VERSION}", eta, N_OUT, N_TIR, A_GRID, _DTAU0, _DEPTH,
+                       ESCAPE_DEPTHS)
+    return cache.memo("halfspace", key, HalfspaceTables, lambda: _build_tables(eta))
+
+
+def _build_tables(eta: float) -> HalfspaceTables:
+    """:func:`halfspace_tables` of ``eta`` computed."""
     ang = _angles(eta)
     n_in, n_out = len(ang.mu), len(ang.nu)
     Tb, Rb = _boundaries(ang)                                            # outside -> inside bins, internal reflection

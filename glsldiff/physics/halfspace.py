@@ -14,8 +14,8 @@ solves ``H(mu) = 1 + (a / 2) mu H(mu) int_0^1 H(mu') / (mu + mu') dmu'``. With i
   Marshak source. The 1-D transport oracle (:mod:`glsldiff.oracle.slab_transport`) shows the
   same: a 20 mm slab transmits 1.26x more of normally incident light than of diffuse light.
 
-The functions interpolate a table computed once (albedo on a grid uniform in
-``sqrt(1 - a)``, 129 x 129 values, bilinear): accurate to about 1e-4.
+The functions interpolate a table computed once and kept in the on-disk cache (albedo on a
+grid uniform in ``sqrt(1 - a)``, 129 x 129 values, bilinear): accurate to about 1e-4.
 """
 from __future__ import annotations
 
@@ -24,18 +24,18 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core import cache
+
 __all__ = ["d_function", "h_function", "h_mean", "reflected_share"]
 
 _N_ALBEDO = 129
 _N_MU = 129
 
 
-def _solve_h(a: float, nodes: NDArray[np.float64], weights: NDArray[np.float64],
-             mu_out: NDArray[np.float64]) -> NDArray[np.float64]:
-    """H at ``mu_out`` for albedo ``a``: fixed-point iteration of the standard form
-    ``H(mu) = 1 / (1 - (a / 2) mu int_0^1 H(mu') / (mu + mu') dmu')`` on the Gauss nodes (it
-    converges for every ``a <= 1``, slowly at 1: 2e-4 short of H(1) = 2.9078 there), then the
-    same equation evaluated at ``mu_out``."""
+def _solve_h(a: float, nodes: NDArray[np.float64], weights: NDArray[np.float64]) -> NDArray[np.float64]:
+    """H at the Gauss ``nodes`` for albedo ``a``: fixed-point iteration of the standard form
+    ``H(mu) = 1 / (1 - (a / 2) mu int_0^1 H(mu') / (mu + mu') dmu')`` (it converges for every
+    ``a <= 1``, slowly at 1: 2e-4 short of H(1) = 2.9078 there)."""
     H = np.ones_like(nodes)
     kernel = weights[None, :] / (nodes[:, None] + nodes[None, :])
     for _ in range(20000):
@@ -44,14 +44,32 @@ def _solve_h(a: float, nodes: NDArray[np.float64], weights: NDArray[np.float64],
         H = new
         if done:
             break
+    return H
+
+
+def _h_at(a: float, nodes: NDArray[np.float64], weights: NDArray[np.float64], H: NDArray[np.float64],
+          mu_out: NDArray[np.float64]) -> NDArray[np.float64]:
+    """H at ``mu_out`` from its values ``H`` at the Gauss ``nodes`` (the equation of
+    :func:`_solve_h` evaluated there)."""
     out_kernel = weights[None, :] / (mu_out[:, None] + nodes[None, :])
     return 1.0 / (1.0 - 0.5 * a * mu_out * (out_kernel @ H))
+
+
+#: Part of the cached tables' key: bump it when the tables' method changes.
+TABLES_CACHE_VERSION = 1
 
 
 @lru_cache(maxsize=1)
 def _tables() -> tuple[NDArray[np.float64], ...]:
     """``(u, mu, H, D, M)``: ``u = sqrt(1 - a)`` and ``mu`` grids, ``H[u, mu]``,
-    ``D[u, mu] = 2 int_0^1 t H(t) / (mu + t) dt`` and ``M[u] = <H>``."""
+    ``D[u, mu] = 2 int_0^1 t H(t) / (mu + t) dt`` and ``M[u] = <H>``; from the on-disk cache
+    (:mod:`glsldiff.core.cache`) once computed (0.25 s)."""
+    key = cache.digest(f"h-function tables v{TABLES_CACHE_VERSION}", _N_ALBEDO, _N_MU)
+    return cache.memo("hfunction", key, tuple, _build_tables)
+
+
+def _build_tables() -> tuple[NDArray[np.float64], ...]:
+    """:func:`_tables` computed."""
     x, w = np.polynomial.legendre.leggauss(96)
     nodes, weights = 0.5 * (x + 1.0), 0.5 * w
     u = np.linspace(0.0, 1.0, _N_ALBEDO)
@@ -61,8 +79,9 @@ def _tables() -> tuple[NDArray[np.float64], ...]:
     M = np.empty(_N_ALBEDO)
     for i, ui in enumerate(u):
         a = 1.0 - ui * ui
-        H[i] = _solve_h(a, nodes, weights, mu)
-        Hn = _solve_h(a, nodes, weights, nodes)
+        Hg = _solve_h(a, nodes, weights)       # one fixed point per albedo, evaluated at both grids
+        H[i] = _h_at(a, nodes, weights, Hg, mu)
+        Hn = _h_at(a, nodes, weights, Hg, nodes)
         D[i] = 2.0 * ((weights * nodes * Hn)[None, :] / (mu[:, None] + nodes[None, :])).sum(axis=1)
         M[i] = 2.0 * float((weights * nodes * Hn).sum())
     return u, mu, H, D, M

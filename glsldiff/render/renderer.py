@@ -59,7 +59,8 @@ from scipy.spatial import cKDTree
 from glsldiff import gl
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import write_npz
-from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, generated_mesh, load_mesh, screened_smoothing, subdivide
+from glsldiff.mesh import (GENERATED_MESHES, SAMPLE_MESHES, cached_load_mesh, generated_mesh, screened_smoothing,
+                           subdivide)
 from glsldiff.physics.editing import Edit, EditResult, EditView
 from glsldiff.physics.exitance import (bracket_smoothing_lengths, deep_irradiance, exitance_coefficients,
                                        exitant_bracket, halfspace_bracket, local_bracket, source_from_irradiance)
@@ -238,7 +239,7 @@ class Renderer:
             mesh = generated_mesh(m.source, m.size_mm)
         else:
             src = m.source if m.source in SAMPLE_MESHES else str(scene.resolve(m.source))
-            mesh = load_mesh(src, size_mm=m.size_mm)
+            mesh = cached_load_mesh(src, size_mm=m.size_mm)
         if self._backend is not None:
             self._backend.release()
         self._backend = make_backend(scene, self.ctx, self._say, self.frame_sweeps, self.cache_solutions,

@@ -37,8 +37,8 @@ from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
 from glsldiff.grids.tetwild import cached_tetrahedralize
 from glsldiff.mesh import Mesh
 from glsldiff.oracle.assembly import LinearSystem
-from glsldiff.oracle.fem import TetGeometry, tet_geometry, tet_rhs
-from glsldiff.oracle.fem_update import P1System
+from glsldiff.oracle.fem import TetGeometry, cached_tet_geometry, tet_geometry, tet_rhs
+from glsldiff.oracle.fem_update import P1System, cached_p1_pattern
 from glsldiff.physics.editing import Edit, EditResult, EditView, apply_edit
 from glsldiff.physics.exitance import source_from_irradiance
 from glsldiff.render.backends import PASS2_HINT, GridBackend, Pass2Frame, Pass2Inputs
@@ -47,7 +47,7 @@ from glsldiff.render.collision import first_collision_load, node_columns, surfac
 from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.pass1 import incident_light
 from glsldiff.render.scene import TETRAHEDRAL, Scene
-from glsldiff.render.shading import surface_interpolation
+from glsldiff.render.shading import cached_surface_interpolation, surface_interpolation
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.report import CURRENT, SolveReport
 from glsldiff.system.tet_problem import TetProblem
@@ -70,7 +70,8 @@ REBUILD_SHARE = 0.25
 @dataclass(frozen=True)
 class TetFrame:
     """One frame's pass 2: ``phi`` ``(n_active, 3)``, the report, whether the frame stopped at
-    its budget before ``tol`` (``partial``) and whether ``phi`` came from the disk cache."""
+    its budget before ``tol`` (``partial``) and whether ``phi`` came from the disk cache (or
+    the solve started from a cached answer that missed tol)."""
 
     phi: NDArray[np.float64]
     report: SolveReport
@@ -82,10 +83,13 @@ class TetPass2:
     """The P1 system and its GPU solver of one tetrahedral grid, kept across frames.
 
     ``ctx`` the GL context, ``geo`` the grid's :class:`~glsldiff.oracle.fem.TetGeometry`,
-    ``active`` ``(n,)`` bool. GPU objects belong to this object (:meth:`release`)."""
+    ``active`` ``(n,)`` bool, ``cached_pattern``: the P1 pattern through the disk cache. GPU
+    objects belong to this object (:meth:`release`)."""
 
-    def __init__(self, ctx: moderngl.Context, geo: TetGeometry, active: NDArray[np.bool_]) -> None:
+    def __init__(self, ctx: moderngl.Context, geo: TetGeometry, active: NDArray[np.bool_],
+                 cached_pattern: bool = False) -> None:
         self.ctx, self.geo, self.active_mask = ctx, geo, np.asarray(active, dtype=bool)
+        self.cached_pattern = cached_pattern               # the P1 pattern through the disk cache
         self.p1: P1System | None = None
         self.solver: GlslSparseMultigrid | None = None
         self.phi: NDArray[np.float64] | None = None        # the last frame's fluence (n_active, 3)
@@ -107,7 +111,8 @@ class TetPass2:
         material changed (and the solver's finest level with it)."""
         if self.p1 is None or self.p1.C != C:
             self.release()
-            self.p1 = P1System(self.geo, self.active_mask, C, kappa, mu)
+            pattern = cached_p1_pattern(self.geo, self.active_mask) if self.cached_pattern else None
+            self.p1 = P1System(self.geo, self.active_mask, C, kappa, mu, pattern=pattern)
         else:
             up = self.p1.set_material(kappa, mu)
             if self.solver is not None and up.rows.size:
@@ -176,7 +181,7 @@ class TetPass2:
             raise
         self.phi = phi
         partial = frame_budget and warm and rep.status not in ("converged", "stalled")
-        return TetFrame(phi, rep, partial, False)
+        return TetFrame(phi, rep, partial, fresh and not warm and x0 is not None)   # started from the disk cache
 
     def release(self) -> None:
         if self.solver is not None:
@@ -208,6 +213,7 @@ class TetBackend(GridBackend):
         self._b: tuple[Any, NDArray[np.float64]] | None = None
         self._columns: tuple[Any, Any] | None = None
         self._fluence: FluenceLattice | None = None
+        self._cached = False
 
     # ---- set-up -------------------------------------------------------------------------------
     def setup(self, scene: Scene, mesh: Mesh) -> tuple[Mesh, Mesh | None]:
@@ -235,8 +241,11 @@ class TetBackend(GridBackend):
             pg, mesh, crease = self._cut(scene, pg, np.asarray(mesh.vertices))
         self.grid, self.h = pg, float(pg.h)
         self.surface_triangles = pg.surface_triangles
-        self.geo = tet_geometry(pg)
-        self.pass2 = TetPass2(self.ctx, self.geo, np.asarray(pg.active, dtype=bool))
+        # a grid read from the cache keeps its P1 factors and render-mesh interpolation there too; a
+        # cut or refined grid changes with the scene's lights or cut (no entry per variant: ~170 MB each)
+        self._cached = scene.cut is None and not scene.refines
+        self.geo = cached_tet_geometry(pg) if self._cached else tet_geometry(pg)
+        self.pass2 = TetPass2(self.ctx, self.geo, np.asarray(pg.active, dtype=bool), cached_pattern=self._cached)
         return mesh, crease
 
     def _adapt(self, scene: Scene, mesh: Mesh, pg: Any) -> Any:
@@ -285,7 +294,8 @@ class TetBackend(GridBackend):
         return cm, flat, Mesh(np.concatenate([V, V[used]])[keep], F2.reshape(-1, 3), name=flat.name)
 
     def interpolation(self, vertices: NDArray[np.float64]) -> Any:
-        return surface_interpolation(vertices, self.grid.boundary_positions, self.grid.surface_triangles)
+        interp = cached_surface_interpolation if self._cached else surface_interpolation
+        return interp(vertices, self.grid.boundary_positions, self.grid.surface_triangles)
 
     @property
     def material_shape(self) -> tuple[int, ...]:
