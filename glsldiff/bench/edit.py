@@ -40,6 +40,8 @@ from glsldiff.system.problem import relative_l2
 TABLE_III = {"bunny": ("253 x 16^3", 25.9, 34.7), "bunny-n8": ("253 x 16^3", 25.9, 34.7),
              "hole": ("36 x 12^3", 80.0, 160.4), "bunny-tetrahedral": ("253 x 16^3", 25.9, 34.7),
              "hole-tetrahedral": ("36 x 12^3", 80.0, 160.4)}
+#: The benchmark's models (:func:`model_scenes`).
+EDIT_MODELS = ("hole", "bunny", "bunny-n8", "bunny-tetrahedral", "hole-tetrahedral")
 #: The image error that counts as converged (relative L2 over the object's pixels).
 CONVERGED = 5e-3
 

@@ -32,7 +32,7 @@ from glsldiff.bench.meshes import MESHES as BENCH_MESHES, mesh_bench
 from glsldiff.bench.sphere import sphere_study
 from glsldiff.bench.tet import tet_study
 from glsldiff.bench.cut import update_seconds
-from glsldiff.bench.edit import edit_study, save_edit_study
+from glsldiff.bench.edit import EDIT_MODELS, edit_study, save_edit_study
 from glsldiff.bench.throughput import sweep_throughput
 from glsldiff.bench.timing import runs_note
 from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
@@ -543,8 +543,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     b = bsub.add_parser("edit", help="interactive editing (section 5.4): frame rate while painting, time from an "
                                      "edit to a converged (0.5 %%) image, cold re-solve as the peer; Table III beside")
-    b.add_argument("--models", nargs="+", default=["hole", "bunny", "bunny-n8", "bunny-tetrahedral"],
-                   choices=("hole", "bunny", "bunny-n8", "bunny-tetrahedral"), help="models to run")
+    b.add_argument("--models", nargs="+", default=list(EDIT_MODELS), choices=EDIT_MODELS, help="models to run")
     b.add_argument("--dabs", type=A.integer(1, 1000), default=8, help="brush dabs in the stroke (one frame each)")
     b.add_argument("--frame-sweeps", type=A.integer(1, 100000), default=10, help="pass-2 sweeps per frame")
     b.add_argument("--size", type=A.integer(16, 8192), default=512, help="image width = height, pixels")
