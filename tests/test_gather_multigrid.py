@@ -385,3 +385,19 @@ def test_update_fine_of_the_diagonal_alone(ctx, editable):
             ref = numpy_vcycle([A] + [lv[c] for lv in stale[1:]], Ps, s.omegas, 2, 2, b[:, c], x0[:, c])
             assert rel(got[:, c], ref) < 2e-5
     P.set_material(kappa0, mu0)
+
+
+def test_level_omegas_need_their_prolongations(ctx, editable):
+    P, _, _ = editable
+    b = P.system.b.reshape(3, -1).T
+    with GlslSparseMultigrid(P.matrices(), b, ctx=ctx) as s:
+        Ps = [lv.P for lv in s.levels if lv.P is not None]
+        w = s.omegas[:-1]
+        with GlslSparseMultigrid(P.matrices(), b, ctx=ctx, prolongations=Ps, level_omegas=w) as t:
+            assert t.omegas[:-1] == w and t.setup_seconds["omega"] < s.setup_seconds["omega"]
+            x, rep = t.solve(tol=1e-5)
+            assert rep.converged
+    with pytest.raises(InputError, match="level_omegas"):
+        GlslSparseMultigrid(P.matrices(), b, ctx=ctx, level_omegas=w)
+    with pytest.raises(InputError, match="level_omegas"):
+        GlslSparseMultigrid(P.matrices(), b, ctx=ctx, prolongations=Ps, level_omegas=[2.5] * len(Ps))

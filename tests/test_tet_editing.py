@@ -88,3 +88,24 @@ def test_kept_hierarchy_iterations_stay_bounded(scene):
             assert rep.solver.converged
         assert r.pass2_solver is solver
     assert max(counts) <= cold + 3, (cold, counts)
+
+
+def test_interactive_first_frame_from_the_cache_prepares_the_solver(scene, tmp_path, monkeypatch):
+    """With the disk cache on, an interactive renderer serves a cached answer and still builds
+    its multigrid at once (the first edit costs a frame); a second renderer reads the
+    aggregation and damping back (no pyamg) and solves the same edit to the same image."""
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path))
+    images, solvers = [], []
+    for _ in range(2):
+        with Renderer(frame_sweeps=10, allow_unconverged=True) as r:
+            r.render(scene)
+            s = r.pass2_solver
+            assert s is not None
+            solvers.append((s.setup_seconds["pyamg"], s.omegas, [lv.n for lv in s.levels]))
+            _dabs(r, scene, 2)
+            images.append(_converge(r, scene))
+    assert list(tmp_path.glob("multigrid-*"))
+    (t1, w1, n1), (t2, w2, n2) = solvers
+    assert n1 == n2 and np.allclose(w1[:-1], w2[:-1], rtol=0, atol=0)
+    assert t2 < 0.1 * t1
+    assert _rel(images[1], images[0]) < 1e-4

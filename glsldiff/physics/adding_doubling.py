@@ -45,7 +45,7 @@ about 1e-3 against the H-function at ``eta = 1``.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -240,8 +240,13 @@ class HalfspaceTables:
     def multiple(self, albedo: ArrayLike, nu_in: ArrayLike, nu_out: ArrayLike) -> NDArray[np.float64]:
         """Radiance (sr^-1) scattered two or more times, leaving at outside cosine ``nu_out``
         per unit irradiance arriving at ``nu_in``, broadcast."""
-        return np.maximum(self._lookup(self.total, albedo, nu_out, nu_in)
-                          - self._lookup(self.single, albedo, nu_out, nu_in), 0.0)
+        return np.maximum(self._lookup(self._multiple_table, albedo, nu_out, nu_in), 0.0)
+
+    @cached_property
+    def _multiple_table(self) -> NDArray[np.float64]:
+        """``total - single``: the lookup is linear in the table, so one lookup of the difference
+        is the difference of the two lookups (one interpolation per frame instead of two)."""
+        return self.total - self.single
 
     def total_reflection(self, albedo: ArrayLike, nu_in: ArrayLike, nu_out: ArrayLike) -> NDArray[np.float64]:
         """All scattering orders (sr^-1), as :meth:`multiple`."""

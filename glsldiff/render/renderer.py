@@ -482,6 +482,7 @@ class Renderer:
                 if isinstance(light, ProjectorLight):
                     tint[:, i] = projector_factor(light, v)
             self._vis, self._tint, self._keys["vis"] = vis, tint, vis_key
+            self._vis_shader = vis * tint.mean(axis=2)   # the shader's visibility is one number per light
         ss = np.zeros_like(v)
         if opts.split:
             sr = self._split_frame(scene, eye)
@@ -492,8 +493,7 @@ class Renderer:
             ss = ss + self._surface_diffuse(scene)
         if opts.unscattered and sees_through(scene.lights):
             ss = ss + self._unscattered(scene, eye)
-        vis = self._vis * self._tint.mean(axis=2)   # the shader's visibility is one number per light
-        return shade(self.ctx, v, f, nrm, ms, vis, ss, shader_lights, eye, mvp, eta,
+        return shade(self.ctx, v, f, nrm, ms, self._vis_shader, ss, shader_lights, eye, mvp, eta,
                      scene.specular.rho_s, scene.specular.alpha, (scene.output.width, scene.output.height))
 
     def _bracket_fields(self, scene: Scene, eye: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -292,6 +292,10 @@ class GlslSparseMultigrid(GatherSolver):
         Further options of ``pyamg.smoothed_aggregation_solver`` (default :data:`glsldiff.oracle.amg.AMG_DEFAULTS`).
     prolongations
         The ``P_l`` to use instead of pyamg's (``n_l x n_{l+1}`` each, finest first).
+    level_omegas
+        With ``prolongations``: the smoothing damping of every level but the coarsest (e.g. an
+        earlier solver's :attr:`omegas` of the same matrices, kept on disk), instead of the
+        ``omega="auto"`` estimates.
     accel
         ``"cg"`` (conjugate gradients preconditioned by one V-cycle per iteration; needs
         ``pre == post``) or ``None`` (plain V-cycles).
@@ -319,7 +323,8 @@ class GlslSparseMultigrid(GatherSolver):
     def __init__(self, matrices: Matrices, b: ArrayLike, ctx: moderngl.Context | None = None,
                  precision: str = "fp32", omega: float | str = "auto", pre: int = 2, post: int = 2,
                  max_coarse: int = MAX_COARSE, max_levels: int = 10, amg: dict[str, Any] | None = None,
-                 prolongations: Sequence[sp.spmatrix | sp.sparray] | None = None, accel: str | None = "cg") -> None:
+                 prolongations: Sequence[sp.spmatrix | sp.sparray] | None = None, accel: str | None = "cg",
+                 level_omegas: Sequence[float] | None = None) -> None:
         if precision not in PRECISIONS:
             raise InputError(f"precision={precision!r}: GlslSparseMultigrid supports only {PRECISIONS}")
         for name, v in (("pre", pre), ("post", post)):
@@ -375,11 +380,17 @@ class GlslSparseMultigrid(GatherSolver):
             As.append([galerkin(A, P) for A in As[-1]])
         self.setup_seconds["galerkin"] = time.perf_counter() - t0
         t0 = time.perf_counter()
+        if level_omegas is not None and (prolongations is None or len(level_omegas) != len(Ps)
+                                         or not all(0.0 < w < 2.0 for w in level_omegas)):
+            raise InputError(f"level_omegas: give one omega in (0, 2) per level but the coarsest ({len(Ps)}) "
+                             "with the prolongations they were estimated for")
         self.levels: list[MultigridLevel] = []
         for l, A in enumerate(As):
             P = Ps[l] if l < len(Ps) else None
             if P is None:
                 w, lam = math.nan, math.nan
+            elif level_omegas is not None:
+                w, lam = float(level_omegas[l]), SMOOTH_TARGET / float(level_omegas[l])
             elif fixed is None:
                 w, lam = smoother_omega(A)
             else:

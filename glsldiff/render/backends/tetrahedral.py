@@ -62,6 +62,8 @@ FEM_MAXITER = 300
 PAINT_SWEEPS = 1
 #: Preconditioned CG iterations (one V-cycle each) per frame while the image converges after edits.
 FRAME_ITERATIONS = 1
+#: Part of the cached aggregation's key: bump it when the hierarchy's construction changes.
+HIERARCHY_CACHE_VERSION = 1
 #: An edit changing more than this share of the nodes rebuilds the multigrid (the kept one
 #: would precondition a different material).
 REBUILD_SHARE = 0.25
@@ -83,13 +85,15 @@ class TetPass2:
     """The P1 system and its GPU solver of one tetrahedral grid, kept across frames.
 
     ``ctx`` the GL context, ``geo`` the grid's :class:`~glsldiff.oracle.fem.TetGeometry`,
-    ``active`` ``(n,)`` bool, ``cached_pattern``: the P1 pattern through the disk cache. GPU
-    objects belong to this object (:meth:`release`)."""
+    ``active`` ``(n,)`` bool, ``cached_pattern``: the P1 pattern through the disk cache,
+    ``cached_hierarchy``: the multigrid's aggregation and damping too. GPU objects belong to
+    this object (:meth:`release`)."""
 
     def __init__(self, ctx: moderngl.Context, geo: TetGeometry, active: NDArray[np.bool_],
-                 cached_pattern: bool = False) -> None:
+                 cached_pattern: bool = False, cached_hierarchy: bool = False) -> None:
         self.ctx, self.geo, self.active_mask = ctx, geo, np.asarray(active, dtype=bool)
         self.cached_pattern = cached_pattern               # the P1 pattern through the disk cache
+        self.cached_hierarchy = cached_hierarchy           # the multigrid's aggregation too (per material)
         self.p1: P1System | None = None
         self.solver: GlslSparseMultigrid | None = None
         self.phi: NDArray[np.float64] | None = None        # the last frame's fluence (n_active, 3)
@@ -145,14 +149,30 @@ class TetPass2:
         return TetFrame(self.phi, rep, False, True)
 
     def _build(self, x0: NDArray | None) -> None:
+        """The GPU multigrid of the current system (its aggregation and smoothing damping read
+        from the disk cache with the grid's other entries: 3.1 of the 5.1 s set-up on the bunny)."""
         assert self.p1 is not None
         s = self.p1.system
         if self.solver is None:
             self.rebuilds += self.phi is not None
-            self.solver = GlslSparseMultigrid(self.p1.matrices(), s.b.reshape(3, -1).T, ctx=self.ctx)
+            key = (cache.digest(f"multigrid v{HIERARCHY_CACHE_VERSION}", self.p1.values, self.p1.indices,
+                                self.p1.indptr) if self.cached_hierarchy else None)
+            kept = cache.load("multigrid", key, dict) if key is not None else None
+            self.solver = GlslSparseMultigrid(self.p1.matrices(), s.b.reshape(3, -1).T, ctx=self.ctx,
+                                              prolongations=None if kept is None else kept["P"],
+                                              level_omegas=None if kept is None else kept["omega"])
+            if key is not None and kept is None:
+                cache.store("multigrid", key, {"P": [lv.P for lv in self.solver.levels if lv.P is not None],
+                                               "omega": [lv.omega for lv in self.solver.levels if lv.P is not None]})
             self.stale_rows = 0
             if x0 is not None:
                 self.solver.set_initial(x0)
+
+    def prepare(self) -> None:
+        """Build the solver now, from the last frame's answer (an interactive first frame served
+        from the disk cache: the first edit or light change then costs a frame, not a set-up)."""
+        if self.solver is None and self.p1 is not None and self.phi is not None:
+            self._build(self.phi)
 
     def solve(self, tol: float, *, warm: bool, painting: bool = False, frame_budget: bool = False,
               x0: NDArray | None = None) -> TetFrame:
@@ -245,7 +265,8 @@ class TetBackend(GridBackend):
         # cut or refined grid changes with the scene's lights or cut (no entry per variant: ~170 MB each)
         self._cached = scene.cut is None and not scene.refines
         self.geo = cached_tet_geometry(pg) if self._cached else tet_geometry(pg)
-        self.pass2 = TetPass2(self.ctx, self.geo, np.asarray(pg.active, dtype=bool), cached_pattern=self._cached)
+        self.pass2 = TetPass2(self.ctx, self.geo, np.asarray(pg.active, dtype=bool), cached_pattern=self._cached,
+                              cached_hierarchy=self._cached and self.cache_solutions)
         return mesh, crease
 
     def _adapt(self, scene: Scene, mesh: Mesh, pg: Any) -> Any:
@@ -409,6 +430,8 @@ class TetBackend(GridBackend):
         self.check(scene, frame.report, frame.partial)
         if key is not None and frame.report.status == "converged" and not frame.from_cache:
             cache.store("pass2", key, np.asarray(frame.phi))
+        if interactive:
+            tet.prepare()
         return Pass2Frame(self.surface_values(frame.phi), frame.report, frame.partial, frame.from_cache)
 
     def notes(self, scene: Scene) -> list[str]:
