@@ -256,16 +256,22 @@ def edit_weights(edit: Edit, view: EditView | None, positions: ArrayLike) -> NDA
     uv, front = view.pixels(p)
     W, H = view.size
     on = front & (uv[:, 0] >= 0) & (uv[:, 0] <= W) & (uv[:, 1] >= 0) & (uv[:, 1] <= H)
-    w *= on
+    if edit.brush is not None:     # outside the brush's square the weight is 0: weigh the nodes inside only
+        (cu, cv), r = edit.brush.centre, edit.brush.radius
+        on &= (np.abs(uv[:, 0] - cu) <= r) & (np.abs(uv[:, 1] - cv) <= r)
+    idx = np.flatnonzero(on)
+    w_in, uv_in = w[idx], uv[idx]
     if edit.brush is not None:
-        w *= brush_weight(edit.brush, uv)
+        w_in *= brush_weight(edit.brush, uv_in)
     if edit.mask is not None:
-        w *= sample_mask(edit.mask, uv, view.size)
+        w_in *= sample_mask(edit.mask, uv_in, view.size)
     if edit.depth is not None:
-        d = depth_below(view, p, uv).astype(np.float32)
+        d = depth_below(view, p[idx], uv_in).astype(np.float32)
         d0, d1 = np.float32(edit.depth[0]), np.float32(edit.depth[1])
-        w *= np.isfinite(d) & (d >= d0) & (d <= d1)   # no surface in its pixel: no depth
-    return w
+        w_in *= np.isfinite(d) & (d >= d0) & (d <= d1)   # no surface in its pixel: no depth
+    out = np.zeros(len(p))
+    out[idx] = w_in
+    return out
 
 
 @dataclass(frozen=True)
@@ -315,7 +321,8 @@ def apply_edit(edit: Edit, kappa: ArrayLike, mu: ArrayLike, positions: ArrayLike
     if active is not None:
         w = w * np.asarray(active, dtype=bool).reshape(-1)
     x = k2 if edit.prop == "kappa" else m2
-    x[:], clamped_nodes = apply_values(edit, x, w)
+    hit = np.flatnonzero(w > 0)            # nodes of weight 0 keep their values exactly
+    x[hit], clamped_nodes = apply_values(edit, x[hit], w[hit])
     clamped = int(clamped_nodes.sum())
-    unphysical = int(np.any((3.0 * k2 * m2 > 1.0 + 1e-9) & (w[:, None] > 0), axis=1).sum())
-    return k2.reshape(shape), m2.reshape(shape), EditResult(int((w > 0).sum()), clamped, unphysical)
+    unphysical = int(np.any(3.0 * k2[hit] * m2[hit] > 1.0 + 1e-9, axis=1).sum())
+    return k2.reshape(shape), m2.reshape(shape), EditResult(int(hit.size), clamped, unphysical)

@@ -573,17 +573,17 @@ class GlslSparseMultigrid(GatherSolver):
         for y0, y1 in zip(np.concatenate([[y[0]], y[breaks + 1]]), np.concatenate([y[breaks], [y[-1]]])):
             r0, r1 = int(y0) * W, min(self.n, (int(y1) + 1) * W)
             size = (W, int(y1 - y0) + 1)
-            band = [M[r0:r1] for M in mats]
             if not diagonal_only:
+                band = [M[r0:r1] for M in mats]
                 coef = pack_ell(band, size, diagonal=False, keep_zeros=True, row_offset=r0, slots=lv.slots).coef
                 g.A.texture.write(coef.tobytes(), viewport=(0, int(y0), 0, W, size[1], coef.shape[0]), alignment=1)
-            d = np.stack([M.diagonal(k=r0) for M in band], axis=1)[: r1 - r0]
+            d = self.system.diag.reshape(3, self.n)[:, r0:r1].T                  # (rows, 3), just updated
             g.diag.write(pack_nodes(d, size, pad=1.0).tobytes(), viewport=(0, int(y0), W, size[1]), alignment=1)
-            if g.first is not None:
-                m = r1 - r0
-                first = [sp.csr_matrix((lv.omega / d[:, c], (np.arange(m), np.arange(r0, r1))), shape=(m, self.n))
-                         for c in range(3)]
-                fc = pack_ell(first, size, diagonal=True, slots=1).coef
+            if g.first is not None:      # omega D^-1 as a one-slot gather: (values, own column), -1 past n
+                fc = np.zeros((1, size[1] * W, 4), dtype=np.float32)
+                fc[0, :, 3] = -1.0
+                fc[0, : r1 - r0, :3] = lv.omega / d
+                fc[0, : r1 - r0, 3] = np.arange(r0, r1)
                 g.first.texture.write(fc.tobytes(), viewport=(0, int(y0), 0, W, size[1], 1), alignment=1)
 
     def smooth(self, sweeps: int) -> None:
