@@ -109,3 +109,20 @@ def test_interactive_first_frame_from_the_cache_prepares_the_solver(scene, tmp_p
     assert n1 == n2 and np.allclose(w1[:-1], w2[:-1], rtol=0, atol=0)
     assert t2 < 0.1 * t1
     assert _rel(images[1], images[0]) < 1e-4
+
+
+def test_the_right_hand_side_follows_every_new_source(scene):
+    """Light after light (and incidence modes that replace the load), the P1 system's right-hand
+    side is the current source's: a stale one (kept by an id that a new array reused) would
+    solve the previous light silently."""
+    from glsldiff.oracle.fem import tet_rhs
+    from glsldiff.physics.lights import DirectionalLight
+    with Renderer(cache_solutions=False) as r:
+        for k, d in enumerate([(0.3, 0.4, 1.0), (-0.5, 0.2, 1.0), (0.0, -0.6, 1.0), (0.3, 0.4, 1.0)]):
+            s = dataclasses.replace(scene, lights=(DirectionalLight(np.array(d) / np.linalg.norm(d), (1.0, 1.0, 1.0)),),
+                                    options=dataclasses.replace(scene.options, incidence="transport" if k % 2 else "marshak",
+                                                                model="diffusion"))
+            r.render(s)
+            b = tet_rhs(r.fem_problem(s)).T.reshape(-1)
+            np.testing.assert_allclose(r.fem_system.b, b, rtol=1e-12, atol=0)
+            assert r.pass2_solver is None or np.allclose(r.pass2_solver.system.b, b, rtol=1e-12)

@@ -398,8 +398,9 @@ class TetBackend(GridBackend):
         """The P1 system of the frame's material and source (assembled once per material,
         updated in place after edits; ``b`` recomputed only for a new source)."""
         assert self.pass2 is not None
-        key = (id(inp.q), id(inp.load), inp.C, inp.scene.material.eta)   # pass 1 makes new arrays for a new source
-        if self._b is None or self._b[0] != key:
+        key = (inp.q, inp.load, inp.C, inp.scene.material.eta)   # pass 1 makes new arrays for a new source
+        if self._b is None or not all(a is b if isinstance(a, np.ndarray) or a is None else a == b
+                                      for a, b in zip(key, self._b[0])):
             b = tet_rhs(self.problem(inp), self.geo)
             if inp.load is not None:
                 b = b + inp.load[self.pass2.active]
