@@ -84,6 +84,14 @@ class LinearSystem:
         return LinearSystem(A, b, self.diag, self.active, self.b / self.diag)
 
 
+def row_entries(indptr: NDArray[np.integer], rows: NDArray[np.integer]) -> NDArray[np.int64]:
+    """Positions of the stored entries of ``rows`` in a CSR structure with ``indptr`` (row by
+    row, each row's entries in order): the concatenated ranges ``indptr[r] .. indptr[r + 1]``."""
+    start = np.asarray(indptr)[rows].astype(np.int64)
+    counts = np.asarray(indptr)[np.asarray(rows) + 1].astype(np.int64) - start
+    return np.repeat(start - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
+
+
 def jacobi_radius_bound(system: LinearSystem) -> float:
     """Lower bound on the spectral radius of the Jacobi matrix ``J = I - D^-1 A``.
 

@@ -24,7 +24,7 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError
 from glsldiff.grids.pillow import TET_EDGES
-from glsldiff.oracle.assembly import LinearSystem
+from glsldiff.oracle.assembly import LinearSystem, row_entries
 from glsldiff.oracle.fem import TetGeometry
 
 __all__ = ["P1Pattern", "P1System", "P1Update", "cached_p1_pattern"]
@@ -194,9 +194,7 @@ class P1System:
 
     def row_positions(self, rows: NDArray[np.int64]) -> NDArray[np.int64]:
         """The pattern positions of every entry of ``rows`` (active indices), row by row."""
-        start, stop = self.indptr[rows].astype(np.int64), self.indptr[rows + 1].astype(np.int64)
-        counts = stop - start
-        return np.repeat(start - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
+        return row_entries(self.indptr, rows)
 
     # ---- assembly -----------------------------------------------------------------------------
     def _stiffness_terms(self, tets: NDArray[np.int64], kt: NDArray[np.float64]
@@ -260,10 +258,7 @@ class P1System:
         tets = np.zeros(0, dtype=np.int64)
         if dk.any():
             kn = np.flatnonzero(dk)
-            start, stop = self._node_ptr[kn], self._node_ptr[kn + 1]
-            counts = stop - start
-            idx = np.repeat(start - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
-            tets = np.unique(self._node_tets[idx])
+            tets = np.unique(self._node_tets[row_entries(self._node_ptr, kn)])
             kt_old = self.kappa[self.geo.tets[tets]].mean(axis=1)
             self.kappa[kn] = kappa[kn]
             kt_new = self.kappa[self.geo.tets[tets]].mean(axis=1)

@@ -91,7 +91,7 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.amg import build_prolongations, galerkin, jacobi_lambda_max
-from glsldiff.oracle.assembly import LinearSystem
+from glsldiff.oracle.assembly import LinearSystem, row_entries
 from glsldiff.oracle.solvers import Callback
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
                                    GatherSolver, Matrices, Start, block_diagonal, channel_matrices, check_symmetric,
@@ -544,9 +544,8 @@ class GlslSparseMultigrid(GatherSolver):
             raise InputError(f"rows must be in 0 .. {self.n - 1}")
         lv.A = mats
         n, nnz = self.n, mats[0].nnz
-        start, stop = mats[0].indptr[rows].astype(np.int64), mats[0].indptr[rows + 1].astype(np.int64)
-        counts = stop - start
-        pos = np.repeat(start - np.cumsum(counts) + counts, counts) + np.arange(int(counts.sum()))
+        pos = row_entries(mats[0].indptr, rows)
+        counts = np.diff(mats[0].indptr)[rows]
         data = self.system.A.data
         for c, M in enumerate(mats):
             data[c * nnz + pos] = M.data[pos]       # the block-diagonal system: channel after channel

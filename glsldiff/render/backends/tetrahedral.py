@@ -97,8 +97,6 @@ class TetPass2:
         self.p1: P1System | None = None
         self.solver: GlslSparseMultigrid | None = None
         self.phi: NDArray[np.float64] | None = None        # the last frame's fluence (n_active, 3)
-        self.rebuilds = 0                                  # multigrid builds after the first
-        self.stale_rows = 0                                # finest rows updated since the last build
 
     @property
     def active(self) -> NDArray[np.int64]:
@@ -124,7 +122,6 @@ class TetPass2:
                     self.release()
                 else:
                     self.solver.update_fine(self.p1.matrices(), up.rows, diagonal_only=up.diagonal_only)
-                    self.stale_rows += int(up.rows.size)
         if not np.array_equal(self.p1.system.b, np.asarray(b, dtype=np.float64).T.reshape(-1)):
             self.p1.set_rhs(b)
             if self.solver is not None:     # a new source restarts CG; the same one lets it go on
@@ -154,7 +151,6 @@ class TetPass2:
         assert self.p1 is not None
         s = self.p1.system
         if self.solver is None:
-            self.rebuilds += self.phi is not None
             key = (cache.digest(f"multigrid v{HIERARCHY_CACHE_VERSION}", self.p1.values, self.p1.indices,
                                 self.p1.indptr) if self.cached_hierarchy else None)
             kept = cache.load("multigrid", key, dict) if key is not None else None
@@ -164,7 +160,6 @@ class TetPass2:
             if key is not None and kept is None:
                 cache.store("multigrid", key, {"P": [lv.P for lv in self.solver.levels if lv.P is not None],
                                                "omega": [lv.omega for lv in self.solver.levels if lv.P is not None]})
-            self.stale_rows = 0
             if x0 is not None:
                 self.solver.set_initial(x0)
 
@@ -195,10 +190,7 @@ class TetPass2:
                               seconds=time.perf_counter() - t0, status="budget")
             return TetFrame(self.phi, rep, True, False)
         budget = FRAME_ITERATIONS if frame_budget and warm else FEM_MAXITER
-        try:
-            phi, rep = solver.solve(tol=tol, maxiter=budget, x0=CURRENT if (warm or start is not None) else None)
-        except SolverError:
-            raise
+        phi, rep = solver.solve(tol=tol, maxiter=budget, x0=CURRENT if (warm or start is not None) else None)
         self.phi = phi
         partial = frame_budget and warm and rep.status not in ("converged", "stalled")
         return TetFrame(phi, rep, partial, fresh and not warm and x0 is not None)   # started from the disk cache
@@ -207,10 +199,6 @@ class TetPass2:
         if self.solver is not None:
             self.solver.release()
             self.solver = None
-
-    def describe(self) -> dict[str, Any]:
-        """The solver's state for reports: rebuilds and finest rows updated since the last build."""
-        return {"rebuilds": self.rebuilds, "stale_rows": self.stale_rows}
 
 
 class TetBackend(GridBackend):
@@ -230,7 +218,7 @@ class TetBackend(GridBackend):
         self.adapt_report: Any = None
         self.cut_report: Any = None
         self.cut_seconds = 0.0
-        self._b: tuple[Any, NDArray[np.float64]] | None = None
+        self._b: tuple[Any, ...] | None = None       # (q, load, C, eta, b): the right-hand side of that source
         self._columns: tuple[Any, Any] | None = None
         self._fluence: FluenceLattice | None = None
         self._cached = False
@@ -349,12 +337,17 @@ class TetBackend(GridBackend):
             self._columns = (cols, node_columns(self.grid, cols))
         return first_collision_load(self.grid, kappa, mu, beams, self.geo.node_volumes, *self._columns)
 
+    def _at_nodes(self, x: NDArray) -> NDArray[np.float64]:
+        """``(n, 3)``: per-active-node values ``(n_active, 3)`` at every node (0 at inactive ones)."""
+        assert self.pass2 is not None
+        full = np.zeros((len(self.grid.positions), 3))
+        full[self.pass2.active] = x
+        return full
+
     def node_fluence(self) -> NDArray[np.float64]:
         """``(n, 3)`` the last frame's fluence at every node (0 at inactive ones)."""
         assert self.pass2 is not None and self.pass2.phi is not None
-        full = np.zeros((len(self.grid.positions), 3))
-        full[self.pass2.active] = self.pass2.phi
-        return full
+        return self._at_nodes(self.pass2.phi)
 
     def fluence_lattice(self) -> FluenceLattice:
         """The last frame's fluence on the sampling lattice of the split's gather."""
@@ -376,10 +369,7 @@ class TetBackend(GridBackend):
 
     def surface_values(self, x: NDArray) -> NDArray[np.float64]:
         """``(n_surface, 3)``: per-active-node values ``(n_active, 3)`` at the surface nodes."""
-        assert self.pass2 is not None
-        full = np.zeros((len(self.grid.positions), 3))
-        full[self.pass2.active] = x
-        return full[self.grid.surface_nodes]
+        return self._at_nodes(x)[self.grid.surface_nodes]
 
     @property
     def system(self) -> LinearSystem | None:
@@ -398,14 +388,14 @@ class TetBackend(GridBackend):
         """The P1 system of the frame's material and source (assembled once per material,
         updated in place after edits; ``b`` recomputed only for a new source)."""
         assert self.pass2 is not None
-        key = (inp.q, inp.load, inp.C, inp.scene.material.eta)   # pass 1 makes new arrays for a new source
-        if self._b is None or not all(a is b if isinstance(a, np.ndarray) or a is None else a == b
-                                      for a, b in zip(key, self._b[0])):
+        # pass 1 makes new arrays for a new source: keep them (an id() could be a freed array's)
+        old = self._b
+        if old is None or old[0] is not inp.q or old[1] is not inp.load or old[2:4] != (inp.C, inp.scene.material.eta):
             b = tet_rhs(self.problem(inp), self.geo)
             if inp.load is not None:
                 b = b + inp.load[self.pass2.active]
-            self._b = (key, b)
-        return self.pass2.system(inp.kappa, inp.mu, inp.C, self._b[1])
+            self._b = (inp.q, inp.load, inp.C, inp.scene.material.eta, b)
+        return self.pass2.system(inp.kappa, inp.mu, inp.C, self._b[4])
 
     def solve(self, inp: Pass2Inputs) -> Pass2Frame:
         scene, opts = inp.scene, inp.scene.options
