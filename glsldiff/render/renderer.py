@@ -193,9 +193,14 @@ class Renderer:
         return self._grid
 
     @property
-    def _grid(self) -> Any:
+    def _be(self) -> GridBackend:
+        """The grid's backend (after the first frame's set-up)."""
         assert self._backend is not None
-        return self._backend.grid
+        return self._backend
+
+    @property
+    def _grid(self) -> Any:
+        return self._be.grid
 
     @property
     def fem_system(self) -> LinearSystem | None:
@@ -206,7 +211,7 @@ class Renderer:
     def surface_values(self, x: NDArray) -> NDArray[np.float64]:
         """``(n_surface, 3)``: per-active-node values ``(n_active, 3)`` of a tetrahedral grid
         (e.g. a solution of :attr:`fem_system`) at its surface nodes."""
-        return self._backend.surface_values(x)   # type: ignore[union-attr]
+        return self._be.surface_values(x)
 
     @property
     def node_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -266,9 +271,9 @@ class Renderer:
                                  "nodes; paint positive values")
             kappa, mu = coefficients(sa, ss)
             info = {**info, "material": f"{info.get('material')} + {len(scene.paint)} paint stroke(s)"}
-        shape = self._backend.material_shape     # type: ignore[union-attr]
+        shape = self._be.material_shape
         self._mat = {"kappa": kappa.reshape(shape + (3,)), "mu": mu.reshape(shape + (3,)), "info": info}
-        self._backend.set_material()             # type: ignore[union-attr]
+        self._be.set_material()
         self._history = MaterialHistory()     # a new material starts a new edit history
         self._edited = False                  # the node material differs from the scene's (edits)
 
@@ -287,7 +292,7 @@ class Renderer:
                                 "model = \"diffusion\"")
             o = replace(o, model="diffusion", source="surface" if o.source == "auto" else o.source)
         if o.source == "auto":
-            resolved = self._backend.volume_source and self._h_sigma_t() <= GATHER_MAX_H_SIGMA   # type: ignore[union-attr]
+            resolved = self._be.volume_source and self._h_sigma_t() <= GATHER_MAX_H_SIGMA
             o = replace(o, source="volume" if o.split and resolved else "surface")
         if o.single_scattering == "auto":      # interactive frames (the viewer) take the split's closed form
             o = replace(o, single_scattering=o.split and self.frame_sweeps is None)
@@ -296,7 +301,7 @@ class Renderer:
     def _h_sigma_t(self) -> float:
         """The grid's node spacing (mm) times the largest sigma_t' (mm^-1) of the node material:
         below :data:`GATHER_MAX_H_SIGMA` the grid resolves the transport mean free path."""
-        return self._backend.h * float(np.max(1.0 / (3.0 * self._mat["kappa"])))   # type: ignore[union-attr]
+        return self._be.h * float(np.max(1.0 / (3.0 * self._mat["kappa"])))
 
     def _pass1(self, scene: Scene) -> None:
         pg = self._grid
@@ -304,7 +309,7 @@ class Renderer:
         beams: list | None = [] if volume or scene.options.split or self._splits_incidence(scene) else None
         E_t, info = incident_light(self._geo["mesh"], pg.boundary_positions, pg.normals, scene.lights,
                                    scene.material.eta, ctx=self.ctx, beams=beams,
-                                   triangles=self._backend.surface_triangles)   # type: ignore[union-attr]
+                                   triangles=self._be.surface_triangles)
         self._E_t = np.asarray(E_t, dtype=np.float64)
         q = source_from_irradiance(self._E_t, scene.material.eta, scene.options.exitant)
         if not np.all(np.isfinite(q)) or q.max() > Q_MAX:
@@ -326,7 +331,7 @@ class Renderer:
         self._load = None
         if volume:   # the light enters as the first-collision source; no diffuse light crosses the boundary
             t0 = time.perf_counter()
-            self._load = self._backend.volume_load(self._mat["kappa"], self._mat["mu"], beams or [])  # type: ignore
+            self._load = self._be.volume_load(self._mat["kappa"], self._mat["mu"], beams or [])
             info.append({"light": "first-collision source", "beams": len(beams or ()),
                          "nodes": int(self._load.any(axis=1).sum()), "seconds": time.perf_counter() - t0})
         self._light_info = info
@@ -340,9 +345,7 @@ class Renderer:
 
     def _boundary_material(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """``(kappa, mu)`` ``(n_boundary, 3)`` at the surface (boundary) nodes."""
-        b = self._backend
-        assert b is not None
-        return b.boundary(self._mat["kappa"]), b.boundary(self._mat["mu"])
+        return self._be.boundary(self._mat["kappa"]), self._be.boundary(self._mat["mu"])
 
     def _split_incidence(self, scene: Scene) -> None:
         """The diffusion's load from pass 1's beams and the node material (each beam's share
@@ -394,7 +397,7 @@ class Renderer:
 
     def _pass2(self, scene: Scene, warm: bool, painting: bool = False) -> None:
         """One frame's pass 2 by the grid's backend (:mod:`glsldiff.render.backends`)."""
-        frame = self._backend.solve(self._pass2_inputs(scene, warm, painting))   # type: ignore[union-attr]
+        frame = self._be.solve(self._pass2_inputs(scene, warm, painting))
         self._partial, self._from_cache = frame.partial, frame.from_cache
         self._flux_fields = None
         self._solutions = getattr(self, "_solutions", 0) + 1     # pass 3's caches follow every new phi
@@ -420,7 +423,7 @@ class Renderer:
         ``source = "volume"``."""
         if not hasattr(self._backend, "problem") or self._q is None:
             raise RuntimeError("no frame of a tetrahedral grid rendered yet")
-        return self._backend.problem(self._pass2_inputs(scene))   # type: ignore[union-attr]
+        return self._be.problem(self._pass2_inputs(scene))
 
     @staticmethod
     def check_discretisation_scene(scene: Scene) -> None:
@@ -507,7 +510,7 @@ class Renderer:
         ``-kappa dphi/dn`` of the solution's recovered gradient (volume-weighted mean of the
         tetrahedra's gradients at each surface node)."""
         flux = scene.options.flux
-        flat = self._backend.surface_triangles is None      # type: ignore[union-attr]
+        flat = self._be.surface_triangles is None
         if flux == "boundary" or flat or (flux == "smoothed" and not self._q.any()):
             self._flux_used = (flux if flux != "smoothed" else
                                "boundary (the lattice has no surface triangles to smooth on)" if flat
@@ -531,7 +534,7 @@ class Renderer:
                 self._keys["smoother"] = key
             self._flux_fields = (self._smoothers[0](self._phi_b), self._smoothers[1](q_bracket))
         elif self._flux_fields is None:
-            normal_flux = -self._boundary_material()[0] * self._backend.normal_gradient()   # type: ignore[union-attr]
+            normal_flux = -self._boundary_material()[0] * self._be.normal_gradient()
             self._flux_fields = (self._phi_b, self._phi_b - 2.0 * self._boundary_C(scene) * normal_flux
                                  - (self._q - q_bracket))
         self._flux_used = self._smoother_info if flux == "smoothed" else flux
@@ -562,7 +565,7 @@ class Renderer:
         pg = self._grid
         lo, hi = pg.positions.min(axis=0), pg.positions.max(axis=0)
         if getattr(self, "_edited", False) or scene.material.volume or scene.material.nodes:
-            nodes = np.flatnonzero(self._backend.active)     # type: ignore[union-attr]
+            nodes = np.flatnonzero(self._be.active)
             if "node_tree" not in self._geo:      # once per grid, not per edit
                 self._geo["node_tree"] = cKDTree(np.asarray(pg.positions).reshape(-1, 3)[nodes])
             tree = self._geo["node_tree"]
@@ -606,7 +609,7 @@ class Renderer:
         if "thickness" not in geo:
             S = len(pg.boundary_positions)
             pick = np.unique(np.linspace(0, S - 1, min(S, THICKNESS_SAMPLES)).astype(np.int64))
-            h = self._backend.h     # type: ignore[union-attr]
+            h = self._be.h
             T, _ = first_hits(geo["mesh"], pg.boundary_positions[pick], -np.asarray(pg.normals)[pick], t_min=0.5 * h)
             geo["thickness"] = (pick, T)
         pick, T = geo["thickness"]
@@ -635,7 +638,7 @@ class Renderer:
         fluence = None
         if far == "gather":
             pg = self._grid
-            fluence = self._backend.fluence_lattice()     # type: ignore[union-attr]
+            fluence = self._be.fluence_lattice()
             light = self._keys.get("light")
             if getattr(self, "_lit_distance", (None,))[0] != light:   # mm, once per lighting, not per camera
                 Et = self._E_t.sum(axis=1)
@@ -738,7 +741,7 @@ class Renderer:
         rep.nodes, rep.boundary_nodes = int(pg.n_active), int(len(pg.boundary_positions))
         rep.solver = self._solve_report
         rep.clamped_vertices, rep.clamped_depth, rep.clamped_deep = self._clamped, self._clamped_depth, self._clamped_deep
-        rep.notes.extend(self._backend.notes(scene))     # type: ignore[union-attr]
+        rep.notes.extend(self._be.notes(scene))
         through = scene.options.unscattered and sees_through(scene.lights)
         if scene.options.split:
             sr = self._split_result
@@ -757,7 +760,7 @@ class Renderer:
                          f"unscattered light: {f'{self._unsc_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "
                          f"{'off' if scene.material.reflectance is None else scene.material.reflectance}")
-        rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], self._backend.h,   # type: ignore[union-attr]
+        rep.notes.append(regime(self._mat["kappa"], self._mat["mu"], self._be.h,
                                 scene.options.model))
         rep.warnings = self._regime_warnings(scene)
         eye = self._camera(scene)[0]
@@ -814,7 +817,7 @@ class Renderer:
             raise RuntimeError("render a frame before editing")
         t0 = time.perf_counter()
         before = (self._mat["kappa"], self._mat["mu"])
-        kappa, mu, result = self._backend.edit(edit, view, *before)   # type: ignore[union-attr]
+        kappa, mu, result = self._be.edit(edit, view, *before)
         self._mat = {**self._mat, "kappa": kappa, "mu": mu}
         if history or self._history.counts[0] == 0:
             self._history.push(*before)
@@ -825,7 +828,7 @@ class Renderer:
     def _set_edited_material(self, kappa: NDArray, mu: NDArray) -> None:
         """Hand a changed node material (undo, redo) to the backend."""
         self._mat = {**self._mat, "kappa": kappa, "mu": mu}
-        self._backend.edited(kappa, mu)     # type: ignore[union-attr]
+        self._be.edited(kappa, mu)
 
     def undo(self) -> bool:
         """Return to the material before the last edit; False when there is none."""
@@ -853,7 +856,7 @@ class Renderer:
         if not self._mat:
             raise RuntimeError("render a frame before saving its material")
         pg = self._grid
-        act = self._backend.active     # type: ignore[union-attr]
+        act = self._be.active
         k, m = (self._mat[n].reshape(-1, 3)[act] for n in ("kappa", "mu"))
         return write_npz(path, kappa=k, mu=m, positions_mm=np.asarray(pg.positions)[act],
                          source=str(self._mat["info"].get("material")))
