@@ -668,5 +668,24 @@ def main(argv: Sequence[str] | None = None) -> int:
         if on_main:
             signal.signal(signal.SIGTERM, old_term)
 
+
+
+def entry() -> None:
+    """The ``glsldiff`` program: :func:`main`, then the exit. After Ctrl-C or SIGTERM the process
+    ends at once, its streams flushed (``os._exit``), once :func:`main` has cleaned up: the signal
+    can land inside compiled code (NLopt's SWIG callback, SuperLU, GL), and the interpreter's own
+    shutdown after such an interrupt failed about one run in twenty while flushing stdout
+    ("TypeError: an integer is required", exit 120 instead of 130)."""
+    code = main()
+    if code in (130, 143):
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):   # a closed pipe (``glsldiff ... | head``): nothing to keep
+                pass
+        os._exit(code)
+    sys.exit(code)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    entry()
