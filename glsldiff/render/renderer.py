@@ -57,6 +57,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from glsldiff import gl
+from glsldiff.core import cache
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import write_npz
 from glsldiff.mesh import (GENERATED_MESHES, SAMPLE_MESHES, cached_load_mesh, generated_mesh, screened_smoothing,
@@ -606,11 +607,12 @@ class Renderer:
         :data:`THICKNESS_SAMPLES` surface nodes (ray cast once per grid) over the transport mean
         free path of their most transparent channel."""
         geo, pg = self._geo, self._grid
-        if "thickness" not in geo:
+        if "thickness" not in geo:     # ray casts: once per grid, kept in the disk cache with it
             S = len(pg.boundary_positions)
             pick = np.unique(np.linspace(0, S - 1, min(S, THICKNESS_SAMPLES)).astype(np.int64))
-            h = self._be.h
-            T, _ = first_hits(geo["mesh"], pg.boundary_positions[pick], -np.asarray(pg.normals)[pick], t_min=0.5 * h)
+            p, n, h = pg.boundary_positions[pick], -np.asarray(pg.normals)[pick], self._be.h
+            key = cache.digest("thickness v1", geo["mesh"].vertices, geo["mesh"].faces, p, n, h)
+            T = cache.memo("thickness", key, np.ndarray, lambda: first_hits(geo["mesh"], p, n, t_min=0.5 * h)[0])
             geo["thickness"] = (pick, T)
         pick, T = geo["thickness"]
         kappa, mu = self._boundary_material()
