@@ -217,24 +217,35 @@ class P1System:
         self.mu[:] = np.broadcast_to(mu, (n_all, 3))
         # per unique edge and per node first (edge-length arrays), then onto the pattern: no
         # (16 T, 3) temporaries (a fresh bunny grid's 790k tetrahedra made ~1 GB of them)
-        tets, Kl = self.geo.tets, self._Kl
-        kt = self.kappa[tets].mean(axis=1)                                  # (T, 3)
-        off = Kl[:, TET_EDGES[:, 0], TET_EDGES[:, 1]]                       # (T, 6)
-        dia = np.diagonal(Kl, axis1=1, axis2=2)                             # (T, 4)
-        live = self._pos_ij >= 0
-        n_edges = len(self._pos_ij)
-        for c in range(3):
-            v = self._robin.copy()
-            e = np.bincount(self._tet_edges.ravel(), (off * kt[:, c, None]).ravel(), minlength=n_edges)
-            v[self._pos_ij[live]] += e[live]
-            v[self._pos_ji[live]] += e[live]
-            d = np.bincount(tets.ravel(), (dia * kt[:, c, None]).ravel(), minlength=n_all)
-            v[self._pos_ii[self.active]] += d[self.active]
-            self.values[c] = v
-        da = self._pos_ii[self.active]
-        self.values[:, da] += (self.mu[self.active] * self.geo.node_volumes[self.active, None]).T
+        mean, to_edges, to_nodes = self._tet_operators()
+        kt = mean @ self.kappa                                              # (T, 3) tetrahedron kappa
+        e = to_edges.T @ kt                                                 # (n_edges, 3) off-diagonal sums
+        d = to_nodes.T @ kt                                                 # (n_all, 3) diagonal sums
+        live = np.flatnonzero(self._pos_ij >= 0)
+        pij, pji, da = self._pos_ij[live], self._pos_ji[live], self._pos_ii[self.active]
+        e_live = e[live]
+        d_act = d[self.active] + self.mu[self.active] * self.geo.node_volumes[self.active, None]
+        for c, v in enumerate(self.values):       # row by row: 2x faster than 2-D fancy indexing
+            v[:] = self._robin
+            v[pij] += e_live[:, c]
+            v[pji] += e_live[:, c]
+            v[da] += d_act[:, c]
         self._check_diagonal(self.active)
         self._sync_diag(np.arange(self.n))
+
+    def _tet_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]:
+        """Sparse ``(T, n_nodes)`` mean over each tetrahedron's nodes, ``(T, n_edges)`` its six
+        off-diagonal and ``(T, n_nodes)`` four diagonal stiffness entries (per unit kappa): the
+        assembly is then three products (their transposes scatter-add in compiled code: 4x
+        faster than ``bincount`` and the ``(T, 4, 3)`` gather on a 790k-tetrahedron bunny)."""
+        tets, Kl = self.geo.tets, self._Kl
+        T, n_all = len(tets), len(self.geo.positions)
+        rows4, rows6 = np.arange(0, 4 * T + 1, 4), np.arange(0, 6 * T + 1, 6)
+        off = Kl[:, TET_EDGES[:, 0], TET_EDGES[:, 1]]
+        dia = np.diagonal(Kl, axis1=1, axis2=2)
+        return (sp.csr_matrix((np.full(4 * T, 0.25), tets.ravel(), rows4), shape=(T, n_all)),
+                sp.csr_matrix((off.ravel(), self._tet_edges.ravel(), rows6), shape=(T, len(self._pos_ij))),
+                sp.csr_matrix((dia.ravel(), tets.ravel(), rows4), shape=(T, n_all)))
 
     def _check_diagonal(self, nodes: NDArray[np.int64]) -> None:
         d = self.values[:, self._pos_ii[nodes]]
