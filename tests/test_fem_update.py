@@ -53,9 +53,12 @@ def test_local_edit_updates_only_its_rows(grid):
     k2, m2 = kappa.copy(), mu.copy()
     k2[near] *= 0.5
     m2[near, 1] *= 3.0
+    mats = P.matrices()                      # made before the edit: they must follow it
     up = P.set_material(k2, m2)
     ref = _fresh(grid, k2, m2)
     assert _dense_equal(P, ref) < 1e-13
+    for c, M in enumerate(mats):
+        assert abs(M - ref.block(c)[0]).max() < 1e-13 * abs(ref.A).max()
     np.testing.assert_allclose(P.system.diag, ref.diag, rtol=1e-13)
     assert set(up.nodes) == set(np.flatnonzero(near))
     # rows outside the edit's neighbourhood keep their exact values

@@ -167,6 +167,7 @@ class P1System:
         self._node_tets, self._node_ptr = pat.node_tets, pat.node_ptr
         self._Kl = geo.local_stiffness
         self.values = np.zeros((3, self.indices.size))
+        self._matrices: list[sp.csr_matrix] | None = None
         self.kappa = np.zeros((n_all, 3))
         self.mu = np.zeros((n_all, 3))
         self.system = LinearSystem(sp.csr_matrix((self.values.reshape(-1), self._block_indices(),
@@ -189,8 +190,16 @@ class P1System:
         return np.concatenate([self.indptr[:-1].astype(np.int64) + c * nnz for c in range(3)] + [[3 * nnz]])
 
     def matrices(self) -> list[sp.csr_matrix]:
-        """The three channel matrices ``(n, n)`` (views of :attr:`values`: they follow updates)."""
-        return [sp.csr_matrix((self.values[c], self.indices, self.indptr), shape=(self.n, self.n)) for c in range(3)]
+        """The three channel matrices ``(n, n)``, whose ``data`` are the rows of :attr:`values`
+        (they follow updates; made once: scipy copies the data it is given and checks the index
+        order of every new matrix, 2-5 ms a frame)."""
+        if self._matrices is None:
+            self._matrices = []
+            for c in range(3):
+                m = sp.csr_matrix((self.values[c], self.indices, self.indptr), shape=(self.n, self.n))
+                m.data = self.values[c]
+                self._matrices.append(m)
+        return self._matrices
 
     def row_positions(self, rows: NDArray[np.int64]) -> NDArray[np.int64]:
         """The pattern positions of every entry of ``rows`` (active indices), row by row."""

@@ -244,16 +244,19 @@ def depth_below(view: EditView, positions: ArrayLike, uv: NDArray) -> NDArray[np
     return dist - s
 
 
-def edit_weights(edit: Edit, view: EditView | None, positions: ArrayLike) -> NDArray[np.float64]:
+def edit_weights(edit: Edit, view: EditView | None, positions: ArrayLike,
+                 pixels: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None) -> NDArray[np.float64]:
     """``(N,)`` weight in [0, 1] of ``edit`` at node ``positions`` (mm) seen in ``view``
-    (module docstring). Without a view the edit must be unrestricted (weight = strength)."""
+    (module docstring). Without a view the edit must be unrestricted (weight = strength).
+    ``pixels``: ``view.pixels(positions)`` when the caller already has it (the dabs of a stroke
+    share one view)."""
     p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     w = np.full(len(p), float(edit.strength))
     if not edit.restricted:
         return w
     if view is None:
         raise InputError("a brush, mask or depth range needs a view to project the nodes into")
-    uv, front = view.pixels(p)
+    uv, front = view.pixels(p) if pixels is None else pixels
     W, H = view.size
     on = front & (uv[:, 0] >= 0) & (uv[:, 0] <= W) & (uv[:, 1] >= 0) & (uv[:, 1] <= H)
     if edit.brush is not None:     # outside the brush's square the weight is 0: weigh the nodes inside only
@@ -305,11 +308,12 @@ def apply_values(edit: Edit, x: NDArray, w: NDArray) -> tuple[NDArray[np.float64
 
 
 def apply_edit(edit: Edit, kappa: ArrayLike, mu: ArrayLike, positions: ArrayLike,
-               view: EditView | None = None, active: ArrayLike | None = None
+               view: EditView | None = None, active: ArrayLike | None = None,
+               pixels: tuple[NDArray[np.float64], NDArray[np.bool_]] | None = None
                ) -> tuple[NDArray[np.float64], NDArray[np.float64], EditResult]:
     """``edit`` applied to per-node ``kappa`` (mm) and ``mu`` (mm^-1), both ``(..., 3)`` with one
-    node per position ``(N, 3)`` mm; ``active`` (``(N,)``) limits it to those nodes. Returns
-    new arrays of the input shapes and an :class:`EditResult`."""
+    node per position ``(N, 3)`` mm; ``active`` (``(N,)``) limits it to those nodes; ``pixels``
+    as :func:`edit_weights`. Returns new arrays of the input shapes and an :class:`EditResult`."""
     k = np.asarray(kappa, dtype=np.float64)
     m = np.asarray(mu, dtype=np.float64)
     shape = k.shape
@@ -317,7 +321,7 @@ def apply_edit(edit: Edit, kappa: ArrayLike, mu: ArrayLike, positions: ArrayLike
     p = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
     if len(p) != len(k2) or m2.shape != k2.shape:
         raise InputError(f"edit: {len(p)} positions for kappa {k.shape} and mu {m.shape}")
-    w = edit_weights(edit, view, p)
+    w = edit_weights(edit, view, p, pixels)
     if active is not None:
         w = w * np.asarray(active, dtype=bool).reshape(-1)
     x = k2 if edit.prop == "kappa" else m2
