@@ -199,6 +199,29 @@ def test_warm_starts_and_set_b(ctx, fem_system, accel):
         assert rel(x3, 2.0 * x) < 2e-4
 
 
+def test_residual_on_the_gpu_equals_the_float64_one(ctx, fem_system):
+    """residual_gpu (fp32, on the GPU) is the float64 Jacobi-scaled residual of the same iterate,
+    from 1 down to 1e-5, within 1 % of its value (or 2e-6 absolute: the fp32 floor); a zero
+    channel of b does not count; plain V-cycles answer nan (no reducer: check on the CPU)."""
+    mats, b = fem_system
+    with GlslSparseMultigrid(mats, b, ctx=ctx) as s:
+        seen = []
+        for k in range(12):
+            gpu = s.residual_gpu()
+            cpu = s.system.residual(s.unknown().T.reshape(-1))
+            assert gpu == pytest.approx(cpu, rel=1e-2, abs=2e-6), k
+            seen.append(cpu)
+            s.cycle(1)
+        assert seen[0] == pytest.approx(1.0) and seen[-1] < 1e-5
+    b0 = b.copy()
+    b0[:, 2] = 0.0
+    with GlslSparseMultigrid(mats, b0, ctx=ctx) as s:
+        s.cycle(2)
+        assert s.residual_gpu() == pytest.approx(s.system.residual(s.unknown().T.reshape(-1)), rel=1e-2)
+    with GlslSparseMultigrid(mats, b, ctx=ctx, accel=None) as s:
+        assert np.isnan(s.residual_gpu())
+
+
 # ---- 4. refinement --------------------------------------------------------------------------
 def jacobi_sweeps(A: sp.csr_matrix, b: np.ndarray, tol: float = 1e-4, every: int = 10) -> int:
     """Damped Jacobi sweeps (GlslSparse's auto omega) to a Jacobi-scaled residual <= tol, in

@@ -237,6 +237,7 @@ class _ConjugateGradients:
         self.partial = _Target.create(ctx, res, (1 << max(0, (self.partials - 1).bit_length()), 1))
         self.rho = [_Target.create(ctx, res, (1, 1)), _Target.create(ctx, res, (1, 1))]
         self.pq = _Target.create(ctx, res, (1, 1))
+        self.norms = [_Target.create(ctx, res, (1, 1)), _Target.create(ctx, res, (1, 1))]   # residual_gpu's
         self.reduce = _Quad(ctx, res, "gather_reduce.frag", {"u_a": 0, "u_b": 1})
         self.axpy = _Quad(ctx, res, "gather_axpy.frag", {"u_a": 0, "u_b": 1, "u_num": 2, "u_den": 3})
         self.started = False
@@ -584,6 +585,27 @@ class GlslSparseMultigrid(GatherSolver):
                 fc[0, : r1 - r0, :3] = lv.omega / d
                 fc[0, : r1 - r0, 3] = np.arange(r0, r1)
                 g.first.texture.write(fc.tobytes(), viewport=(0, int(y0), 0, W, size[1], 1), alignment=1)
+
+    def residual_gpu(self) -> float:
+        """The Jacobi-scaled residual ``max_c ||D^-1 (b - A x)|| / ||D^-1 b||`` of the current
+        iterate (the measure of :func:`glsldiff.oracle.solvers.relax`), evaluated on the GPU in
+        fp32: a residual pass, the first-sweep scaling ``omega D^-1`` (omega cancels), two
+        reductions, 2 texels read back instead of the iterate and a float64 product on the CPU.
+        ``nan`` where it cannot (plain V-cycles, a zero right-hand side): check on the CPU then.
+        Its fp32 floor is about 1e-6 (the float64 check's too: the iterate is fp32)."""
+        g, cg = self._levels[0], self._cg
+        if cg is None or g.first is None or g.r is None:
+            return math.nan
+        gl.make_current(self.ctx)
+        with gl.keep_framebuffer(self.ctx):
+            for vec, out in ((None, cg.norms[0]), (g.b, cg.norms[1])):
+                if vec is None:
+                    self._pass.draw(RESIDUAL, g.r_fbo, g.size, g.A, self.state.src, g.size, diag=g.diag, b=g.b)
+                self._pass.draw(APPLY, cg.q.fbo, g.size, g.first, g.r if vec is None else vec, g.size)
+                cg.dot(cg.q.tex, cg.q.tex, out)
+            r, b = (np.frombuffer(t.tex.read(), dtype=np.float32)[:3].astype(np.float64) for t in cg.norms)
+        ok = b > 0                       # channels without a source do not count (as channel_ratio)
+        return float(np.sqrt(np.max(r[ok] / b[ok]))) if ok.any() else math.nan
 
     def smooth(self, sweeps: int) -> None:
         """``sweeps`` damped Jacobi sweeps of the finest level on the iterate (no coarse

@@ -13,8 +13,10 @@ a stale preconditioner, still symmetric positive definite, for a local change).
 Frame budget while editing (``frame_sweeps`` set, the viewer): a frame with a new edit runs
 :data:`PAINT_SWEEPS` damped Jacobi sweeps of the new finest matrix from the last frame's
 fluence and skips the residual check (no CPU residual); each later frame runs
-:data:`FRAME_ITERATIONS` preconditioned CG iterations and checks the residual, until ``tol``
-(the image converges over frames). Without a budget every frame is solved to ``tol``.
+:data:`FRAME_ITERATIONS` preconditioned CG iterations and measures the residual on the GPU
+(fp32, two texels read back), until ``tol`` (the image converges over frames); the frame the
+GPU calls converged is confirmed in float64 on the CPU. Without a budget every frame is solved
+to ``tol``.
 """
 from __future__ import annotations
 
@@ -97,6 +99,7 @@ class TetPass2:
         self.p1: P1System | None = None
         self.solver: GlslSparseMultigrid | None = None
         self.phi: NDArray[np.float64] | None = None        # the last frame's fluence (n_active, 3)
+        self._frame_iterations = 0                         # CG iterations of converging frames since the last edit
 
     @property
     def active(self) -> NDArray[np.int64]:
@@ -117,6 +120,8 @@ class TetPass2:
             self.p1 = P1System(self.geo, self.active_mask, C, kappa, mu, pattern=pattern)
         else:
             up = self.p1.set_material(kappa, mu)
+            if up.rows.size:
+                self._frame_iterations = 0
             if self.solver is not None and up.rows.size:
                 if up.nodes.size > REBUILD_SHARE * len(self.active_mask):
                     self.release()
@@ -124,6 +129,7 @@ class TetPass2:
                     self.solver.update_fine(self.p1.matrices(), up.rows, diagonal_only=up.diagonal_only)
         if not np.array_equal(self.p1.system.b, np.asarray(b, dtype=np.float64).T.reshape(-1)):
             self.p1.set_rhs(b)
+            self._frame_iterations = 0
             if self.solver is not None:     # a new source restarts CG; the same one lets it go on
                 self.solver.set_b(b)
         return self.p1.system
@@ -189,11 +195,37 @@ class TetPass2:
                               "no residual check)", nodes=solver.n, sweeps=PAINT_SWEEPS,
                               seconds=time.perf_counter() - t0, status="budget")
             return TetFrame(self.phi, rep, True, False)
+        if frame_budget and warm and not fresh:
+            return self._converging_frame(tol)
         budget = FRAME_ITERATIONS if frame_budget and warm else FEM_MAXITER
         phi, rep = solver.solve(tol=tol, maxiter=budget, x0=CURRENT if (warm or start is not None) else None)
         self.phi = phi
         partial = frame_budget and warm and rep.status not in ("converged", "stalled")
         return TetFrame(phi, rep, partial, fresh and not warm and x0 is not None)   # started from the disk cache
+
+    def _converging_frame(self, tol: float) -> TetFrame:
+        """A frame of the image converging after an edit or a light change: :data:`FRAME_ITERATIONS`
+        CG iterations from where the last frame stopped, the residual measured on the GPU
+        (:meth:`~glsldiff.solve.gather_multigrid.GlslSparseMultigrid.residual_gpu`, two texels read
+        back); only a frame it calls converged is confirmed in float64 on the CPU. After
+        :data:`FEM_MAXITER` iterations without reaching ``tol`` the frame is final, unconverged."""
+        solver, s = self.solver, self.p1.system if self.p1 is not None else None
+        assert solver is not None and s is not None
+        t0 = time.perf_counter()
+        solver.cycle(FRAME_ITERATIONS)
+        self._frame_iterations += FRAME_ITERATIONS
+        res, where = solver.residual_gpu(), "GPU fp32"
+        self.phi = solver.unknown()
+        if not res > tol:          # converged by the GPU's measure (or nan: none): the float64 check decides
+            res, where = s.residual(self.phi.T.reshape(-1)), "CPU float64"
+        done = res <= tol
+        partial = not done and self._frame_iterations < FEM_MAXITER
+        rep = SolveReport(f"{solver.method}-{solver.precision}(PCG, frame-coherent: {FRAME_ITERATIONS} iteration(s) "
+                          f"a frame, residual on the {where})", nodes=solver.n, sweeps=FRAME_ITERATIONS,
+                          residual=float(res), seconds=time.perf_counter() - t0, converged=done,
+                          history=[(self._frame_iterations, float(res))],
+                          status="converged" if done else "budget")
+        return TetFrame(self.phi, rep, partial, False)
 
     def release(self) -> None:
         if self.solver is not None:
