@@ -35,7 +35,7 @@ from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import scattering_frame
 
-__all__ = ["SplitInputs", "SplitResult", "split_radiance", "FAR_MODELS"]
+__all__ = ["SplitInputs", "SplitResult", "SplitStatic", "split_radiance", "FAR_MODELS"]
 
 Array = NDArray[np.float64]
 #: The split's far-field models: the gathered collided fluence (first-collision source) or the
@@ -69,9 +69,27 @@ class SplitInputs:
     medium: Any = None
 
 
+@dataclass(frozen=True)
+class SplitStatic:
+    """The per-vertex terms of the surface far field that do not depend on the fluence: the
+    local multiple scattering ``M``, ``single``, the half-space's ``X_loc``, the far field's
+    ``c_far``, the diffusion weight ``w`` (each ``(V, 3)``), which vertices face the eye and the
+    report line. They stay while the material, the lights and the camera do (the frames that
+    converge after an edit change only the fluence)."""
+
+    M: Array
+    single: Array
+    X_loc: Array
+    c_far: Array
+    w: Array
+    facing: NDArray[np.bool_]
+    info: str
+
+
 @dataclass
 class SplitResult:
-    """``radiance`` ``(V, 3)`` and its parts (single, multiple), seconds and a report line."""
+    """``radiance`` ``(V, 3)`` and its parts (single, multiple), seconds and a report line;
+    ``static``: the fluence-independent terms of a surface far field (``None`` for the gather)."""
 
     radiance: Array
     single: Array
@@ -79,6 +97,7 @@ class SplitResult:
     seconds: float
     info: str = ""
     parts: dict[str, float] = field(default_factory=dict)
+    static: SplitStatic | None = None
 
 
 def _at_vertices(interp: Any, beams: Sequence[tuple[Array, Array]]) -> list[tuple[Array, Array]]:
@@ -92,9 +111,17 @@ def _at_vertices(interp: Any, beams: Sequence[tuple[Array, Array]]) -> list[tupl
     return out
 
 
-def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = None) -> SplitResult:
-    """The split's subsurface radiance per vertex (module docstring), for the camera at ``eye``."""
+def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = None,
+                   static: SplitStatic | None = None) -> SplitResult:
+    """The split's subsurface radiance per vertex (module docstring), for the camera at ``eye``.
+    ``static``: the last result's :attr:`SplitResult.static`, when only the fluence changed since
+    (surface far field): then only the fluence's terms are recomputed."""
     t0 = time.perf_counter()
+    if static is not None and inp.far == "surface":
+        X = np.asarray(inp.interp @ np.maximum(inp.phi, 0.0))
+        multiple = combine(static.M, X, static.X_loc, static.c_far, static.w) * static.facing[:, None]
+        return SplitResult(static.single + multiple, static.single, multiple, time.perf_counter() - t0,
+                           static.info, static=static)
     v, n = inp.vertices, inp.normals
     w_o = np.asarray(eye, dtype=np.float64)[None, :] - v
     nu_o = np.clip(np.einsum("ij,ij->i", w_o, n) / np.maximum(np.linalg.norm(w_o, axis=1), 1e-300), 0.0, 1.0)
@@ -151,4 +178,6 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
             f"scattering exact for the local half-space (adding-doubling, eta {eta:g}) with the far field of the "
             f"{'first-collision diffusion gathered along the view rays' if inp.far == 'gather' else 'Marshak diffusion'}"
             f" ({int(lit.sum()):,} of {len(v):,} vertices lit)")
-    return SplitResult(single + multiple, single, multiple, time.perf_counter() - t0, info)
+    kept = (SplitStatic(M, single, X_loc, np.broadcast_to(c_far, M.shape), np.broadcast_to(w, M.shape), facing, info)
+            if inp.far == "surface" else None)
+    return SplitResult(single + multiple, single, multiple, time.perf_counter() - t0, info, static=kept)
