@@ -19,10 +19,13 @@ slabs), for every light kind:
 * a beam's entry point y is the first surface facing the light on the straight line from the
   sample towards it: a depth map rendered from the light keeps the nearest front-facing depth
   (:meth:`glsldiff.render.shadows.ShadowMap.entry`; translucent shadow maps, Dachsbacher and
-  Stamminger 2003). There (normal ``n_y`` and closest point by :func:`glsldiff.mesh.closest_points`)
-  the irradiance ``E c`` (``c = n_y . w``) crosses with ``F_t(eta, c)`` and refracts to cosine
-  ``t_c``: the beam's normal irradiance inside is ``E c F_t / t_c``, its direction the refracted
-  one, and its path length Jensen's ``s' = l c / t_c`` (``l`` the straight distance);
+  Stamminger 2003). Its normal ``n_y`` is the mesh's corner normals interpolated at the closest
+  point on the faces a face buffer rendered with the depth map stores around y
+  (:meth:`~glsldiff.render.shadows.ShadowMap.entry_normals`; :func:`glsldiff.mesh.closest_points`
+  only where that buffer holds no face, which its coverage, equal to the depth map's, rules
+  out). There the irradiance ``E c`` (``c = n_y . w``) crosses with ``F_t(eta, c)`` and refracts
+  to cosine ``t_c``: the beam's normal irradiance inside is ``E c F_t / t_c``, its direction the
+  refracted one, and its path length Jensen's ``s' = l c / t_c`` (``l`` the straight distance);
 * the radiance leaving x towards the eye is
 
 .. math::
@@ -118,13 +121,14 @@ class _Beams:
             corners = sub_rectangles(light)
             self.points = corners.mean(axis=1)                               # sub-rectangle centres
             cube = max(64, size // 2)                                        # six views each
-            self.maps = [renderer.render(renderer.perspective_views(c, cube), cube) for c in self.points]
+            self.maps = [renderer.render(renderer.perspective_views(c, cube), cube, normals=True)
+                         for c in self.points]
         elif isinstance(light, EnvironmentLight):
             self.dirs = fibonacci_directions(min(ENV_DIRECTIONS, light.directions))
             self.radiance = np.maximum(sh_evaluate(light.sh, self.dirs), 0.0) * (4.0 * np.pi / len(self.dirs))
-            self.maps = [renderer.shadow_map(light, size, direction=w) for w in self.dirs]
+            self.maps = [renderer.shadow_map(light, size, direction=w, normals=True) for w in self.dirs]
         else:
-            self.maps = [renderer.shadow_map(light, size)]
+            self.maps = [renderer.shadow_map(light, size, normals=True)]
 
     def __len__(self) -> int:
         return len(self.maps)
@@ -139,7 +143,12 @@ class _Beams:
         return to_light(self.light, x)
 
     def entry(self, b: int, x: Array) -> Array:
+        """Straight distance (mm) from points ``x`` back to beam ``b``'s entry point (NaN: none)."""
         return self.maps[b].entry(x - self.centre)
+
+    def entry_normals(self, b: int, y: Array) -> Array:
+        """``(M, 3)`` unit outward normal at beam ``b``'s entry points ``y`` (NaN: no face stored)."""
+        return self.maps[b].entry_normals(y - self.centre)
 
     def inside(self, b: int, y: Array, n_y: Array, ell: Array, eta: float
                ) -> tuple[Array, Array, Array, Array]:
@@ -249,7 +258,10 @@ def _beam(bl: _Beams, b: int, x: Array, st_x: Array, up: Array, mesh: Any, med: 
         return res
     x, w, ell = x[ok], w[ok], ell[ok]
     y = x + ell[:, None] * w
-    _, _, _, n_y = closest_points(mesh, y, exact=False)
+    n_y = bl.entry_normals(b, y)
+    miss = np.flatnonzero(~np.isfinite(n_y[:, 0]))
+    if miss.size:                           # no face stored there (not expected: same coverage)
+        n_y[miss] = closest_points(mesh, y[miss], exact=False)[3]
     I, c, t, w_y = bl.inside(b, y, n_y, ell, eta)
     lit = c > 0.0
     path = ell * c / t                                                       # Jensen's s'
