@@ -126,3 +126,22 @@ def test_the_right_hand_side_follows_every_new_source(scene):
             b = tet_rhs(r.fem_problem(s)).T.reshape(-1)
             np.testing.assert_allclose(r.fem_system.b, b, rtol=1e-12, atol=0)
             assert r.pass2_solver is None or np.allclose(r.pass2_solver.system.b, b, rtol=1e-12)
+
+
+def test_converging_frames_keep_the_split_static_terms(scene):
+    """Frames that only change the fluence reuse the split's fluence-independent terms (the
+    same SplitStatic object frame after frame) and shade the same image as terms made afresh."""
+    from glsldiff.render.terms import SurfaceTerms
+    opts = dataclasses.replace(scene.options, source="surface")      # the split's surface far field
+    sc = dataclasses.replace(scene, options=opts)
+    with Renderer(frame_sweeps=10, cache_solutions=False, allow_unconverged=True) as r:
+        r.render(sc)
+        _dabs(r, sc, 2)
+        kept = r._terms.split_result.static
+        assert kept is not None
+        img = _converge(r, sc)
+        assert r._terms.split_result.static is kept           # converging frames: only the fluence changed
+        r._terms = SurfaceTerms(r.ctx)                         # every pass-3 term afresh, same solution
+        again, rep = r.render(sc)
+        assert not rep.ran("pass2") and r._terms.split_result.static is not kept
+        assert _rel(img, again) < 1e-9

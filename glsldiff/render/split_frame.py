@@ -35,7 +35,7 @@ from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import scattering_frame
 
-__all__ = ["SplitInputs", "SplitResult", "SplitStatic", "split_radiance", "FAR_MODELS"]
+__all__ = ["SplitInputs", "SplitResult", "SplitStatic", "split_again", "split_radiance", "FAR_MODELS"]
 
 Array = NDArray[np.float64]
 #: The split's far-field models: the gathered collided fluence (first-collision source) or the
@@ -111,17 +111,19 @@ def _at_vertices(interp: Any, beams: Sequence[tuple[Array, Array]]) -> list[tupl
     return out
 
 
-def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = None,
-                   static: SplitStatic | None = None) -> SplitResult:
-    """The split's subsurface radiance per vertex (module docstring), for the camera at ``eye``.
-    ``static``: the last result's :attr:`SplitResult.static`, when only the fluence changed since
-    (surface far field): then only the fluence's terms are recomputed."""
+def split_again(static: SplitStatic, interp: Any, phi: Array) -> SplitResult:
+    """:func:`split_radiance` of a frame whose fluence ``phi`` ``(S, 3)`` alone changed since the
+    result that kept ``static`` (surface far field): only the fluence's terms are recomputed."""
     t0 = time.perf_counter()
-    if static is not None and inp.far == "surface":
-        X = np.asarray(inp.interp @ np.maximum(inp.phi, 0.0))
-        multiple = combine(static.M, X, static.X_loc, static.c_far, static.w) * static.facing[:, None]
-        return SplitResult(static.single + multiple, static.single, multiple, time.perf_counter() - t0,
-                           static.info, static=static)
+    X = np.asarray(interp @ np.maximum(phi, 0.0))
+    multiple = combine(static.M, X, static.X_loc, static.c_far, static.w) * static.facing[:, None]
+    return SplitResult(static.single + multiple, static.single, multiple, time.perf_counter() - t0, static.info,
+                       static=static)
+
+
+def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = None) -> SplitResult:
+    """The split's subsurface radiance per vertex (module docstring), for the camera at ``eye``."""
+    t0 = time.perf_counter()
     v, n = inp.vertices, inp.normals
     w_o = np.asarray(eye, dtype=np.float64)[None, :] - v
     nu_o = np.clip(np.einsum("ij,ij->i", w_o, n) / np.maximum(np.linalg.norm(w_o, axis=1), 1e-300), 0.0, 1.0)

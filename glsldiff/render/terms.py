@@ -52,7 +52,7 @@ from glsldiff.render.scene import Scene
 from glsldiff.render.shading import MAX_SHADER_LIGHTS
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import single_scattering_frame
-from glsldiff.render.split_frame import SplitInputs, SplitResult, split_radiance
+from glsldiff.render.split_frame import SplitInputs, SplitResult, SplitStatic, split_again, split_radiance
 from glsldiff.render.unscattered import sees_through, unscattered
 
 __all__ = ["FrameInputs", "SurfaceTerms", "LIT_SHARE", "key", "lit_distance", "shader_lights"]
@@ -269,12 +269,25 @@ class SurfaceTerms:
         """The transport split's subsurface radiance per vertex (:mod:`glsldiff.render.split_frame`),
         kept while the solution, the lights, the material and the camera stay the same."""
         return self._cached("split", key(f.solve_key, f.solution, f.light_key, f.edit_version, f.view),
-                            lambda: self._split(f))
+                            lambda: self._split(f, self._split_static(f)))
 
-    def _split(self, f: FrameInputs) -> SplitResult:
+    def _split_static(self, f: FrameInputs) -> SplitStatic | None:
+        """The last split's fluence-independent terms when only the fluence changed since (a
+        frame converging after an edit or a light change: the material, load and camera are the
+        same), else None."""
+        last = self._kept.get("split")
+        k = key(f.material_key, f.light_key, f.edit_version, f.view, f.scene.options)
+        fresh = self._keys.get("split static") != k
+        self._keys["split static"] = k
+        return None if fresh or last is None else last.static
+
+    def _split(self, f: FrameInputs, static: SplitStatic | None = None) -> SplitResult:
         """:func:`~glsldiff.render.split_frame.split_radiance` of the frame: the surface far field, or the
-        gather's (volume source) with each node's distance to the light in mean free paths."""
+        gather's (volume source) with each node's distance to the light in mean free paths;
+        ``static``: the surface far field's terms kept from the last frame."""
         geo, o = f.geo, f.scene.options
+        if static is not None and o.source != "volume":
+            return split_again(static, geo["interp"], f.phi_b)
         far = "gather" if o.source == "volume" else "surface"
         fluence, thick = None, None
         kappa, mu = f.boundary_material()
