@@ -132,3 +132,13 @@ def test_renderer_incidence(ctx, discretisation, incidence):
     lit, grazing = obj[:3], obj[len(obj) // 2 - 2: len(obj) // 2 + 1]     # image left is +z (lit); the middle grazes
     assert (row_n[grazing].mean() / row_n[lit].mean()) > 1.02 * (row_o[grazing].mean() / row_o[lit].mean())
     assert lum_n.sum() == pytest.approx(lum_o.sum(), rel=0.15)
+
+
+def test_local_bracket_is_finite_where_beam_and_view_are_both_grazing():
+    """eta < 1: past the critical angle a beam's and the view's refracted cosines are 0 (the beam
+    carries no light there); the local term is then 0, not 0/0 (which rendered black images)."""
+    kappa, mu = np.full((2, 3), 1.0 / (3 * 1.02)), np.full((2, 3), 0.02)
+    beta = halfspace_bracket(kappa, mu, 0.9, "p1")
+    beams = [(np.array([[0.0] * 3, [1.0] * 3]), np.array([0.0, 0.5]))]
+    out = local_bracket(beams, kappa, mu, np.array([0.0, 0.7]), beta)
+    assert np.all(np.isfinite(out)) and np.all(out[0] == 0.0) and np.all(out[1] != 0.0)

@@ -119,6 +119,7 @@ def test_tiny_back_lit_patch_validation_case(tmp_path, monkeypatch):
     (0.6, 0.6, 1.4, PATCH),                                   # albedo 0.5
     (0.02, 1.2, 1.0, PATCH),                                  # index matched
     (0.02, 1.2, 1.5, {"type": "directional", "direction": [1.0, 0.0, 0.02]}),    # grazing, eta 1.5
+    (0.02, 1.2, 0.9, PATCH),           # eta < 1: 0/0 in the local bracket past the critical angle made it black
 ])
 def test_stiff_cases_stay_finite_and_say_where_diffusion_holds(tmp_path, ctx, sigma_a, sigma_s, eta, light):
     scene = _slab_scene(tmp_path)
@@ -133,8 +134,8 @@ def test_stiff_cases_stay_finite_and_say_where_diffusion_holds(tmp_path, ctx, si
     note = next(n for n in rep.notes if n.startswith("regime:"))
     albedo = sigma_s / (sigma_a + sigma_s)
     assert f"albedo {albedo:.3g}" in note
-    # the split was validated from albedo 0.3 and eta 1.0-1.4: only eta 1.5 is outside
-    assert [w.split(" ")[0] for w in rep.warnings] == (["eta"] if eta > 1.4 else [])
+    # the split was validated from albedo 0.3 and eta 1.0-1.4: only eta 1.5 and 0.9 are outside
+    assert [w.split(" ")[0] for w in rep.warnings] == (["eta"] if not 1.0 <= eta <= 1.4 else [])
 
 
 def test_tiny_spot_lit_slab_case(tmp_path, monkeypatch):

@@ -171,5 +171,7 @@ def local_bracket(beams: Beams, kappa: ArrayLike, mu: ArrayLike, view_cos: Array
         tt = np.asarray(t)[:, None]
         H = h_function(a, tt)                # reflected_share(a, t, mu) = H / ((mu + t) D)
         share = H / mean if deep else 1.0
-        out += np.asarray(E, dtype=np.float64) * (H / ((m + tt) * D) - share)
+        den = (m + tt) * D                   # 0 where beam and view are both grazing inside (eta < 1: past
+        reflected = np.divide(H, den, out=np.zeros(np.broadcast(H, den).shape), where=den > 0)   # the critical angle)
+        out += np.asarray(E, dtype=np.float64) * (reflected - share)
     return np.asarray(beta, dtype=np.float64) * out
