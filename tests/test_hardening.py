@@ -293,13 +293,17 @@ def test_render_warm_starts_from_the_cached_solution(tmp_path, capsys, monkeypat
     assert " 0 sweeps" in second and " 0 sweeps" not in first
     np.testing.assert_array_equal(io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "b.exr"))
     (entry,) = (tmp_path / "cache").glob("pass2-*.pkl")
-    phi = cache.load("pass2", entry.stem.split("-", 1)[1], np.ndarray)
-    cache.store("pass2", entry.stem.split("-", 1)[1], 3.0 * phi)   # a wrong start: solved again to tol
-    assert main(["render", str(scene), "-o", str(tmp_path / "c.exr")]) == 0
-    third = capsys.readouterr().out
-    assert "cached solution" in third and " 0 sweeps" not in third
-    a, c = io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "c.exr")
-    assert np.abs(c - a).max() < 2e-3 * a.max()
+    key = entry.stem.split("-", 1)[1]
+    stored = cache.load("pass2", key, dict)
+    assert stored["residual"] <= 1e-4 and stored["checksum"] == cache.digest(stored["phi"])
+    for damage in ({"phi": 3.0 * stored["phi"]},          # changed after its checksum: a wrong start
+                   {"residual": 1.0}):                    # not converged when stored
+        cache.store("pass2", key, {**stored, **damage})
+        assert main(["render", str(scene), "-o", str(tmp_path / "c.exr")]) == 0
+        third = capsys.readouterr().out
+        assert "cached solution" in third and " 0 sweeps" not in third      # solved again to tol
+        a, c = io.read_exr(tmp_path / "a.exr"), io.read_exr(tmp_path / "c.exr")
+        assert np.abs(c - a).max() < 2e-3 * a.max()
     other = _scene(tmp_path, irradiance=[2.0, 1.0, 1.0])
     assert main(["render", str(other), "-o", str(tmp_path / "d.exr")]) == 0
     assert "cached solution" not in capsys.readouterr().out

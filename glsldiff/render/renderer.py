@@ -12,7 +12,8 @@ skipped; only a light moved: setup and material kept, pass 2 warm-started):
 * **pass 2** (t2): the backend's diffusion solve (lattice: GLSL multilevel sweeps; tetrahedra:
   GPU multigrid-preconditioned CG), warm-started from the previous frame when only the light or
   the material (edits) changed, on a first frame from the converged solution of the same system
-  cached on disk (:mod:`glsldiff.core.cache`; the residual is still checked);
+  cached on disk (:mod:`glsldiff.core.cache`; the lattice checks its residual, tetrahedra take
+  the float64 residual measured when it was stored, with a checksum);
 * **pass 3** (t3, every frame): the per-vertex terms (:mod:`glsldiff.render.terms`) shaded from
   the scene's camera (:func:`glsldiff.render.shading.shade`); the report's notes and warnings
   (:mod:`glsldiff.render.frame_report`).
@@ -354,7 +355,7 @@ class Renderer:
         stage("pass2", "solve", solve_key, lambda: self._pass2(scene, warm, painting),
               "material and incident light unchanged: solution kept", "t2")
         if rep.ran("pass2") and self._from_cache:
-            rep.passes[-1]["why"] += ": warm start from the cached solution of this system (residual checked)"
+            rep.passes[-1]["why"] += f": from the cached solution of this system ({self._solve_report.sweeps} iterations)"
         elif rep.ran("pass2") and warm:
             what = "light changed" if new_light else "material edited" if edited else "converging"
             rep.passes[-1]["why"] = f"{what}: warm start from the previous frame (frame coherence)"
