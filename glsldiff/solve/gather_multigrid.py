@@ -50,7 +50,9 @@ Acceleration (``accel``)
     (``MATVEC``), the dot products ``r.z``, ``p.q`` reduced to one texel in two passes
     (``shaders/gather_reduce.frag``) and read by the vector updates
     (``shaders/gather_axpy.frag``): no read-back per iteration. An iteration costs a V-cycle
-    plus 4 fine passes of 2-3 fetches per node and 4 reduction passes (~10 % of a cycle).
+    plus 4 fine passes of 2-3 fetches per node and 4 reduction passes (~10 % of a cycle). An
+    iteration ends at its new iterate: the next direction's V-cycle opens the next iteration, so
+    ``x_k`` is there after k V-cycles, not k + 1 (a frame after an edit: 1 V-cycle, not 2).
     ``None``: plain V-cycles ``x <- x + V(b - A x)``. CG matters on grids whose P1 matrix is far
     from an M-matrix: on the 125k-node bunny grid (``lambda_max(D^-1 A)`` 3.7) plain V-cycles
     contract by 0.93 per cycle (pyamg's own Gauss-Seidel V-cycles by 0.92) and need 42 cycles
@@ -238,6 +240,7 @@ class _ConjugateGradients:
         self.rho = [_Target.create(ctx, res, (1, 1)), _Target.create(ctx, res, (1, 1))]
         self.pq = _Target.create(ctx, res, (1, 1))
         self.norms = [_Target.create(ctx, res, (1, 1)), _Target.create(ctx, res, (1, 1))]   # residual_gpu's
+        self.pending = False     # the iterate updated, the next direction not yet made
         self.reduce = _Quad(ctx, res, "gather_reduce.frag", {"u_a": 0, "u_b": 1})
         self.axpy = _Quad(ctx, res, "gather_axpy.frag", {"u_a": 0, "u_b": 1, "u_num": 2, "u_den": 3})
         self.started = False
@@ -677,21 +680,28 @@ class GlslSparseMultigrid(GatherSolver):
         z = g.x.src
         cg.update(cg.p, z, z, cg.pq, cg.pq, 0.0)           # p = z
         cg.dot(cg.r.src, z, cg.rho[0])
-        cg.started = True
+        cg.started, cg.pending = True, False
 
-    def _cg_step(self) -> None:
-        """One iteration: ``q = A p``, ``alpha = rho / p.q``, ``x += alpha p``, ``r -= alpha q``,
-        ``z = M r``, ``rho' = r.z``, ``p = z + (rho' / rho) p``."""
+    def _cg_update(self) -> None:
+        """The iterate's half of an iteration: ``q = A p``, ``alpha = rho / p.q``, ``x += alpha
+        p``, ``r -= alpha q``; the next direction waits for the next iteration (:meth:`_cg_direction`),
+        so an iteration ends at its new iterate (a frame shows ``x_k`` after k V-cycles, not k + 1)."""
         cg, g = self._cg, self._levels[0]
         self._pass.draw(MATVEC, cg.q.fbo, g.size, g.A, cg.p.src, g.size, diag=g.diag)
         cg.dot(cg.p.src, cg.q.tex, cg.pq)
         cg.update(cg.x, cg.x.src, cg.p.src, cg.rho[0], cg.pq, 1.0)
         cg.update(cg.r, cg.r.src, cg.q.tex, cg.rho[0], cg.pq, -1.0)
+        cg.pending = True
+
+    def _cg_direction(self) -> None:
+        """The direction's half: ``z = M r``, ``rho' = r.z``, ``p = z + (rho' / rho) p``."""
+        cg, g = self._cg, self._levels[0]
         self._vcycle(cg.r.src, zero=True)
         z = g.x.src
         cg.dot(cg.r.src, z, cg.rho[1])
         cg.update(cg.p, z, cg.p.src, cg.rho[1], cg.rho[0], 1.0)
         cg.rho.reverse()
+        cg.pending = False
 
     def cycle(self, n: int = 1) -> None:
         """Run ``n`` iterations on the GPU (no read-back): V-cycles, or conjugate-gradient
@@ -706,7 +716,9 @@ class GlslSparseMultigrid(GatherSolver):
                 else:
                     if not self._cg.started:
                         self._cg_start()
-                    self._cg_step()
+                    elif self._cg.pending:
+                        self._cg_direction()
+                    self._cg_update()
             self.cycles_run += n
             self.ctx.finish()  # cycles are timed: wait for the GPU
         self.cycle_seconds += time.perf_counter() - t0
