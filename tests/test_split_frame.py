@@ -8,7 +8,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from glsldiff.mesh import sphere_mesh
-from glsldiff.render.split_frame import SplitInputs, split_again, split_radiance
+from glsldiff.render.split_frame import SplitInputs, split_again, split_radiance, split_repaint
 
 
 def _inputs(seed: int) -> SplitInputs:
@@ -36,3 +36,25 @@ def test_a_new_fluence_reuses_the_static_terms_exactly():
     np.testing.assert_allclose(again.radiance, full.radiance, rtol=1e-12, atol=1e-15)
     assert not np.allclose(again.radiance, first.radiance)      # the fluence's change shows
     assert again.info == full.info
+
+
+def test_a_local_material_change_repaints_only_its_vertices():
+    """A brush's change of kappa and mu at a few nodes (same light and camera): split_repaint
+    recomputes the half-space terms at those vertices only and equals a full evaluation; a
+    change of most nodes, or the 3-D march, is left to split_radiance."""
+    inp = _inputs(3)
+    eye = np.array([5.0, 20.0, 60.0])
+    first = split_radiance(inp, eye)
+    kappa, mu = inp.kappa.copy(), inp.mu.copy()
+    near = np.argsort(np.linalg.norm(inp.vertices - inp.vertices[0], axis=1))[:12]
+    kappa[near] *= 0.7
+    mu[near, 1] *= 5.0
+    inp2 = replace(inp, kappa=kappa, mu=mu)
+    again = split_repaint(first.static, inp2)
+    full = split_radiance(inp2, eye)
+    assert again is not None
+    np.testing.assert_allclose(again.radiance, full.radiance, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(again.static.w, full.static.w, rtol=1e-12, atol=1e-15)
+    assert not np.allclose(again.radiance, first.radiance)
+    assert split_repaint(first.static, replace(inp, kappa=inp.kappa * 0.5)) is None      # everywhere: no
+    assert split_repaint(first.static, replace(inp2, march=True)) is None

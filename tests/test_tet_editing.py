@@ -145,3 +145,25 @@ def test_converging_frames_keep_the_split_static_terms(scene):
         again, rep = r.render(sc)
         assert not rep.ran("pass2") and r._terms.split_result.static is not kept
         assert _rel(img, again) < 1e-9
+
+
+def test_painting_frames_repaint_the_split_where_the_brush_went(scene, monkeypatch):
+    """A painting frame recomputes the split's half-space terms only at the vertices the brush
+    changed (split_repaint), and its radiance equals every term made afresh."""
+    from glsldiff.render.terms import SurfaceTerms
+    opts = dataclasses.replace(scene.options, source="surface")
+    sc = dataclasses.replace(scene, options=opts)
+    original, seen = SurfaceTerms._split, []
+
+    def checked(self, f, static=None, painted=None):
+        out = original(self, f, static, painted)
+        if painted is not None:
+            fresh = original(self, f)
+            seen.append(float(np.abs(out.radiance - fresh.radiance).max() / fresh.radiance.max()))
+        return out
+
+    monkeypatch.setattr(SurfaceTerms, "_split", checked)
+    with Renderer(frame_sweeps=10, cache_solutions=False, allow_unconverged=True) as r:
+        r.render(sc)
+        _dabs(r, sc, 4)
+    assert len(seen) >= 3 and max(seen) < 1e-12, seen

@@ -19,7 +19,7 @@ tables hold the exit Fresnel factor).
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
 import moderngl
@@ -29,13 +29,13 @@ from numpy.typing import NDArray
 from glsldiff.physics.adding_doubling import halfspace_tables
 from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
 from glsldiff.physics.exitance import halfspace_bracket
-from glsldiff.physics.split import (collided_halfspace, combine, diffusion_weight, external_beams, gather_share,
+from glsldiff.physics.split import (ExternalBeam, collided_halfspace, combine, diffusion_weight, external_beams, gather_share,
                                     gathered_halfspace, local_multiple, local_single, marshak_halfspace)
 from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import scattering_frame
 
-__all__ = ["SplitInputs", "SplitResult", "SplitStatic", "split_again", "split_radiance", "FAR_MODELS"]
+__all__ = ["SplitInputs", "SplitResult", "SplitStatic", "split_again", "split_radiance", "split_repaint", "FAR_MODELS"]
 
 Array = NDArray[np.float64]
 #: The split's far-field models: the gathered collided fluence (first-collision source) or the
@@ -84,6 +84,13 @@ class SplitStatic:
     w: Array
     facing: NDArray[np.bool_]
     info: str
+    # the closed form's per-vertex inputs (no march), for :func:`split_repaint`: kappa mu at the
+    # vertices, albedo, view cosine, external beams, F_t E per vertex, single before the facing mask
+    km: Array | None = None
+    nu_o: Array | None = None
+    ext: Sequence[ExternalBeam] = ()
+    B_unit: Array | None = None
+    single_raw: Array | None = None
 
 
 @dataclass
@@ -121,6 +128,56 @@ def split_again(static: SplitStatic, interp: Any, phi: Array) -> SplitResult:
                        static=static)
 
 
+def split_repaint(previous: SplitStatic, inp: SplitInputs) -> SplitResult | None:
+    """:func:`split_radiance` of a frame whose material changed at a few vertices (painting) with
+    the same lights, camera and options as the frame that kept ``previous`` (surface far field,
+    closed-form single scattering): the half-space terms are recomputed at the vertices whose
+    ``kappa mu`` changed only (a brush touches a few hundred of the bunny's 32k). None where it
+    cannot (a march, or more than a quarter of the vertices changed): call :func:`split_radiance`."""
+    t0 = time.perf_counter()
+    if inp.march or inp.far != "surface" or previous.km is None or previous.nu_o is None or previous.B_unit is None \
+            or previous.single_raw is None:
+        return None
+    kv, mv = np.asarray(inp.interp @ inp.kappa), np.asarray(inp.interp @ inp.mu)
+    km = kv * mv
+    rows = np.flatnonzero(np.any(km != previous.km, axis=1))
+    if rows.size > 0.25 * len(km):
+        return None
+    eta, C = float(inp.eta), inp.C
+    tables = halfspace_tables(eta)
+    a = _albedo(km[rows])
+    ext = [(E[rows], nu[rows]) for E, nu in previous.ext]
+    nu_o = previous.nu_o[rows]
+    M, single_raw, c_far, w = (x.copy() for x in (previous.M, previous.single_raw, previous.c_far, previous.w))
+    M[rows] = local_multiple(tables, a, ext, nu_o)
+    single_raw[rows] = local_single(eta, a, ext, nu_o)
+    c_far[rows] = a * tables.escape(a, nu_o[:, None]) / (2.0 * C)
+    w[rows] = diffusion_weight(M[rows], single_raw[rows],
+                               halfspace_bracket(kv[rows], mv[rows], eta, "p1", C) * previous.B_unit[rows])
+    X_loc = np.asarray(inp.interp @ marshak_halfspace(inp.q, inp.kappa, inp.mu, C))
+    facing = previous.facing
+    kept = replace(previous, M=M, single=np.maximum(single_raw, 0.0) * facing[:, None], X_loc=X_loc, c_far=c_far, w=w,
+                   info=_info(inp, eta, X_loc, len(km)), km=km, single_raw=single_raw)
+    out = split_again(kept, inp.interp, inp.phi)
+    out.seconds = time.perf_counter() - t0
+    return out
+
+
+def _albedo(km: Array) -> Array:
+    """The vertices' albedo from ``kappa mu``; a pure absorber (round-off of ``1 - 3 kappa mu``): 0."""
+    albedo = np.clip(1.0 - 3.0 * km, 0.0, 1.0)
+    albedo[albedo < 1e-12] = 0.0
+    return albedo
+
+
+def _info(inp: SplitInputs, eta: float, X_loc: Array, n_vertices: int) -> str:
+    lit = X_loc.sum(axis=1) > 0
+    return (f"model split: single scattering {'3-D march' if inp.march else 'half-space closed form'}; multiple "
+            f"scattering exact for the local half-space (adding-doubling, eta {eta:g}) with the far field of the "
+            f"{'first-collision diffusion gathered along the view rays' if inp.far == 'gather' else 'Marshak diffusion'}"
+            f" ({int(lit.sum()):,} of {n_vertices:,} vertices lit)")
+
+
 def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = None) -> SplitResult:
     """The split's subsurface radiance per vertex (module docstring), for the camera at ``eye``."""
     t0 = time.perf_counter()
@@ -132,8 +189,7 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
     tables = halfspace_tables(eta)
     kv = np.asarray(inp.interp @ inp.kappa)
     mv = np.asarray(inp.interp @ inp.mu)
-    albedo = np.clip(1.0 - 3.0 * kv * mv, 0.0, 1.0)
-    albedo[albedo < 1e-12] = 0.0           # a pure absorber (round-off of 1 - 3 kappa mu): no scattering at all
+    albedo = _albedo(kv * mv)
     beams_t = _at_vertices(inp.interp, inp.beams)
     ext = external_beams(beams_t, eta)
     M = local_multiple(tables, albedo, ext, nu_o)
@@ -168,18 +224,18 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
         X_loc = np.asarray(inp.interp @ marshak_halfspace(inp.q, inp.kappa, inp.mu, inp.C))
         c_far = albedo * tables.escape(albedo, nu_o[:, None]) / (2.0 * inp.C)
     w: Any = 0.0
+    B_unit = None
+    single_raw = single
     if inp.far == "surface":       # departures of the Marshak fluence count as the diffusion's exitance does
         Et = sum((E for E, _ in beams_t), np.zeros_like(kv))
-        B_loc = (halfspace_bracket(kv, mv, eta, "p1", inp.C) * Et
-                 * np.asarray(fresnel_transmittance(eta, nu_o))[:, None])
-        w = diffusion_weight(M, single, B_loc)
+        B_unit = Et * np.asarray(fresnel_transmittance(eta, nu_o))[:, None]
+        w = diffusion_weight(M, single, halfspace_bracket(kv, mv, eta, "p1", inp.C) * B_unit)
     multiple = combine(M, X, X_loc, c_far, w) * facing[:, None]
     single = np.maximum(single, 0.0) * facing[:, None]       # (round-off of the march's sums)
-    lit = X_loc.sum(axis=1) > 0
-    info = (f"model split: single scattering {'3-D march' if inp.march else 'half-space closed form'}; multiple "
-            f"scattering exact for the local half-space (adding-doubling, eta {eta:g}) with the far field of the "
-            f"{'first-collision diffusion gathered along the view rays' if inp.far == 'gather' else 'Marshak diffusion'}"
-            f" ({int(lit.sum()):,} of {len(v):,} vertices lit)")
-    kept = (SplitStatic(M, single, X_loc, np.broadcast_to(c_far, M.shape), np.broadcast_to(w, M.shape), facing, info)
-            if inp.far == "surface" else None)
+    info = _info(inp, eta, X_loc, len(v))
+    kept = None
+    if inp.far == "surface":
+        closed = {} if inp.march else {"km": kv * mv, "nu_o": nu_o, "ext": ext, "B_unit": B_unit, "single_raw": single_raw}
+        kept = SplitStatic(M, single, X_loc, np.broadcast_to(c_far, M.shape), np.broadcast_to(w, M.shape), facing, info,
+                           **closed)
     return SplitResult(single + multiple, single, multiple, time.perf_counter() - t0, info, static=kept)

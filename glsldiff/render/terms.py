@@ -52,7 +52,8 @@ from glsldiff.render.scene import Scene
 from glsldiff.render.shading import MAX_SHADER_LIGHTS
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import single_scattering_frame
-from glsldiff.render.split_frame import SplitInputs, SplitResult, SplitStatic, split_again, split_radiance
+from glsldiff.render.split_frame import (SplitInputs, SplitResult, SplitStatic, split_again, split_radiance,
+                                         split_repaint)
 from glsldiff.render.unscattered import sees_through, unscattered
 
 __all__ = ["FrameInputs", "SurfaceTerms", "LIT_SHARE", "key", "lit_distance", "shader_lights"]
@@ -269,22 +270,28 @@ class SurfaceTerms:
         """The transport split's subsurface radiance per vertex (:mod:`glsldiff.render.split_frame`),
         kept while the solution, the lights, the material and the camera stay the same."""
         return self._cached("split", key(f.solve_key, f.solution, f.light_key, f.edit_version, f.view),
-                            lambda: self._split(f, self._split_static(f)))
+                            lambda: self._split(f, *self._split_static(f)))
 
-    def _split_static(self, f: FrameInputs) -> SplitStatic | None:
-        """The last split's fluence-independent terms when only the fluence changed since (a
-        frame converging after an edit or a light change: the material, load and camera are the
-        same), else None."""
+    def _split_static(self, f: FrameInputs) -> tuple[SplitStatic | None, SplitStatic | None]:
+        """The last split's fluence-independent terms: as the first item when only the fluence
+        changed since (a frame converging after an edit or a light change), as the second when
+        only edits changed the material too (painting: the same lights, camera and options)."""
         last = self._kept.get("split")
-        k = key(f.material_key, f.light_key, f.edit_version, f.view, f.scene.options)
-        fresh = self._keys.get("split static") != k
-        self._keys["split static"] = k
-        return None if fresh or last is None else last.static
+        kept = None if last is None else last.static
+        same = key(f.material_key, f.light_key, f.edit_version, f.view, f.scene.options)
+        painted = key(f.material_key, f.light_key, f.view, f.scene.options)
+        fluence_only = self._keys.get("split static") == same
+        edits_only = self._keys.get("split painted") == painted
+        self._keys["split static"], self._keys["split painted"] = same, painted
+        return (kept if fluence_only else None), (kept if edits_only and not fluence_only else None)
 
-    def _split(self, f: FrameInputs, static: SplitStatic | None = None) -> SplitResult:
+    def _split(self, f: FrameInputs, static: SplitStatic | None = None,
+               painted: SplitStatic | None = None) -> SplitResult:
         """:func:`~glsldiff.render.split_frame.split_radiance` of the frame: the surface far field, or the
         gather's (volume source) with each node's distance to the light in mean free paths;
-        ``static``: the surface far field's terms kept from the last frame."""
+        ``static``: the surface far field's terms kept from the last frame (only the fluence
+        changed); ``painted``: the same when edits changed the material at a few vertices
+        (:func:`~glsldiff.render.split_frame.split_repaint`)."""
         geo, o = f.geo, f.scene.options
         if static is not None and o.source != "volume":
             return split_again(static, geo["interp"], f.phi_b)
@@ -296,12 +303,14 @@ class SurfaceTerms:
             fluence = f.backend.fluence_lattice()
             dist = self._cached("lit", key(f.light_key), lambda: lit_distance(pg.boundary_positions, f.E_t))
             thick = dist[:, None] / (3.0 * kappa)   # to where light enters, in mean free paths
-        inp = SplitInputs(far=far, march=bool(o.single_scattering) or far == "gather", eta=f.scene.material.eta,
+        march = bool(o.single_scattering) or far == "gather"
+        inp = SplitInputs(far=far, march=march, eta=f.scene.material.eta,
                           C=boundary_C(f.scene), interp=geo["interp"], vertices=geo["vertices"],
                           normals=geo["normals"], beams=f.beams, kappa=kappa, mu=mu, phi=f.phi_b,
                           q=f.q, source_distance_mfp=thick, fluence=fluence, mesh=geo["mesh"], lights=f.scene.lights,
-                          medium=self.medium(f))
-        return split_radiance(inp, f.eye, self.ctx)
+                          medium=self.medium(f) if march else None)     # only the march reads it (12 ms a frame)
+        again = split_repaint(painted, inp) if painted is not None else None
+        return again if again is not None else split_radiance(inp, f.eye, self.ctx)
 
     def single(self, f: FrameInputs) -> Array:
         """Per-vertex single scattering of every light, reflection and transmission
