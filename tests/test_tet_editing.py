@@ -167,3 +167,26 @@ def test_painting_frames_repaint_the_split_where_the_brush_went(scene, monkeypat
         r.render(sc)
         _dabs(r, sc, 4)
     assert len(seen) >= 3 and max(seen) < 1e-12, seen
+
+
+def test_stalled_frames_remake_the_coarse_levels_and_still_converge_to_the_cold_render(scene, tmp_path,
+                                                                                      monkeypatch):
+    """When converging frames stall (the residual after STALL_FRAMES frames above STALL_RATIO of
+    the first's; forced here with a ratio of 0), the coarse levels are remade once from the
+    edited matrices with the kept aggregation and damping, and the frames still converge to a
+    cold render of the edited material; a gentle stroke at the real ratio remakes nothing."""
+    import glsldiff.render.backends.tetrahedral as tb
+    with Renderer(frame_sweeps=10, cache_solutions=False, allow_unconverged=True) as r:
+        r.render(scene)
+        _dabs(r, scene, 4, factor=2.5)
+        _converge(r, scene)
+        assert r._be.pass2.refreshes == 0
+        monkeypatch.setattr(tb, "STALL_RATIO", 0.0)
+        _dabs(r, scene, 4, factor=10.0)
+        edited = _converge(r, scene)
+        assert r._be.pass2.refreshes == 1
+        path = r.save_material(tmp_path / "edited.npz")
+    mat = dataclasses.replace(scene.material, nodes=str(path), preset=None, procedural=None)
+    with Renderer(frame_sweeps=10, cache_solutions=False) as cold:
+        ref, _ = cold.render(dataclasses.replace(scene, material=mat))
+    assert _rel(edited, ref) < 1e-4

@@ -532,7 +532,8 @@ class GlslSparseMultigrid(GatherSolver):
         off-diagonal slots are not rewritten); the coarse levels, the prolongations and the smoothing
         damping are kept (a stale but still symmetric positive definite preconditioner for
         a local change: conjugate gradients converge with it, the iteration count tells how
-        stale it is; :meth:`refresh` rebuilds the coarse operators). The next iteration restarts
+        stale it is; a new solver with ``prolongations`` and ``level_omegas`` of this one remakes
+        the coarse operators without pyamg or eigen-solves). The next iteration restarts
         conjugate gradients from the current iterate."""
         fast = (isinstance(matrices, (list, tuple)) and len(matrices) == 3
                 and all(sp.issparse(M) and M.format == "csr" and M.dtype == np.float64 and M.has_sorted_indices

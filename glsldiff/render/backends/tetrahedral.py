@@ -15,8 +15,10 @@ Frame budget while editing (``frame_sweeps`` set, the viewer): a frame with a ne
 fluence and skips the residual check (no CPU residual); each later frame runs
 :data:`FRAME_ITERATIONS` preconditioned CG iterations and measures the residual on the GPU
 (fp32, two texels read back), until ``tol`` (the image converges over frames); the frame the
-GPU calls converged is confirmed in float64 on the CPU. Without a budget every frame is solved
-to ``tol``.
+GPU calls converged is confirmed in float64 on the CPU. Where those frames stall (a strong edit
+makes the kept coarse levels a poor preconditioner) the coarse levels are remade once from the
+edited matrices (:data:`STALL_FRAMES`, :data:`STALL_RATIO`). Without a budget every frame is
+solved to ``tol``.
 """
 from __future__ import annotations
 
@@ -54,7 +56,8 @@ from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.report import CURRENT, SolveReport
 from glsldiff.system.tet_problem import TetProblem
 
-__all__ = ["FEM_MAXITER", "FRAME_ITERATIONS", "PAINT_SWEEPS", "REBUILD_SHARE", "TetBackend", "TetPass2", "TetFrame"]
+__all__ = ["FEM_MAXITER", "FRAME_ITERATIONS", "PAINT_SWEEPS", "REBUILD_SHARE", "STALL_FRAMES", "STALL_RATIO",
+           "TetBackend", "TetPass2", "TetFrame"]
 
 #: Pass 2's iteration budget on tetrahedra: multigrid-preconditioned CG takes 10-20 iterations
 #: on the scenes measured (bunny, cow, spheres, tile); a system it cannot solve in this many is
@@ -64,6 +67,11 @@ FEM_MAXITER = 300
 PAINT_SWEEPS = 1
 #: Preconditioned CG iterations (one V-cycle each) per frame while the image converges after edits.
 FRAME_ITERATIONS = 1
+#: Converging frames after an edit: when the residual after this many still exceeds this share of
+#: the first one's, the kept coarse levels are remade from the edited matrices (a strong local
+#: edit makes them a poor preconditioner; a mu x2 stroke converges in 2-3 frames and never trips it).
+STALL_FRAMES = 6
+STALL_RATIO = 0.3
 #: Part of the cached aggregation's key: bump it when the hierarchy's construction changes.
 HIERARCHY_CACHE_VERSION = 1
 #: An edit changing more than this share of the nodes rebuilds the multigrid (the kept one
@@ -100,6 +108,8 @@ class TetPass2:
         self.solver: GlslSparseMultigrid | None = None
         self.phi: NDArray[np.float64] | None = None        # the last frame's fluence (n_active, 3)
         self._frame_iterations = 0                         # CG iterations of converging frames since the last edit
+        self._frame_residuals: list[float] = []            # their residuals
+        self.refreshes = 0                                 # coarse levels remade after a stalled convergence
 
     @property
     def active(self) -> NDArray[np.int64]:
@@ -121,7 +131,7 @@ class TetPass2:
         else:
             up = self.p1.set_material(kappa, mu)
             if up.rows.size:
-                self._frame_iterations = 0
+                self._frame_iterations, self._frame_residuals = 0, []
             if self.solver is not None and up.rows.size:
                 if up.nodes.size > REBUILD_SHARE * len(self.active_mask):
                     self.release()
@@ -129,7 +139,7 @@ class TetPass2:
                     self.solver.update_fine(self.p1.matrices(), up.rows, diagonal_only=up.diagonal_only)
         if not np.array_equal(self.p1.system.b, np.asarray(b, dtype=np.float64).T.reshape(-1)):
             self.p1.set_rhs(b)
-            self._frame_iterations = 0
+            self._frame_iterations, self._frame_residuals = 0, []
             if self.solver is not None:     # a new source restarts CG; the same one lets it go on
                 self.solver.set_b(b)
         return self.p1.system
@@ -172,6 +182,23 @@ class TetPass2:
                                                "omega": [lv.omega for lv in self.solver.levels if lv.P is not None]})
             if x0 is not None:
                 self.solver.set_initial(x0)
+
+    def _refresh_coarse(self) -> None:
+        """The multigrid of the current matrices with the kept aggregation and smoothing damping
+        (Galerkin products, packing and upload again; no pyamg, no eigen-solves: about 1.4 s on the
+        bunny), continuing from the current fluence: the kept coarse levels precondition a
+        strongly edited material poorly (mu x10 under a stroke: 0.087 -> 0.034 in 36 CG
+        iterations)."""
+        old = self.solver
+        assert old is not None and self.p1 is not None
+        P = [lv.P for lv in old.levels if lv.P is not None]
+        omega = [lv.omega for lv in old.levels if lv.P is not None]
+        phi = old.unknown()
+        old.release()
+        self.solver = GlslSparseMultigrid(self.p1.matrices(), self.p1.system.b.reshape(3, -1).T, ctx=self.ctx,
+                                          prolongations=P, level_omegas=omega)
+        self.solver.set_initial(phi)
+        self.refreshes += 1
 
     def prepare(self) -> None:
         """Build the solver now, from the last frame's answer (an interactive first frame served
@@ -224,6 +251,10 @@ class TetPass2:
             res, where = s.residual(self.phi.T.reshape(-1)), "CPU float64"
         done = res <= tol
         partial = not done and self._frame_iterations < FEM_MAXITER
+        self._frame_residuals.append(float(res))
+        hist = self._frame_residuals
+        if partial and len(hist) == STALL_FRAMES and hist[-1] > STALL_RATIO * hist[0]:
+            self._refresh_coarse()
         rep = SolveReport(f"{solver.method}-{solver.precision}(PCG, frame-coherent: {FRAME_ITERATIONS} iteration(s) "
                           f"a frame, residual on the {where})", nodes=solver.n, sweeps=FRAME_ITERATIONS,
                           residual=float(res), seconds=time.perf_counter() - t0, converged=done,
