@@ -669,7 +669,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(signal.SIGTERM, old_term)
 
 
-
 def entry() -> None:
     """The ``glsldiff`` program: :func:`main`, then the exit. After Ctrl-C or SIGTERM the process
     ends at once, its streams flushed (``os._exit``), once :func:`main` has cleaned up: the signal

@@ -29,8 +29,8 @@ from numpy.typing import NDArray
 from glsldiff.physics.adding_doubling import halfspace_tables
 from glsldiff.physics.optics import fresnel_transmittance, refracted_cosine
 from glsldiff.physics.exitance import halfspace_bracket
-from glsldiff.physics.split import (ExternalBeam, collided_halfspace, combine, diffusion_weight, external_beams, gather_share,
-                                    gathered_halfspace, local_multiple, local_single, marshak_halfspace)
+from glsldiff.physics.split import (ExternalBeam, collided_halfspace, combine, diffusion_weight, external_beams,
+                                    gather_share, gathered_halfspace, local_multiple, local_single, marshak_halfspace)
 from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import scattering_frame

@@ -91,6 +91,13 @@ class TetFrame:
     from_cache: bool
 
 
+def _hierarchy(solver: GlslSparseMultigrid) -> dict[str, list]:
+    """A multigrid's aggregation and smoothing damping (``P``, ``omega`` per level but the
+    coarsest): what a new solver of changed matrices reuses (the disk cache, a remake)."""
+    levels = [lv for lv in solver.levels if lv.P is not None]
+    return {"P": [lv.P for lv in levels], "omega": [lv.omega for lv in levels]}
+
+
 class TetPass2:
     """The P1 system and its GPU solver of one tetrahedral grid, kept across frames.
 
@@ -145,7 +152,8 @@ class TetPass2:
         return self.p1.system
 
     def cached(self, entry: Any, tol: float) -> TetFrame | None:
-        """The frame of a converged answer from the disk cache (:func:`solution_entry`) if it is
+        """The frame of a converged answer from the disk cache (the entry :meth:`TetBackend.solve`
+        stores: ``phi``, ``residual``, ``checksum``) if it is
         intact (its checksum), of this grid's size and its residual, measured in float64 when it
         was stored, meets ``tol``; else None. The entry's key holds every input of the system
         (grid, material, source, eta, C, tol, the discretisation's version), so the system need
@@ -165,21 +173,21 @@ class TetPass2:
                           seconds=time.perf_counter() - t0, converged=True, history=[(0, res)])
         return TetFrame(self.phi, rep, False, True)
 
-    def _build(self, x0: NDArray | None) -> None:
+    def _build(self, x0: NDArray | None, hierarchy: dict[str, list] | None = None) -> None:
         """The GPU multigrid of the current system (its aggregation and smoothing damping read
-        from the disk cache with the grid's other entries: 3.1 of the 5.1 s set-up on the bunny)."""
+        from the disk cache with the grid's other entries: 3.1 of the 5.1 s set-up on the bunny;
+        or ``hierarchy``'s, :func:`_hierarchy` of an earlier solver)."""
         assert self.p1 is not None
         s = self.p1.system
         if self.solver is None:
             key = (cache.digest(f"multigrid v{HIERARCHY_CACHE_VERSION}", self.p1.values, self.p1.indices,
-                                self.p1.indptr) if self.cached_hierarchy else None)
-            kept = cache.load("multigrid", key, dict) if key is not None else None
+                                self.p1.indptr) if self.cached_hierarchy and hierarchy is None else None)
+            kept = cache.load("multigrid", key, dict) if key is not None else hierarchy
             self.solver = GlslSparseMultigrid(self.p1.matrices(), s.b.reshape(3, -1).T, ctx=self.ctx,
                                               prolongations=None if kept is None else kept["P"],
                                               level_omegas=None if kept is None else kept["omega"])
             if key is not None and kept is None:
-                cache.store("multigrid", key, {"P": [lv.P for lv in self.solver.levels if lv.P is not None],
-                                               "omega": [lv.omega for lv in self.solver.levels if lv.P is not None]})
+                cache.store("multigrid", key, _hierarchy(self.solver))
             if x0 is not None:
                 self.solver.set_initial(x0)
 
@@ -189,15 +197,10 @@ class TetPass2:
         bunny), continuing from the current fluence: the kept coarse levels precondition a
         strongly edited material poorly (mu x10 under a stroke: 0.087 -> 0.034 in 36 CG
         iterations)."""
-        old = self.solver
-        assert old is not None and self.p1 is not None
-        P = [lv.P for lv in old.levels if lv.P is not None]
-        omega = [lv.omega for lv in old.levels if lv.P is not None]
-        phi = old.unknown()
-        old.release()
-        self.solver = GlslSparseMultigrid(self.p1.matrices(), self.p1.system.b.reshape(3, -1).T, ctx=self.ctx,
-                                          prolongations=P, level_omegas=omega)
-        self.solver.set_initial(phi)
+        assert self.solver is not None
+        kept, phi = _hierarchy(self.solver), self.solver.unknown()
+        self.release()
+        self._build(phi, kept)
         self.refreshes += 1
 
     def prepare(self) -> None:
@@ -240,8 +243,9 @@ class TetPass2:
         (:meth:`~glsldiff.solve.gather_multigrid.GlslSparseMultigrid.residual_gpu`, two texels read
         back); only a frame it calls converged is confirmed in float64 on the CPU. After
         :data:`FEM_MAXITER` iterations without reaching ``tol`` the frame is final, unconverged."""
-        solver, s = self.solver, self.p1.system if self.p1 is not None else None
-        assert solver is not None and s is not None
+        solver, p1 = self.solver, self.p1
+        assert solver is not None and p1 is not None
+        s = p1.system
         t0 = time.perf_counter()
         solver.cycle(FRAME_ITERATIONS)
         self._frame_iterations += FRAME_ITERATIONS
@@ -497,8 +501,9 @@ class TetBackend(GridBackend):
         key = self.solution_key(inp) if self.cache_solutions and not (interactive and inp.warm) else None
         entry = cache.load("pass2", key, dict) if key is not None and tet.solver is None else None
         frame = tet.cached(entry, opts.tol) if entry is not None else None
-        if frame is None:
+        if frame is None or interactive:     # the solve needs the system; the viewer's solver is built now
             self.linear_system(inp)
+        if frame is None:
             stored = entry.get("phi") if entry is not None else None
             x0 = stored if isinstance(stored, np.ndarray) and stored.shape == (tet.active.size, 3) else None
             try:
@@ -509,9 +514,8 @@ class TetBackend(GridBackend):
         if key is not None and frame.report.status == "converged" and not frame.from_cache:
             phi = np.asarray(frame.phi)
             cache.store("pass2", key, {"phi": phi, "residual": float(frame.report.residual),
-                                       "method": frame.report.method, "checksum": cache.digest(phi)})
+                                       "checksum": cache.digest(phi)})
         if interactive:           # the first edit or light change then costs a frame, not a set-up
-            self.linear_system(inp)
             tet.prepare()
         return Pass2Frame(self.surface_values(frame.phi), frame.report, frame.partial, frame.from_cache)
 
