@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Any
 
 import moderngl
@@ -67,8 +68,7 @@ from numpy.typing import NDArray
 from glsldiff import gl
 from glsldiff.core.camera import orthonormal_frame, projection, view_matrix
 from glsldiff.core.errors import InputError
-from glsldiff.mesh.closest import closest_on_triangles
-from glsldiff.mesh.types import normalize as _normalize
+from glsldiff.core.jit import kernel, prange
 from glsldiff.physics.lights import DirectionalLight, Light, ProjectorLight, SpotLight
 
 __all__ = ["DepthRenderer", "ShadowMap", "View", "BIAS_TEXELS", "BIAS_SLOPE", "MAX_BIAS_TAN",
@@ -82,6 +82,10 @@ ON_FACE_TEXELS = 0.01      # entry normals: a point this close to a face's inter
 _FAR = 1.0e30              # clear value of the shadow map (no surface)
 _FIT = 1.02                # orthographic window: bounding radius times this
 _SHADER_DEFINES = {"LIGHT_FAR": "1.0e30"}
+#: a view as the kernels read it (:attr:`ShadowMap._packed`)
+_VIEW = np.dtype([(name, np.float64) for name in ("ex", "ey", "ez", "fx", "fy", "fz", "rx", "ry", "rz",
+                                                  "ux", "uy", "uz", "half")]
+                 + [("ortho", np.bool_), ("far", np.float64), ("col", np.int64), ("row", np.int64)])
 
 
 @dataclass(frozen=True)
@@ -196,43 +200,24 @@ class ShadowMap:
         vis[vis < 1e-9] = 0.0
         return vis
 
-    def _taps(self, p: NDArray[np.float64], table: NDArray[Any]
-              ) -> tuple[NDArray[np.float64], NDArray[Any], NDArray[np.float64], NDArray[np.bool_],
-                         NDArray[np.float64]]:
-        """Points ``p`` (relative to the centre) in their views (:meth:`_views_of`): depth (the
-        map's metric, mm) ``(n,)``, the values of the atlas ``table`` (``(rows, cols, ...)``)
-        at the 2 x 2 texels around each point ``(4, n, ...)``, their bilinear weights ``(4, n)``,
-        the inside-the-view mask ``(n,)`` and the texel's width at the point (mm) ``(n,)``."""
-        n = len(p)
-        depth, ok, texel = np.zeros(n), np.zeros(n, dtype=bool), np.zeros(n)
-        vals = np.zeros((4, n) + table.shape[2:], dtype=table.dtype)
-        wts = np.zeros((4, n))
-        flat, cols = table.reshape((-1,) + table.shape[2:]), table.shape[1]
-        which = self._views_of(p)
-        for k, v in enumerate(self.views):
-            sel: NDArray[np.int64] | slice = np.flatnonzero(which == k)
-            if sel.size == 0:
-                continue
-            if sel.size == n:
-                sel = slice(None)                   # one view: no scatter copies
-            depth[sel], fx, fy, ok[sel], scale = self._project(v, p[sel], self.size)
-            texel[sel] = 2.0 * scale / self.size
-            for j, (iy, ix, w) in enumerate(self._texels(v, fx, fy)):
-                vals[j, sel], wts[j, sel] = np.take(flat, iy * cols + ix, axis=0), w
-        return depth, vals, wts, ok, texel
+    @cached_property
+    def _packed(self) -> NDArray[np.void]:
+        """The views for the kernels, a record per view (:data:`_VIEW`; records, unlike arrays,
+        pass to a kernel's helpers without reference counting)."""
+        return np.array([(*v.eye, *v.forward, *v.right, *v.up, v.half, v.ortho, v.far, *v.tile)
+                         for v in self.views], dtype=_VIEW)
 
     def entry(self, p: NDArray[np.float64]) -> NDArray[np.float64]:
         """Distance (mm) from points ``p`` (relative to the centre, normally inside the object)
         back along the light's ray to the nearest surface facing the light: the depth of ``p``
         minus the stored front depth, bilinear over the 2 x 2 texels when all four hold a
         surface, else the nearest one's; clipped at 0; NaN where no surface is stored or the
-        point is outside every view (translucent shadow maps, Dachsbacher and Stamminger 2003)."""
-        depth, vals, wts, ok, _ = self._taps(p, self.front)
-        have = vals < 0.5 * _FAR
-        bil = (np.where(have, vals, 0.0) * wts).sum(axis=0)
-        near = vals[np.argmax(wts, axis=0), np.arange(len(p))]
-        front = np.where(have.all(axis=0), bil, np.where(near < 0.5 * _FAR, near, np.nan))
-        return np.where(ok, np.maximum(depth - front, 0.0), np.nan)
+        point is outside every view (translucent shadow maps, Dachsbacher and Stamminger 2003).
+        A compiled kernel (:func:`_entry_kernel`)."""
+        p = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
+        out = np.empty(len(p))
+        _entry_kernel(p, self._packed, self.size, self.front, out)
+        return out
 
     def entry_normals(self, y: NDArray[np.float64]) -> NDArray[np.float64]:
         """``(n, 3)`` unit outward normal of the mesh at entry points ``y`` (mm, relative to the
@@ -240,39 +225,229 @@ class ShadowMap:
         ``p`` and ``w`` the unit direction towards the light (the same light ray, so the same
         texels). The corner normals interpolated at the closest point on the stored faces
         (module docstring); NaN rows where no face is stored near ``y``. Needs a map rendered
-        with ``normals=True``."""
+        with ``normals=True``. A compiled kernel (:func:`_entry_normals_kernel`)."""
         if self.face is None or self.surface is None:
             raise ValueError("this shadow map was rendered without normals (render(..., normals=True))")
         tri, cn = self.surface
-        n = len(y)
-        out = np.full((n, 3), np.nan)
-        _, faces, wts, _, texel = self._taps(y, self.face)
-        f0 = faces[np.argmax(wts, axis=0), np.arange(n)].astype(np.int64)   # the nearest texel's
-        f = f0.copy()
-        d2 = np.full(n, np.inf)
-        bary = np.zeros((n, 3))
-        off = np.flatnonzero(f >= 0)
+        y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1, 3)
+        out = np.empty((len(y), 3))
+        _entry_normals_kernel(y, self._packed, self.size, self.face, tri, cn, ON_FACE_TEXELS, out)
+        return out
+
+
+# ---- compiled kernels of entry and entry_normals, a point per iteration ----------------------
+# (their helpers take scalars, tuples and records only: an array argument costs an atomic
+# reference count per call, contended between the threads)
+@kernel
+def _first_max(a0: float, a1: float, a2: float, a3: float) -> int:
+    """``np.argmax`` of four values: the first maximum, or the first NaN."""
+    best, m = 0, a0
+    if m == m and not a1 <= m:              # greater, or NaN
+        best, m = 1, a1
+    if m == m and not a2 <= m:
+        best, m = 2, a2
+    if m == m and not a3 <= m:
+        best = 3
+    return best
+
+
+@kernel
+def _index(f: float, size: int) -> tuple[int, int]:
+    """Texel indices ``f`` and ``f + 1`` (``f`` floored) clipped to ``[0, size)``; as numpy's
+    int64 cast on x86, a NaN or out-of-range ``f`` gives ``INT64_MIN``, clipped to 0."""
+    if not (f >= -9.223372036854775808e18 and f < 9.223372036854775808e18):
+        return 0, 0
+    i = np.int64(f)
+    return min(max(i, 0), size - 1), min(max(i + 1, 0), size - 1)
+
+
+@kernel
+def _view_of(p0: float, p1: float, p2: float, first: Any, n_views: int) -> int:
+    """Index of the view a point (relative to the centre) falls in (``ShadowMap._views_of``
+    for one point; ``first``: the first view's record): 0, or for a cube the face of the
+    major axis of ``p - eye``."""
+    if n_views == 1:
+        return 0
+    e0, e1, e2 = p0 - first["ex"], p1 - first["ey"], p2 - first["ez"]
+    ax = _first_max(abs(e0), abs(e1), abs(e2), -np.inf)
+    return 2 * ax + (1 if (e0 if ax == 0 else e1 if ax == 1 else e2) < 0 else 0)
+
+
+@kernel
+def _locate(p0: float, p1: float, p2: float, v: Any, size: int
+            ) -> tuple[float, bool, float, tuple[int, int, int, int], tuple[int, int, int, int],
+                       tuple[float, float, float, float]]:
+    """A point (relative to the centre) in view ``v`` (a :data:`_VIEW` record): depth (the map's
+    metric, mm), the inside-the-view flag, the texel's width there (mm), and the atlas rows,
+    columns and bilinear weights of the 2 x 2 texels around it, in the order (0, 0), (1, 0),
+    (0, 1), (1, 1) -- ``ShadowMap._project`` and ``_texels`` for one point."""
+    d0, d1, d2 = p0 - v["ex"], p1 - v["ey"], p2 - v["ez"]
+    x = d0 * v["rx"] + d1 * v["ry"] + d2 * v["rz"]
+    y = d0 * v["ux"] + d1 * v["uy"] + d2 * v["uz"]
+    z = d0 * v["fx"] + d1 * v["fy"] + d2 * v["fz"]
+    if v["ortho"]:
+        depth, ok, scale = z, True, v["half"]
+    else:
+        depth = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        ok = z > 1e-9 * max(v["far"], 1.0)
+        scale = (z if ok else 1.0) * v["half"]
+    nx, ny = x / scale, y / scale
+    ok = ok and abs(nx) <= 1.0 and abs(ny) <= 1.0
+    tx, ty = (nx + 1.0) * 0.5 * size - 0.5, (ny + 1.0) * 0.5 * size - 0.5
+    x0, y0 = np.floor(tx), np.floor(ty)
+    wx, wy = tx - x0, ty - y0
+    c0, c1 = _index(x0, size)
+    r0, r1 = _index(y0, size)
+    ox, oy = v["col"] * size, v["row"] * size
+    return (depth, ok, 2.0 * scale / size, (r0 + oy, r0 + oy, r1 + oy, r1 + oy),
+            (c0 + ox, c1 + ox, c0 + ox, c1 + ox),
+            ((1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy))
+
+
+@kernel(parallel=True)
+def _entry_kernel(p: NDArray[np.float64], views: NDArray[np.void], size: int,
+                  front: NDArray[np.float32], out: NDArray[np.float64]) -> None:
+    """``out[i]``: :meth:`ShadowMap.entry` of point ``p[i]``."""
+    for i in prange(p.shape[0]):
+        p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
+        v = views[_view_of(p0, p1, p2, views[0], views.shape[0])]
+        depth, ok, _, r, c, w = _locate(p0, p1, p2, v, size)
+        if not ok:
+            out[i] = np.nan
+            continue
+        vals = (np.float64(front[r[0], c[0]]), np.float64(front[r[1], c[1]]),
+                np.float64(front[r[2], c[2]]), np.float64(front[r[3], c[3]]))
+        bil, every = 0.0, True
+        for j in range(4):
+            if vals[j] < 0.5 * _FAR:
+                bil += vals[j] * w[j]
+            else:
+                every = False
+        if every:
+            surf = bil
+        else:
+            surf = vals[_first_max(w[0], w[1], w[2], w[3])]
+            if not surf < 0.5 * _FAR:
+                surf = np.nan
+        d = depth - surf
+        out[i] = d if (d > 0.0 or d != d) else 0.0
+
+
+@kernel
+def _closest_on_triangle(p0: float, p1: float, p2: float, t: tuple[float, ...]
+                         ) -> tuple[float, float, float]:
+    """Barycentrics of the closest point to p on the triangle ``t`` (corners a, b, c, 3
+    coordinates each): :func:`glsldiff.mesh.closest.closest_on_triangles` for one point
+    (Ericson 5.1.5; a non-finite result, as of a degenerate triangle, becomes (1, 0, 0))."""
+    ab0, ab1, ab2 = t[3] - t[0], t[4] - t[1], t[5] - t[2]
+    ac0, ac1, ac2 = t[6] - t[0], t[7] - t[1], t[8] - t[2]
+    ap0, ap1, ap2 = p0 - t[0], p1 - t[1], p2 - t[2]
+    bp0, bp1, bp2 = p0 - t[3], p1 - t[4], p2 - t[5]
+    cp0, cp1, cp2 = p0 - t[6], p1 - t[7], p2 - t[8]
+    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
+    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
+    d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+    d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
+    d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    # the corner and edge regions in closest_on_triangles' order of precedence, then the
+    # interior; a zero denominator gives NaN (numpy: inf or NaN), replaced by (1, 0, 0) as there
+    if d1 <= 0 and d2 <= 0:
+        return 1.0, 0.0, 0.0
+    if d3 >= 0 and d4 <= d3:
+        return 0.0, 1.0, 0.0
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
+        u = d1 / (d1 - d3) if d1 - d3 != 0.0 else np.nan
+        return _finite_or_a(1 - u, u, 0.0)
+    if d6 >= 0 and d5 <= d6:
+        return 0.0, 0.0, 1.0
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
+        u = d2 / (d2 - d6) if d2 - d6 != 0.0 else np.nan
+        return _finite_or_a(1 - u, 0.0, u)
+    if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
+        s = (d4 - d3) + (d5 - d6)
+        u = (d4 - d3) / s if s != 0.0 else np.nan
+        return _finite_or_a(0.0, 1 - u, u)
+    den = va + vb + vc
+    if den == 0.0:
+        return 1.0, 0.0, 0.0
+    v, w = vb / den, vc / den
+    return _finite_or_a(1 - v - w, v, w)
+
+
+@kernel
+def _finite_or_a(b0: float, b1: float, b2: float) -> tuple[float, float, float]:
+    """Barycentrics (b0, b1, b2), or corner a's (1, 0, 0) where one is not finite."""
+    if np.isfinite(b0) and np.isfinite(b1) and np.isfinite(b2):
+        return b0, b1, b2
+    return 1.0, 0.0, 0.0
+
+
+@kernel
+def _face_distance(p0: float, p1: float, p2: float, t: tuple[float, ...]
+                   ) -> tuple[float, tuple[float, float, float]]:
+    """Squared distance from p to its closest point on the triangle ``t`` (as
+    :func:`_closest_on_triangle`), and that point's barycentrics."""
+    b = _closest_on_triangle(p0, p1, p2, t)
+    q0 = (b[0] * t[0] + b[1] * t[3]) + b[2] * t[6] - p0
+    q1 = (b[0] * t[1] + b[1] * t[4]) + b[2] * t[7] - p1
+    q2 = (b[0] * t[2] + b[1] * t[5]) + b[2] * t[8] - p2
+    return q0 * q0 + q1 * q1 + q2 * q2, b
+
+
+@kernel(parallel=True)
+def _entry_normals_kernel(y: NDArray[np.float64], views: NDArray[np.void], size: int,
+                          face: NDArray[np.int32], tri: NDArray[np.float64], cn: NDArray[np.float64],
+                          on_face: float, out: NDArray[np.float64]) -> None:
+    """``out[i]``: :meth:`ShadowMap.entry_normals` at point ``y[i]`` (``on_face``: ``ON_FACE_TEXELS``).
+    Two loops: the first reads each point's 2 x 2 faces from the atlas, the second finds the
+    closest points (its reads of the faces' corners then do not wait on the atlas's)."""
+    n_pts = y.shape[0]
+    taps = np.empty((n_pts, 4), dtype=np.int32)
+    nearest = np.empty(n_pts, dtype=np.int8)
+    texels = np.empty(n_pts)
+    for i in prange(n_pts):
+        y0, y1, y2 = y[i, 0], y[i, 1], y[i, 2]
+        v = views[_view_of(y0, y1, y2, views[0], views.shape[0])]
+        _, _, texel, r, c, w = _locate(y0, y1, y2, v, size)
+        taps[i, 0], taps[i, 1] = face[r[0], c[0]], face[r[1], c[1]]
+        taps[i, 2], taps[i, 3] = face[r[2], c[2]], face[r[3], c[3]]
+        nearest[i] = _first_max(w[0], w[1], w[2], w[3])
+        texels[i] = texel
+    for i in prange(n_pts):
+        y0, y1, y2 = y[i, 0], y[i, 1], y[i, 2]
+        faces = (np.int64(taps[i, 0]), np.int64(taps[i, 1]), np.int64(taps[i, 2]), np.int64(taps[i, 3]))
+        f0 = np.int64(taps[i, nearest[i]])  # the nearest texel's face
+        if f0 < 0:
+            out[i, 0] = out[i, 1] = out[i, 2] = np.nan
+            continue
+        f, d2, bary = f0, np.inf, (0.0, 0.0, 0.0)
         for j in range(-1, 4):
             if j < 0:
-                at, fj = off, f[off]
+                fj = f0
             else:       # a point off the nearest texel's face: the other taps' faces, once each
-                fj = faces[j, off].astype(np.int64)
-                new = (fj >= 0) & (fj != f0[off]) & (faces[:j, off] != fj).all(axis=0)
-                at, fj = off[new], fj[new]
-            if at.size == 0:
-                continue
-            t = tri[fj]
-            bj = closest_on_triangles(y[at], t[:, 0], t[:, 1], t[:, 2])
-            dj = ((np.einsum("ij,ijk->ik", bj, t) - y[at]) ** 2).sum(axis=1)
-            better = dj < d2[at]
-            k = at[better]
-            d2[k], bary[k], f[k] = dj[better], bj[better], fj[better]
-            if j < 0:       # the other faces at the 2 x 2 texels, unless y lies inside this one
-                inside = (bj > 0.0).all(axis=1) & (dj <= (ON_FACE_TEXELS * texel[off]) ** 2)
-                off = off[~inside & ((faces[:, off] != fj) & (faces[:, off] >= 0)).any(axis=0)]
-        have = np.flatnonzero(f >= 0)
-        out[have] = _normalize(np.einsum("ij,ijk->ik", bary[have], cn[f[have]]))
-        return out
+                fj = faces[j]
+                new = fj >= 0 and fj != f0
+                for m in range(j):
+                    new = new and faces[m] != fj
+                if not new:
+                    continue
+            dj, bj = _face_distance(y0, y1, y2, (tri[fj, 0, 0], tri[fj, 0, 1], tri[fj, 0, 2],
+                                                 tri[fj, 1, 0], tri[fj, 1, 1], tri[fj, 1, 2],
+                                                 tri[fj, 2, 0], tri[fj, 2, 1], tri[fj, 2, 2]))
+            if dj < d2:
+                f, d2, bary = fj, dj, bj
+            if j < 0 and bj[0] > 0.0 and bj[1] > 0.0 and bj[2] > 0.0 and dj <= (on_face * texels[i]) ** 2:
+                break           # y lies on the nearest texel's face
+        n0 = (bary[0] * cn[f, 0, 0] + bary[1] * cn[f, 1, 0]) + bary[2] * cn[f, 2, 0]
+        n1 = (bary[0] * cn[f, 0, 1] + bary[1] * cn[f, 1, 1]) + bary[2] * cn[f, 2, 1]
+        n2 = (bary[0] * cn[f, 0, 2] + bary[1] * cn[f, 1, 2]) + bary[2] * cn[f, 2, 2]
+        length = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
+        if length > 0.0:                    # glsldiff.mesh.types.normalize: zero (or NaN) rows give 0
+            out[i, 0], out[i, 1], out[i, 2] = n0 / length, n1 / length, n2 / length
+        else:
+            out[i, 0] = out[i, 1] = out[i, 2] = 0.0
 
 
 class DepthRenderer:
