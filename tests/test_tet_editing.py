@@ -190,3 +190,26 @@ def test_stalled_frames_remake_the_coarse_levels_and_still_converge_to_the_cold_
     with Renderer(frame_sweeps=10, cache_solutions=False) as cold:
         ref, _ = cold.render(dataclasses.replace(scene, material=mat))
     assert _rel(edited, ref) < 1e-4
+
+
+def test_march_frames_keep_the_lights_maps_and_equal_fresh_renders(scene):
+    """With the 3-D march, a camera move keeps the lights' depth maps and the medium lattice
+    (the same objects) and shades what a fresh renderer shades at the new camera; a light
+    change makes new maps (a kept map would shade the old light); its pass 2 starts from the
+    last solution, so it equals the fresh render to the solver's tolerance."""
+    opts = dataclasses.replace(scene.options, source="surface", single_scattering=True)
+    sc = dataclasses.replace(scene, options=opts)
+    moved = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, position=(40.0, 25.0, 70.0)))
+    relit = dataclasses.replace(moved, lights=(dataclasses.replace(sc.lights[0], direction=(-0.5, 0.2, 0.8)),))
+    with Renderer(cache_solutions=False) as r:
+        r.render(sc)
+        beams, medium = r._terms._kept["march beams"], r._terms._kept["march medium"]
+        img_moved, rep = r.render(moved)
+        assert not rep.ran("pass2")
+        assert r._terms._kept["march beams"] is beams and r._terms._kept["march medium"] is medium
+        img_relit, _ = r.render(relit)
+        assert r._terms._kept["march beams"] is not beams and r._terms._kept["march medium"] is medium
+    for s, img, tol in ((moved, img_moved, 1e-9), (relit, img_relit, 10 * TOL)):
+        with Renderer(cache_solutions=False) as fresh:
+            ref, _ = fresh.render(s)
+        assert _rel(img, ref) < tol

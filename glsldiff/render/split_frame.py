@@ -67,6 +67,7 @@ class SplitInputs:
     mesh: Any = None                           # the march: the mesh its rays and depth maps use
     lights: Sequence[Any] = ()
     medium: Any = None
+    march_beams: Any = None                    # the march: the lights' beams kept from the last frame (or None)
 
 
 @dataclass(frozen=True)
@@ -195,9 +196,14 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
     M = local_multiple(tables, albedo, ext, nu_o)
     gathered = None
     if inp.march:
-        with DepthRenderer(ctx, inp.mesh) as depth:
-            single, gathered = scattering_frame(inp.mesh, v, n, eye, eta, inp.lights, inp.medium, depth,
-                                                fluence=inp.fluence if inp.far == "gather" else None)
+        fl = inp.fluence if inp.far == "gather" else None
+        if inp.march_beams is not None:
+            single, gathered = scattering_frame(inp.mesh, v, n, eye, eta, inp.lights, inp.medium, None, fluence=fl,
+                                                beams=inp.march_beams)
+        else:
+            with DepthRenderer(ctx, inp.mesh) as depth:
+                single, gathered = scattering_frame(inp.mesh, v, n, eye, eta, inp.lights, inp.medium, depth,
+                                                    fluence=fl)
     else:
         single = local_single(eta, albedo, ext, nu_o)
     if inp.far == "gather":

@@ -51,7 +51,7 @@ from glsldiff.render.pass1 import incident_light, visibility
 from glsldiff.render.scene import Scene
 from glsldiff.render.shading import MAX_SHADER_LIGHTS
 from glsldiff.render.shadows import DepthRenderer
-from glsldiff.render.single import single_scattering_frame
+from glsldiff.render.single import light_beams, medium_lattice, scattering_frame
 from glsldiff.render.split_frame import (SplitInputs, SplitResult, SplitStatic, split_again, split_radiance,
                                          split_repaint)
 from glsldiff.render.unscattered import sees_through, unscattered
@@ -308,19 +308,31 @@ class SurfaceTerms:
                           C=boundary_C(f.scene), interp=geo["interp"], vertices=geo["vertices"],
                           normals=geo["normals"], beams=f.beams, kappa=kappa, mu=mu, phi=f.phi_b,
                           q=f.q, source_distance_mfp=thick, fluence=fluence, mesh=geo["mesh"], lights=f.scene.lights,
-                          medium=self.medium(f) if march else None)     # only the march reads it (12 ms a frame)
+                          **(self._march_inputs(f) if march else {}))
         again = split_repaint(painted, inp) if painted is not None else None
         return again if again is not None else split_radiance(inp, f.eye, self.ctx)
+
+    def _march_inputs(self, f: FrameInputs) -> dict[str, Any]:
+        """The 3-D march's medium lattice and the lights' beams (depth maps), kept while the
+        material, respectively the lights and the geometry, stay (a camera move re-marches the
+        view rays only)."""
+        mesh = f.geo["mesh"]
+        medium = self._cached("march medium", key(f.material_key, f.edit_version, f.geometry_key),
+                              lambda: medium_lattice(self.medium(f), mesh))
+
+        def beams() -> Any:
+            with DepthRenderer(self.ctx, mesh) as depth:
+                return light_beams(f.scene.lights, depth)
+        return {"medium": medium, "march_beams": self._cached("march beams", key(f.geometry_key, f.light_key), beams)}
 
     def single(self, f: FrameInputs) -> Array:
         """Per-vertex single scattering of every light, reflection and transmission
         (:mod:`glsldiff.render.single`), kept while the camera, lights, material and geometry
         stay the same; its time is :attr:`single_seconds`."""
         def make() -> Array:
-            t0, geo = time.perf_counter(), f.geo
-            with DepthRenderer(self.ctx, geo["mesh"]) as depth:
-                out = single_scattering_frame(geo["mesh"], geo["vertices"], geo["normals"], f.eye,
-                                              f.scene.material.eta, f.scene.lights, self.medium(f), depth)
+            t0, geo, m = time.perf_counter(), f.geo, self._march_inputs(f)
+            out = scattering_frame(geo["mesh"], geo["vertices"], geo["normals"], f.eye, f.scene.material.eta,
+                                   f.scene.lights, m["medium"], None, beams=m["march_beams"])[0]
             self.single_seconds = time.perf_counter() - t0
             return out
         return self._cached("single", key(f.material_key, f.light_key, f.edit_version, f.view), make)
