@@ -33,6 +33,7 @@ from glsldiff.bench.sphere import sphere_study
 from glsldiff.bench.tet import tet_study
 from glsldiff.bench.cut import update_seconds
 from glsldiff.bench.edit import EDIT_MODELS, edit_study, save_edit_study
+from glsldiff.bench.frames import MODES as FRAME_MODES, frames_study, save_frames_study
 from glsldiff.bench.throughput import sweep_throughput
 from glsldiff.bench.timing import runs_note
 from glsldiff.bench.sphere_lights import (ALL_DISCRETISATIONS as SPHERE_ALL_DISCRETISATIONS,
@@ -306,6 +307,22 @@ def cmd_bench_edit(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench_frames(args: argparse.Namespace) -> int:
+    out = check_output_folder(args.out)
+    summary, frames = frames_study(args.modes, size=args.size, orbit=args.orbit, status=_status)
+    print_table(f"frames of the default scene, {args.size}^2 pixels ({gl.describe(gl.get_context())})", summary,
+                first=("mode", "glsldiff render first frame s", "unchanged ms", "camera ms", "light to 0.5 % s"),
+                rest=f"all in {args.out}/frames_summary.csv")
+    print("first frame: a fresh renderer after another filled the disk caches (set-up: grid from the cache, render "
+          "mesh, surface map; the interactive renderer's also builds the GPU multigrid); unchanged / camera: median (and fastest) frame with nothing changed / with the eye "
+          f"turned {args.orbit} times by 5 degrees about the target; light to 0.5 %: seconds from the light's change "
+          "to the first frame within 0.5 % (rel. L2) of a fresh render of the new light to 1e-7, pass 2 "
+          "frame-coherent; viewer: closed-form single scattering; render: the 3-D march (glsldiff render).")
+    paths = save_frames_study(summary, frames, out)
+    print("wrote " + ", ".join(str(p) for p in paths))
+    return 0
+
+
 def cmd_bench_sphere(args: argparse.Namespace) -> int:
     rows = sphere_study(ns=args.n, radius=args.radius, cube_size=args.cube_size, glsl=not args.no_glsl,
                         out=check_output_folder(args.out), cube_sizes=args.cube_sizes, n_fixed=args.n_fixed,
@@ -551,6 +568,15 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     _add_gl(b)
     b.set_defaults(func=cmd_bench_edit)
+
+    b = bsub.add_parser("frames", help="frames of the default scene: nothing, the camera or a light changed, in the "
+                                       "viewer's mode and in glsldiff render's (the 3-D march); time to 0.5 %%")
+    b.add_argument("--modes", nargs="+", default=list(FRAME_MODES), choices=FRAME_MODES, help="modes to run")
+    b.add_argument("--orbit", type=A.integer(1, 360), default=6, help="camera frames (5 degrees each)")
+    b.add_argument("--size", type=A.integer(16, 8192), default=512, help="image width = height, pixels")
+    b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
+    _add_gl(b)
+    b.set_defaults(func=cmd_bench_frames)
 
     b = bsub.add_parser("sphere", help="polygrid sphere vs the closed form, grid refinement")
     b.add_argument("--n", type=A.integer(2, 64), nargs="+", default=[4, 6, 8, 12], help="nodes per cube edge")

@@ -35,7 +35,7 @@ from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, cached_load_mesh, gen
 from glsldiff.physics.editing import Edit, EditResult, EditView
 from glsldiff.physics.material import coefficients, optical_properties
 from glsldiff.render.backends import GridBackend, Pass2Inputs, make_backend
-from glsldiff.render.camera import scene_camera
+from glsldiff.render.camera import frame_camera, scene_camera
 from glsldiff.render.editing import MaterialHistory
 from glsldiff.render.frame_report import THICKNESS_SAMPLES, FrameNotes
 from glsldiff.render.load import (GATHER_MAX_H_SIGMA, Q_MAX, Incidence, boundary_C, effective_scene, h_sigma_t,
@@ -379,6 +379,12 @@ class Renderer:
             self._eye_mvp = scene_camera(scene, self._geo["frame"])
             self._keys["camera"] = key
         return self._eye_mvp
+
+    def framing(self, scene: Scene) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+        """``(eye, target, up)`` (mm) of ``scene``'s camera on the mesh the last frame rendered
+        (:func:`~glsldiff.render.camera.frame_camera`; the automatic framing when ``[camera]`` has
+        no position)."""
+        return frame_camera(scene, self.frame_vertices)
 
     # -- editing (Wang et al. 2008, section 5.4) --------------------------------------
     def edit_view(self, scene: Scene) -> EditView:
