@@ -147,8 +147,8 @@ class Mesh:
         pos = np.arange(len(owner)) - np.repeat(np.cumsum(rep) - rep, rep)
         partner = around[start[corner_vertex[owner]] + pos]        # a face around the vertex
         keep = np.einsum("ij,ij->i", nf[owner // 3], nf[partner]) >= math.cos(math.radians(CREASE_DEG))
-        acc = np.zeros((len(corner_vertex), 3))
-        np.add.at(acc, owner[keep], cross[partner[keep]])
+        o, c = owner[keep], cross[partner[keep]]
+        acc = np.stack([np.bincount(o, weights=c[:, k], minlength=len(corner_vertex)) for k in range(3)], axis=1)
         return normalize(acc).reshape(len(f), 3, 3)
 
     # ---- acceleration structures (built on first query) --------------------------------
