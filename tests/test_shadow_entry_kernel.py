@@ -162,7 +162,7 @@ def test_entry_of_no_points_and_repeated_calls(ctx):
         sm = r.shadow_map(LIGHTS["point"], 64, normals=True)
         assert sm.entry(np.zeros((0, 3))).shape == (0,)
         assert sm.entry_normals(np.zeros((0, 3))).shape == (0, 3)
-        assert sm._packed is sm._packed and len(sm._packed) == 6
+        assert sm.views_packed is sm.views_packed and len(sm.views_packed) == 6
 
 
 def _kernel_bary(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:

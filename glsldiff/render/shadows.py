@@ -82,7 +82,7 @@ ON_FACE_TEXELS = 0.01      # entry normals: a point this close to a face's inter
 _FAR = 1.0e30              # clear value of the shadow map (no surface)
 _FIT = 1.02                # orthographic window: bounding radius times this
 _SHADER_DEFINES = {"LIGHT_FAR": "1.0e30"}
-#: a view as the kernels read it (:attr:`ShadowMap._packed`)
+#: a view as the kernels read it (:attr:`ShadowMap.views_packed`)
 _VIEW = np.dtype([(name, np.float64) for name in ("ex", "ey", "ez", "fx", "fy", "fz", "rx", "ry", "rz",
                                                   "ux", "uy", "uz", "half")]
                  + [("ortho", np.bool_), ("far", np.float64), ("col", np.int64), ("row", np.int64)])
@@ -201,7 +201,7 @@ class ShadowMap:
         return vis
 
     @cached_property
-    def _packed(self) -> NDArray[np.void]:
+    def views_packed(self) -> NDArray[np.void]:
         """The views for the kernels, a record per view (:data:`_VIEW`; records, unlike arrays,
         pass to a kernel's helpers without reference counting)."""
         return np.array([(*v.eye, *v.forward, *v.right, *v.up, v.half, v.ortho, v.far, *v.tile)
@@ -216,7 +216,7 @@ class ShadowMap:
         A compiled kernel (:func:`_entry_kernel`)."""
         p = np.ascontiguousarray(p, dtype=np.float64).reshape(-1, 3)
         out = np.empty(len(p))
-        _entry_kernel(p, self._packed, self.size, self.front, out)
+        _entry_kernel(p, self.views_packed, self.size, self.front, out)
         return out
 
     def entry_normals(self, y: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -231,7 +231,7 @@ class ShadowMap:
         tri, cn = self.surface
         y = np.ascontiguousarray(y, dtype=np.float64).reshape(-1, 3)
         out = np.empty((len(y), 3))
-        _entry_normals_kernel(y, self._packed, self.size, self.face, tri, cn, ON_FACE_TEXELS, out)
+        _entry_normals_kernel(y, self.views_packed, self.size, self.face, tri, cn, ON_FACE_TEXELS, out)
         return out
 
 
@@ -304,33 +304,39 @@ def _locate(p0: float, p1: float, p2: float, v: Any, size: int
             ((1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy))
 
 
+@kernel(inline=True)
+def entry_at(p0: float, p1: float, p2: float, views: NDArray[np.void], size: int,
+             front: NDArray[np.float32]) -> float:
+    """:meth:`ShadowMap.entry` of one point (relative to the centre; a kernel helper: ``views``
+    is ``ShadowMap.views_packed``, ``front`` the map's ``front``)."""
+    v = views[_view_of(p0, p1, p2, views[0], views.shape[0])]
+    depth, ok, _, r, c, w = _locate(p0, p1, p2, v, size)
+    if not ok:
+        return np.nan
+    vals = (np.float64(front[r[0], c[0]]), np.float64(front[r[1], c[1]]),
+            np.float64(front[r[2], c[2]]), np.float64(front[r[3], c[3]]))
+    bil, every = 0.0, True
+    for j in range(4):
+        if vals[j] < 0.5 * _FAR:
+            bil += vals[j] * w[j]
+        else:
+            every = False
+    if every:
+        surf = bil
+    else:
+        surf = vals[_first_max(w[0], w[1], w[2], w[3])]
+        if not surf < 0.5 * _FAR:
+            surf = np.nan
+    d = depth - surf
+    return d if (d > 0.0 or d != d) else 0.0
+
+
 @kernel(parallel=True)
 def _entry_kernel(p: NDArray[np.float64], views: NDArray[np.void], size: int,
                   front: NDArray[np.float32], out: NDArray[np.float64]) -> None:
     """``out[i]``: :meth:`ShadowMap.entry` of point ``p[i]``."""
     for i in prange(p.shape[0]):
-        p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
-        v = views[_view_of(p0, p1, p2, views[0], views.shape[0])]
-        depth, ok, _, r, c, w = _locate(p0, p1, p2, v, size)
-        if not ok:
-            out[i] = np.nan
-            continue
-        vals = (np.float64(front[r[0], c[0]]), np.float64(front[r[1], c[1]]),
-                np.float64(front[r[2], c[2]]), np.float64(front[r[3], c[3]]))
-        bil, every = 0.0, True
-        for j in range(4):
-            if vals[j] < 0.5 * _FAR:
-                bil += vals[j] * w[j]
-            else:
-                every = False
-        if every:
-            surf = bil
-        else:
-            surf = vals[_first_max(w[0], w[1], w[2], w[3])]
-            if not surf < 0.5 * _FAR:
-                surf = np.nan
-        d = depth - surf
-        out[i] = d if (d > 0.0 or d != d) else 0.0
+        out[i] = entry_at(p[i, 0], p[i, 1], p[i, 2], views, size, front)
 
 
 @kernel
@@ -396,6 +402,56 @@ def _face_distance(p0: float, p1: float, p2: float, t: tuple[float, ...]
     return q0 * q0 + q1 * q1 + q2 * q2, b
 
 
+@kernel(inline=True)
+def _normal_from_taps(y0: float, y1: float, y2: float, faces: tuple[int, int, int, int], nearest: int,
+                      texel: float, tri: NDArray[np.float64], cn: NDArray[np.float64],
+                      on_face: float) -> tuple[float, float, float]:
+    """The entry normal at a point (relative to the centre) from the faces stored at its 2 x 2
+    texels (``nearest``: the nearest texel's tap; ``texel``: the texel's width there, mm)."""
+    f0 = faces[nearest]                     # the nearest texel's face
+    if f0 < 0:
+        return np.nan, np.nan, np.nan
+    f, d2, bary = f0, np.inf, (0.0, 0.0, 0.0)
+    for j in range(-1, 4):
+        if j < 0:
+            fj = f0
+        else:       # a point off the nearest texel's face: the other taps' faces, once each
+            fj = faces[j]
+            new = fj >= 0 and fj != f0
+            for m in range(j):
+                new = new and faces[m] != fj
+            if not new:
+                continue
+        dj, bj = _face_distance(y0, y1, y2, (tri[fj, 0, 0], tri[fj, 0, 1], tri[fj, 0, 2],
+                                             tri[fj, 1, 0], tri[fj, 1, 1], tri[fj, 1, 2],
+                                             tri[fj, 2, 0], tri[fj, 2, 1], tri[fj, 2, 2]))
+        if dj < d2:
+            f, d2, bary = fj, dj, bj
+        if j < 0 and bj[0] > 0.0 and bj[1] > 0.0 and bj[2] > 0.0 and dj <= (on_face * texel) ** 2:
+            break           # y lies on the nearest texel's face
+    n0 = (bary[0] * cn[f, 0, 0] + bary[1] * cn[f, 1, 0]) + bary[2] * cn[f, 2, 0]
+    n1 = (bary[0] * cn[f, 0, 1] + bary[1] * cn[f, 1, 1]) + bary[2] * cn[f, 2, 1]
+    n2 = (bary[0] * cn[f, 0, 2] + bary[1] * cn[f, 1, 2]) + bary[2] * cn[f, 2, 2]
+    length = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
+    if length > 0.0:                    # glsldiff.mesh.types.normalize: zero (or NaN) rows give 0
+        return n0 / length, n1 / length, n2 / length
+    return 0.0, 0.0, 0.0
+
+
+@kernel(inline=True)
+def entry_normal_at(y0: float, y1: float, y2: float, views: NDArray[np.void], size: int,
+                    face: NDArray[np.int32], tri: NDArray[np.float64], cn: NDArray[np.float64],
+                    on_face: float) -> tuple[float, float, float]:
+    """:meth:`ShadowMap.entry_normals` at one point (relative to the centre; a kernel helper:
+    ``views`` is ``ShadowMap.views_packed``, ``face`` and ``(tri, cn)`` the map's ``face`` and
+    ``surface``, ``on_face`` :data:`ON_FACE_TEXELS`)."""
+    v = views[_view_of(y0, y1, y2, views[0], views.shape[0])]
+    _, _, texel, r, c, w = _locate(y0, y1, y2, v, size)
+    faces = (np.int64(face[r[0], c[0]]), np.int64(face[r[1], c[1]]),
+             np.int64(face[r[2], c[2]]), np.int64(face[r[3], c[3]]))
+    return _normal_from_taps(y0, y1, y2, faces, _first_max(w[0], w[1], w[2], w[3]), texel, tri, cn, on_face)
+
+
 @kernel(parallel=True)
 def _entry_normals_kernel(y: NDArray[np.float64], views: NDArray[np.void], size: int,
                           face: NDArray[np.int32], tri: NDArray[np.float64], cn: NDArray[np.float64],
@@ -416,38 +472,9 @@ def _entry_normals_kernel(y: NDArray[np.float64], views: NDArray[np.void], size:
         nearest[i] = _first_max(w[0], w[1], w[2], w[3])
         texels[i] = texel
     for i in prange(n_pts):
-        y0, y1, y2 = y[i, 0], y[i, 1], y[i, 2]
         faces = (np.int64(taps[i, 0]), np.int64(taps[i, 1]), np.int64(taps[i, 2]), np.int64(taps[i, 3]))
-        f0 = np.int64(taps[i, nearest[i]])  # the nearest texel's face
-        if f0 < 0:
-            out[i, 0] = out[i, 1] = out[i, 2] = np.nan
-            continue
-        f, d2, bary = f0, np.inf, (0.0, 0.0, 0.0)
-        for j in range(-1, 4):
-            if j < 0:
-                fj = f0
-            else:       # a point off the nearest texel's face: the other taps' faces, once each
-                fj = faces[j]
-                new = fj >= 0 and fj != f0
-                for m in range(j):
-                    new = new and faces[m] != fj
-                if not new:
-                    continue
-            dj, bj = _face_distance(y0, y1, y2, (tri[fj, 0, 0], tri[fj, 0, 1], tri[fj, 0, 2],
-                                                 tri[fj, 1, 0], tri[fj, 1, 1], tri[fj, 1, 2],
-                                                 tri[fj, 2, 0], tri[fj, 2, 1], tri[fj, 2, 2]))
-            if dj < d2:
-                f, d2, bary = fj, dj, bj
-            if j < 0 and bj[0] > 0.0 and bj[1] > 0.0 and bj[2] > 0.0 and dj <= (on_face * texels[i]) ** 2:
-                break           # y lies on the nearest texel's face
-        n0 = (bary[0] * cn[f, 0, 0] + bary[1] * cn[f, 1, 0]) + bary[2] * cn[f, 2, 0]
-        n1 = (bary[0] * cn[f, 0, 1] + bary[1] * cn[f, 1, 1]) + bary[2] * cn[f, 2, 1]
-        n2 = (bary[0] * cn[f, 0, 2] + bary[1] * cn[f, 1, 2]) + bary[2] * cn[f, 2, 2]
-        length = np.sqrt((n0 * n0 + n1 * n1) + n2 * n2)
-        if length > 0.0:                    # glsldiff.mesh.types.normalize: zero (or NaN) rows give 0
-            out[i, 0], out[i, 1], out[i, 2] = n0 / length, n1 / length, n2 / length
-        else:
-            out[i, 0] = out[i, 1] = out[i, 2] = 0.0
+        out[i, 0], out[i, 1], out[i, 2] = _normal_from_taps(y[i, 0], y[i, 1], y[i, 2], faces, nearest[i],
+                                                            texels[i], tri, cn, on_face)
 
 
 class DepthRenderer:

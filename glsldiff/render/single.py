@@ -60,16 +60,16 @@ from glsldiff.core.jit import kernel, prange
 from glsldiff.mesh import closest_points
 from glsldiff.mesh.raycast import first_hits
 from glsldiff.physics.area import solid_angles, sub_rectangles
-from glsldiff.physics.lights import AreaLight, EnvironmentLight, Light, incidence, to_light
+from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight, Light, incidence, to_light
 from glsldiff.physics.optics import fresnel_transmittance, refract
 from glsldiff.physics.sh import fibonacci_directions, sh_evaluate
-from glsldiff.render.shadows import DepthRenderer
+from glsldiff.render.shadows import ON_FACE_TEXELS, DepthRenderer, entry_at, entry_normal_at
 
 __all__ = ["scattering_frame", "single_scattering_frame", "light_beams", "medium_lattice", "SAMPLES",
            "ENV_DIRECTIONS", "GRID", "REACH"]
 
 Array = NDArray[np.float64]
-SAMPLES = 16          # nodes along each refracted view ray
+SAMPLES = 8           # nodes along each refracted view ray (docs/guide/single-scattering.md: the error budget)
 ENV_DIRECTIONS = 32   # beams of an environment light
 GRID = 48             # heterogeneous material lattice per axis
 REACH = 16.0          # view rays followed this many mean free paths at most
@@ -182,6 +182,16 @@ class _Beams:
     def entry_normals(self, b: int, y: Array) -> Array:
         """``(M, 3)`` unit outward normal at beam ``b``'s entry points ``y`` (NaN: no face stored)."""
         return self.maps[b].entry_normals(y - self.centre)
+
+    def constant(self, b: int) -> tuple[Array, Array] | None:
+        """``(w, E)`` ``(3,)`` each of a beam with one direction towards its source and one normal
+        irradiance at every point (directional and environment lights; W/mm^2), else None."""
+        if isinstance(self.light, DirectionalLight):
+            return (np.ascontiguousarray(self.light.direction, dtype=np.float64),
+                    np.ascontiguousarray(self.light.irradiance, dtype=np.float64))
+        if isinstance(self.light, EnvironmentLight):
+            return np.ascontiguousarray(self.dirs[b]), np.ascontiguousarray(self.radiance[b])
+        return None
 
     def irradiance(self, b: int, y: Array, ell: Array, eta: float) -> tuple[Array, Array]:
         """At entry points ``y`` of samples a straight distance ``ell`` inside: beam ``b``'s normal
@@ -324,22 +334,37 @@ def _view_samples(v: Array, d: Array, S: Array, lam: Array, st0: Array, u: Array
 def _beam(bl: _Beams, b: int, x: Array, st_x: Array, up: Array, mesh: Any, med: _Medium, eta: float,
           g: float, out: Array) -> None:
     """Adds beam ``b``'s phase-weighted, attenuated normal irradiance inside at sample points
-    ``x`` (``st_x``: the extinction there, ``up``: the view ray's propagation) to ``out`` ``(M, 3)``."""
-    ell = bl.entry(b, x)
+    ``x`` (``st_x``: the extinction there, ``up``: the view ray's propagation) to ``out`` ``(M, 3)``:
+    in one kernel for a beam of one direction and irradiance, else its entry points in numpy
+    between kernels."""
+    sel: Any = slice(None)
+    const = bl.constant(b)
+    if const is not None:
+        sm = bl.maps[b]
+        tri, cn = sm.surface
+        miss = np.zeros(len(x), dtype=np.bool_)
+        _constant_beam(x, st_x, up, const[0], const[1], bl.centre, sm.views_packed, sm.size, sm.front, sm.face,
+                       tri, cn, ON_FACE_TEXELS, float(eta), float(g), med.grid, med.lo, med.hi, med.homogeneous,
+                       out, miss)
+        sel = np.flatnonzero(miss)          # no face stored there (not expected: same coverage)
+        if sel.size == 0:
+            return
+    ell = bl.entry(b, x[sel])
     ok = np.flatnonzero(np.isfinite(ell))
     if ok.size == 0:
         return
-    xo, ell = x[ok], ell[ok]
+    idx = np.arange(len(x))[sel][ok]
+    xo, ell = x[idx], ell[ok]
     y = xo + ell[:, None] * bl.towards(b, xo)
     n_y = bl.entry_normals(b, y)
-    miss = np.flatnonzero(~np.isfinite(n_y[:, 0]))
-    if miss.size:                           # no face stored there (not expected: same coverage)
-        n_y[miss] = closest_points(mesh, y[miss], exact=False)[3]
+    miss_n = np.flatnonzero(~np.isfinite(n_y[:, 0]))
+    if miss_n.size:
+        n_y[miss_n] = closest_points(mesh, y[miss_n], exact=False)[3]
     E_n, w_y = bl.irradiance(b, y, ell, eta)
     res = _beam_terms(xo, y, ell, np.ascontiguousarray(w_y), n_y, np.ascontiguousarray(E_n),
-                      np.ascontiguousarray(up[ok]), np.ascontiguousarray(st_x[ok]), float(eta), float(g),
+                      np.ascontiguousarray(up[idx]), np.ascontiguousarray(st_x[idx]), float(eta), float(g),
                       med.grid, med.lo, med.hi, med.homogeneous)
-    out[ok] += res
+    out[idx] += res
 
 
 @kernel
@@ -359,41 +384,81 @@ def _fresnel_t(eta: float, c: float) -> float:
 @kernel(parallel=True)
 def _beam_terms(x: Array, y: Array, ell: Array, w: Array, n_y: Array, E_n: Array, up: Array, st_x: Array,
                 eta: float, g: float, grid: Array, lo: Array, hi: Array, homogeneous: bool) -> Array:
-    """``(M, 3)`` one beam's ``p(T . up) E c F_t / t e^{-tau}`` at samples ``x`` (module
-    docstring): entering at ``y`` (normal ``n_y``, towards the source ``w``, irradiance ``E_n``)
-    a straight distance ``ell`` away; ``tau``: Jensen's path ``ell c / t`` times sigma_t by
-    Simpson's rule over the segment (exact when homogeneous)."""
+    """``(M, 3)`` one beam's :func:`_add_term` at samples ``x``: entering at ``y`` (normal
+    ``n_y``, towards the source ``w``, irradiance ``E_n``) a straight distance ``ell`` away."""
     M = x.shape[0]
     res = np.zeros((M, 3))
-    e = 1.0 / eta
     blocks = (M + _BLOCK - 1) // _BLOCK
     for blk in prange(blocks):
         mid = np.empty(6)
         end = np.empty(6)
         for i in range(blk * _BLOCK, min(M, (blk + 1) * _BLOCK)):
-            c = n_y[i, 0] * w[i, 0] + n_y[i, 1] * w[i, 1] + n_y[i, 2] * w[i, 2]
-            if not c > 0.0:                     # facing away, or no normal (NaN)
-                continue
-            c = min(c, 1.0)
-            sin2 = e * e * (1.0 - c * c)
-            cos_t = np.sqrt(min(max(1.0 - sin2, 0.0), 1.0))      # the refracted cosine
-            t = max(cos_t, 1e-6)
-            share = c * _fresnel_t(eta, c) / t
-            path = ell[i] * c / t
-            # refracted propagation: Snell for -w crossing the surface (normal n_y) from outside
-            k = e * c - cos_t
-            T0, T1, T2 = -e * w[i, 0] + k * n_y[i, 0], -e * w[i, 1] + k * n_y[i, 1], -e * w[i, 2] + k * n_y[i, 2]
-            norm = max(np.sqrt(T0 * T0 + T1 * T1 + T2 * T2), 1e-300)
-            mu = (T0 * up[i, 0] + T1 * up[i, 1] + T2 * up[i, 2]) / norm
-            phase = (1.0 - g * g) / (4.0 * np.pi * (1.0 + g * g - 2.0 * g * mu) ** 1.5)
-            if homogeneous:
-                for ch in range(3):
-                    res[i, ch] = phase * share * E_n[i, ch] * np.exp(-path * grid[0, 0, 0, 3 + ch])
-            else:
-                _lookup(grid, lo, hi, 0.5 * (x[i, 0] + y[i, 0]), 0.5 * (x[i, 1] + y[i, 1]),
-                        0.5 * (x[i, 2] + y[i, 2]), mid)
-                _lookup(grid, lo, hi, y[i, 0], y[i, 1], y[i, 2], end)
-                for ch in range(3):
-                    tau = path * (st_x[i, ch] + 4.0 * mid[3 + ch] + end[3 + ch]) / 6.0
-                    res[i, ch] = phase * share * E_n[i, ch] * np.exp(-tau)
+            _add_term(i, x, y[i, 0], y[i, 1], y[i, 2], ell[i], w[i, 0], w[i, 1], w[i, 2], n_y[i, 0], n_y[i, 1],
+                      n_y[i, 2], E_n[i, 0], E_n[i, 1], E_n[i, 2], up, st_x, eta, g, grid, lo, hi, homogeneous,
+                      mid, end, res)
     return res
+
+
+@kernel(parallel=True)
+def _constant_beam(x: Array, st_x: Array, up: Array, w: Array, E: Array, centre: Array, views: Any, size: int,
+                   front: Any, face: Any, tri: Array, cn: Array, on_face: float, eta: float, g: float,
+                   grid: Array, lo: Array, hi: Array, homogeneous: bool, out: Array, miss: Any) -> None:
+    """Adds to ``out`` ``(M, 3)`` a beam of one direction ``w`` and one irradiance ``E``
+    (directional and environment lights) at samples ``x``: its entry points and normals from the
+    light's depth and face maps (:func:`~glsldiff.render.shadows.entry_at`,
+    :func:`~glsldiff.render.shadows.entry_normal_at`) and :func:`_add_term`, in one pass;
+    ``miss[i]``: an entry point with no face stored (left for the caller)."""
+    M = x.shape[0]
+    blocks = (M + _BLOCK - 1) // _BLOCK
+    for blk in prange(blocks):
+        mid = np.empty(6)
+        end = np.empty(6)
+        for i in range(blk * _BLOCK, min(M, (blk + 1) * _BLOCK)):
+            ell = entry_at(x[i, 0] - centre[0], x[i, 1] - centre[1], x[i, 2] - centre[2], views, size, front)
+            if not ell == ell:                  # no surface towards the light stored
+                continue
+            y0, y1, y2 = x[i, 0] + ell * w[0], x[i, 1] + ell * w[1], x[i, 2] + ell * w[2]
+            n0, n1, n2 = entry_normal_at(y0 - centre[0], y1 - centre[1], y2 - centre[2], views, size, face, tri, cn,
+                                         on_face)
+            if not n0 == n0:
+                miss[i] = True
+                continue
+            _add_term(i, x, y0, y1, y2, ell, w[0], w[1], w[2], n0, n1, n2, E[0], E[1], E[2], up, st_x, eta, g,
+                      grid, lo, hi, homogeneous, mid, end, out)
+
+
+@kernel(inline=True)
+def _add_term(i: int, x: Array, y0: float, y1: float, y2: float, ell: float, w0: float, w1: float, w2: float,
+              n0: float, n1: float, n2: float, E0: float, E1: float, E2: float, up: Array, st_x: Array, eta: float,
+              g: float, grid: Array, lo: Array, hi: Array, homogeneous: bool, mid: Array, end: Array,
+              out: Array) -> None:
+    """Adds to ``out[i]`` a beam's ``p(T . up) E c F_t / t e^{-tau}`` at sample ``x[i]`` (module
+    docstring): entering at ``y`` (normal ``n``, towards the source ``w``, normal irradiance
+    ``E``) a straight distance ``ell`` away; ``tau``: Jensen's path ``ell c / t`` times sigma_t by
+    Simpson's rule over the segment (exact when homogeneous); ``mid``, ``end``: scratch ``(6,)``."""
+    c = n0 * w0 + n1 * w1 + n2 * w2
+    if not c > 0.0:                     # facing away, or no normal (NaN)
+        return
+    c = min(c, 1.0)
+    e = 1.0 / eta
+    sin2 = e * e * (1.0 - c * c)
+    cos_t = np.sqrt(min(max(1.0 - sin2, 0.0), 1.0))      # the refracted cosine
+    t = max(cos_t, 1e-6)
+    share = c * _fresnel_t(eta, c) / t
+    path = ell * c / t
+    # refracted propagation: Snell for -w crossing the surface (normal n) from outside
+    k = e * c - cos_t
+    T0, T1, T2 = -e * w0 + k * n0, -e * w1 + k * n1, -e * w2 + k * n2
+    norm = max(np.sqrt(T0 * T0 + T1 * T1 + T2 * T2), 1e-300)
+    mu = (T0 * up[i, 0] + T1 * up[i, 1] + T2 * up[i, 2]) / norm
+    f = share * (1.0 - g * g) / (4.0 * np.pi * (1.0 + g * g - 2.0 * g * mu) ** 1.5)
+    if homogeneous:
+        out[i, 0] += f * E0 * np.exp(-path * grid[0, 0, 0, 3])
+        out[i, 1] += f * E1 * np.exp(-path * grid[0, 0, 0, 4])
+        out[i, 2] += f * E2 * np.exp(-path * grid[0, 0, 0, 5])
+        return
+    _lookup(grid, lo, hi, 0.5 * (x[i, 0] + y0), 0.5 * (x[i, 1] + y1), 0.5 * (x[i, 2] + y2), mid)
+    _lookup(grid, lo, hi, y0, y1, y2, end)
+    out[i, 0] += f * E0 * np.exp(-path * (st_x[i, 0] + 4.0 * mid[3] + end[3]) / 6.0)
+    out[i, 1] += f * E1 * np.exp(-path * (st_x[i, 1] + 4.0 * mid[4] + end[4]) / 6.0)
+    out[i, 2] += f * E2 * np.exp(-path * (st_x[i, 2] + 4.0 * mid[5] + end[5]) / 6.0)
