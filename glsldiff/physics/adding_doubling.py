@@ -52,6 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError
+from glsldiff.core.jit import kernel, prange
 from glsldiff.physics.optics import fresnel_transmittance
 
 __all__ = ["HalfspaceTables", "halfspace_tables", "slab_operators", "slab_transport", "N_OUT", "A_GRID",
@@ -191,6 +192,40 @@ def slab_transport(albedo: float, depth: float, eta: float = 1.0) -> tuple[NDArr
     return ang.nu, to_radiance[:, None] * R, to_radiance[:, None] * T
 
 
+@kernel(inline=True)
+def _nu_cell(nu: NDArray[np.float64], c: float) -> tuple[int, float]:
+    """:meth:`HalfspaceTables._cosine_cell` of one cosine."""
+    x = min(max(c, 0.0), 1.0)
+    i = min(max(np.searchsorted(nu, x) - 1, 0), len(nu) - 2)
+    return i, (x - nu[i]) / (nu[i + 1] - nu[i])
+
+
+@kernel(parallel=True)
+def _table_lookup(table: NDArray[np.float64], albedo: NDArray[np.float64], c1: NDArray[np.float64],
+                  c2: NDArray[np.float64], nu: NDArray[np.float64], two: bool) -> NDArray[np.float64]:
+    """``table[k, i, j]`` at each ``(albedo, c1, c2)``: linear in ``sqrt(1 - a)`` over ``k``, in
+    ``c1`` over ``i`` and (``two``) in ``c2`` over ``j`` (else ``j = 0``); no Fresnel factor."""
+    n_u = table.shape[0]
+    out = np.empty(albedo.shape[0])
+    for m in prange(albedo.shape[0]):
+        fu = np.sqrt(1.0 - min(max(albedo[m], 0.0), 1.0)) * (n_u - 1)
+        k = min(max(int(np.floor(fu)), 0), n_u - 2)
+        du = fu - k
+        i, f = _nu_cell(nu, c1[m])
+        j, g = _nu_cell(nu, c2[m]) if two else (0, 0.0)
+        acc = 0.0
+        for dk in range(2):
+            wk = du if dk else 1.0 - du
+            if two:
+                v = ((1 - f) * (1 - g) * table[k + dk, i, j] + f * (1 - g) * table[k + dk, i + 1, j]
+                     + (1 - f) * g * table[k + dk, i, j + 1] + f * g * table[k + dk, i + 1, j + 1])
+            else:
+                v = (1 - f) * table[k + dk, i, 0] + f * table[k + dk, i + 1, 0]
+            acc = acc + wk * v
+        out[m] = acc
+    return out
+
+
 @dataclass(frozen=True)
 class HalfspaceTables:
     """Half-space tables for one ``eta`` (module docstring): ``total[k, i, j]`` and
@@ -221,18 +256,16 @@ class HalfspaceTables:
         return i, (x - self.nu[i]) / (self.nu[i + 1] - self.nu[i])
 
     def _lookup(self, table: NDArray, albedo: ArrayLike, *cosines: ArrayLike) -> NDArray[np.float64]:
-        k, du = self._albedo_cell(albedo)
-        idx, frac = zip(*(self._cosine_cell(c) for c in cosines))
-        out = 0.0
-        for dk, wk in ((0, 1.0 - du), (1, du)):
-            if len(cosines) == 1:
-                (i,), (f,) = idx, frac
-                v = (1 - f) * table[k + dk, i] + f * table[k + dk, i + 1]
-            else:
-                (i, j), (f, g) = idx, frac
-                v = ((1 - f) * (1 - g) * table[k + dk, i, j] + f * (1 - g) * table[k + dk, i + 1, j]
-                     + (1 - f) * g * table[k + dk, i, j + 1] + f * g * table[k + dk, i + 1, j + 1])
-            out = out + wk * v
+        """``table`` (albedo, one or two cosines) interpolated linearly in ``sqrt(1 - a)`` and in
+        each cosine (a compiled kernel over the broadcast arguments), times ``F_t`` of each cosine."""
+        args = np.broadcast_arrays(*(np.asarray(v, dtype=np.float64) for v in (albedo,) + cosines))
+        flat = [np.ascontiguousarray(a).reshape(-1) for a in args]
+        t = np.ascontiguousarray(table, dtype=np.float64)
+        if len(cosines) == 1:
+            out = _table_lookup(t[:, :, None], flat[0], flat[1], np.zeros_like(flat[1]), self.nu, False)
+        else:
+            out = _table_lookup(t, flat[0], flat[1], flat[2], self.nu, True)
+        out = out.reshape(args[0].shape)
         for c in cosines:            # the tables hold the values over F_t of each cosine (smooth at 0)
             out = out * np.asarray(fresnel_transmittance(self.eta, np.clip(np.asarray(c, dtype=np.float64), 0.0, 1.0)))
         return np.asarray(out, dtype=np.float64)
