@@ -477,6 +477,7 @@ class GlslSparseMultigrid(GatherSolver):
                     g.first = upload_ell(ctx, pk["first"], res)
             self._levels.append(g)
         self._cg = _ConjugateGradients(self.ctx, self._gpu, self.n, self.levels[0].size) if self.accel else None
+        self._b_norm_stale = True
 
     # ---- state ------------------------------------------------------------------------------
     @property
@@ -521,6 +522,7 @@ class GlslSparseMultigrid(GatherSolver):
         return self.levels[0].size
 
     def _restart(self) -> None:
+        self._b_norm_stale = True        # residual_gpu's ||D^-1 b|| (b or the diagonal may have changed)
         if self._cg is not None:
             self._cg.started = False     # conjugate gradients restart from the current x
 
@@ -595,6 +597,9 @@ class GlslSparseMultigrid(GatherSolver):
         iterate (the measure of :func:`glsldiff.oracle.solvers.relax`), evaluated on the GPU in
         fp32: a residual pass, the first-sweep scaling ``omega D^-1`` (omega cancels), two
         reductions, 2 texels read back instead of the iterate and a float64 product on the CPU.
+        Right after a conjugate-gradient iteration the residual is the one the iteration updated
+        (no matrix product), and ``||D^-1 b||`` is kept until the right-hand side, the iterate or
+        the matrix is replaced.
         ``nan`` where it cannot (plain V-cycles, a zero right-hand side): check on the CPU then.
         Its fp32 floor is about 1e-6 (the float64 check's too: the iterate is fp32)."""
         g, cg = self._levels[0], self._cg
@@ -602,11 +607,16 @@ class GlslSparseMultigrid(GatherSolver):
             return math.nan
         gl.make_current(self.ctx)
         with gl.keep_framebuffer(self.ctx):
-            for vec, out in ((None, cg.norms[0]), (g.b, cg.norms[1])):
-                if vec is None:
-                    self._pass.draw(RESIDUAL, g.r_fbo, g.size, g.A, self.state.src, g.size, diag=g.diag, b=g.b)
-                self._pass.draw(APPLY, cg.q.fbo, g.size, g.first, g.r if vec is None else vec, g.size)
+            if cg.started and cg.pending:     # an iteration just ended: conjugate gradients' own r = b - A x
+                r_tex = cg.r.src
+            else:
+                self._pass.draw(RESIDUAL, g.r_fbo, g.size, g.A, self.state.src, g.size, diag=g.diag, b=g.b)
+                r_tex = g.r
+            todo = [(r_tex, cg.norms[0])] + ([(g.b, cg.norms[1])] if self._b_norm_stale else [])
+            for vec, out in todo:
+                self._pass.draw(APPLY, cg.q.fbo, g.size, g.first, vec, g.size)
                 cg.dot(cg.q.tex, cg.q.tex, out)
+            self._b_norm_stale = False
             r, b = (np.frombuffer(t.tex.read(), dtype=np.float32)[:3].astype(np.float64) for t in cg.norms)
         ok = b > 0                       # channels without a source do not count (as channel_ratio)
         return float(np.sqrt(np.max(r[ok] / b[ok]))) if ok.any() else math.nan
