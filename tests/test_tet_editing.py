@@ -213,3 +213,34 @@ def test_march_frames_keep_the_lights_maps_and_equal_fresh_renders(scene):
         with Renderer(cache_solutions=False) as fresh:
             ref, _ = fresh.render(s)
         assert _rel(img, ref) < tol
+
+
+def test_a_frame_renders_each_lights_map_once(scene, monkeypatch):
+    """Pass 1, the shading visibility and the 3-D march share one shadow map per light (the
+    march adds its faces): one depth render and one face render per light change, none for a
+    camera move; the map of a light no longer in the scene is dropped."""
+    from glsldiff.render.shadows import DepthRenderer
+    calls = {"depth": 0, "faces": 0}
+    render, faces = DepthRenderer.render, DepthRenderer._render_faces
+
+    def counted_render(self, *a, **k):
+        calls["depth"] += 1
+        return render(self, *a, **k)
+
+    def counted_faces(self, *a, **k):
+        calls["faces"] += 1
+        return faces(self, *a, **k)
+    monkeypatch.setattr(DepthRenderer, "render", counted_render)
+    monkeypatch.setattr(DepthRenderer, "_render_faces", counted_faces)
+    opts = dataclasses.replace(scene.options, source="surface", single_scattering=True)
+    sc = dataclasses.replace(scene, options=opts)
+    moved = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, position=(40.0, 25.0, 70.0)))
+    relit = dataclasses.replace(moved, lights=(dataclasses.replace(sc.lights[0], direction=(-0.5, 0.2, 0.8)),))
+    with Renderer(cache_solutions=False) as r:
+        r.render(sc)
+        assert calls == {"depth": 1, "faces": 1}
+        r.render(moved)
+        assert calls == {"depth": 1, "faces": 1}
+        r.render(relit)
+        assert calls == {"depth": 2, "faces": 2}
+        assert len(r._depth._kept) == 1

@@ -126,15 +126,15 @@ class LightLoad:
 
 
 def light_load(scene: Scene, mesh: Any, backend: GridBackend, kappa: Array, mu: Array,
-               ctx: moderngl.Context) -> LightLoad:
+               ctx: moderngl.Context, depth: Any = None) -> LightLoad:
     """Pass 1 of ``scene`` on ``backend``'s grid: the light reaching the boundary nodes through
     ``mesh`` and the load it makes (the node material ``kappa``, ``mu``, material-shaped, for the
-    first-collision load)."""
+    first-collision load); ``depth``: the renderer's map-keeping ``DepthRenderer`` of ``mesh``."""
     pg = backend.grid
     volume = scene.options.source == "volume"
     beams: list | None = [] if volume or scene.options.split or splits_incidence(scene) else None
     E_t, info = incident_light(mesh, pg.boundary_positions, pg.normals, scene.lights, scene.material.eta, ctx=ctx,
-                               beams=beams, triangles=backend.surface_triangles)
+                               beams=beams, triangles=backend.surface_triangles, depth=depth)
     E_t = np.asarray(E_t, dtype=np.float64)
     q = marshak_source(scene, E_t, mesh)
     load = None

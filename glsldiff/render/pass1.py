@@ -51,6 +51,7 @@ irradiance in the caller's units.
 """
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from typing import Any, Callable, Sequence
@@ -121,7 +122,8 @@ def _context(ctx: moderngl.Context | None) -> moderngl.Context:
 
 
 def visibility(mesh: Any, points: ArrayLike, light: Light, ctx: moderngl.Context | None = None,
-               shadow_map_size: int = 1024, normals: ArrayLike | None = None) -> NDArray[np.float64]:
+               shadow_map_size: int = 1024, normals: ArrayLike | None = None,
+               depth: DepthRenderer | None = None) -> NDArray[np.float64]:
     """Shadow-map visibility ``(N,)`` in [0, 1] of ``points`` (N, 3) mm for one light (1 = lit).
 
     Renders a shadow map whatever the light's ``shadows`` flag says. ``normals`` (N, 3),
@@ -130,7 +132,7 @@ def visibility(mesh: Any, points: ArrayLike, light: Light, ctx: moderngl.Context
     ``directions`` (weighted by ``(n . w)^+`` when normals are given, else unweighted), with
     shadow maps of at most ``ENV_SHADOW_MAP_MAX`` texels. For a projector it is the shadowing
     alone (points outside the frustum count as lit); its image is
-    :func:`glsldiff.physics.lights.projector_factor`.
+    :func:`glsldiff.physics.lights.projector_factor`. ``depth``: as :func:`incident_light`'s.
     """
     _mesh_arrays(mesh)
     p = checks.points(points)
@@ -139,8 +141,7 @@ def visibility(mesh: Any, points: ArrayLike, light: Light, ctx: moderngl.Context
     size = _size(shadow_map_size)
     if len(p) == 0:
         return np.ones(0)
-    c = _context(ctx)
-    with DepthRenderer(c, mesh) as r:
+    with (contextlib.nullcontext(depth) if depth is not None else DepthRenderer(_context(ctx), mesh)) as r:
         q = p - r.centre
         if isinstance(light, EnvironmentLight):
             dirs = fibonacci_directions(light.directions)
@@ -160,7 +161,8 @@ def visibility(mesh: Any, points: ArrayLike, light: Light, ctx: moderngl.Context
 def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Sequence[Light],
                    eta: float | None, ctx: moderngl.Context | None = None,
                    shadow_map_size: int = 1024, beams: list[Beam] | None = None,
-                   triangles: ArrayLike | None = None) -> tuple[NDArray[np.float64], list[dict[str, Any]]]:
+                   triangles: ArrayLike | None = None,
+                   depth: DepthRenderer | None = None) -> tuple[NDArray[np.float64], list[dict[str, Any]]]:
     """Transmitted irradiance at boundary nodes (pass 1; formulas in the module docstring).
 
     Parameters
@@ -191,6 +193,10 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
         ``E`` sum to ``E_t``, ``t`` the refracted cosine each arrives at (module docstring):
         one per directional, point, spot or projector light, one per sub-rectangle of an
         area light, ``len(ENV_BEAMS)`` per environment light.
+    depth
+        A :class:`~glsldiff.render.shadows.DepthRenderer` of ``mesh`` to render the shadow maps
+        with (one that keeps its maps shares them with later passes; the caller releases it);
+        default: one made and released here.
 
     Returns
     -------
@@ -213,7 +219,7 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
     size = _size(shadow_map_size)
     total = np.zeros((len(p), 3))
     infos: list[dict[str, Any]] = []
-    renderer: DepthRenderer | None = None
+    renderer: DepthRenderer | None = depth
     try:
         for light in light_list:
             t0 = time.perf_counter()
@@ -249,7 +255,7 @@ def incident_light(mesh: Any, points: ArrayLike, normals: ArrayLike, lights: Seq
             info["seconds"] = time.perf_counter() - t0
             infos.append(info)
     finally:
-        if renderer is not None:
+        if renderer is not None and renderer is not depth:
             renderer.release()
     return total, infos
 

@@ -98,6 +98,7 @@ class Renderer:
         self._model_note = ""
         self._edited = False                      # the node material differs from the scene's (edits)
         self._solutions = 0                       # pass-2 solutions so far (pass 3's caches follow each)
+        self._depth: DepthRenderer | None = None  # the lights' maps of the grid's mesh, shared by passes 1 and 3
         self._light_info: list[dict[str, Any]] = []
         self._terms = SurfaceTerms(self.ctx)      # pass 3's per-vertex terms and their caches
         self._notes = FrameNotes()
@@ -223,9 +224,23 @@ class Renderer:
 
     def _pass1(self, scene: Scene) -> None:
         """Pass 1: the light reaching the boundary nodes and its load (:func:`~glsldiff.render.load.light_load`)."""
-        lit = light_load(scene, self._geo["mesh"], self._be, self._mat["kappa"], self._mat["mu"], self.ctx)
+        lit = light_load(scene, self._geo["mesh"], self._be, self._mat["kappa"], self._mat["mu"], self.ctx,
+                         self._light_maps(scene))
         self._E_t, self._q_marshak, self._beams, self._load = lit.E_t, lit.q, lit.beams, lit.load
         self._light_info = lit.info
+
+    def _light_maps(self, scene: Scene) -> DepthRenderer:
+        """The grid mesh's :class:`~glsldiff.render.shadows.DepthRenderer` that keeps each light's
+        shadow map: pass 1, the shading visibility and the 3-D march render a light's map once
+        (the march adds its faces); maps of lights no longer in ``scene`` are dropped."""
+        mesh = self._geo["mesh"]
+        if self._depth is None or self._depth.mesh is not mesh:
+            if self._depth is not None:
+                self._depth.release()
+            self._depth = None
+            self._depth = DepthRenderer(self.ctx, mesh, keep_maps=True)
+        self._depth.keep_lights(scene.lights)
+        return self._depth
 
     def _incidence(self, scene: Scene) -> None:
         """The incidence stage: the diffusion's load from pass 1 (:func:`~glsldiff.render.load.split_incidence`)."""
@@ -295,7 +310,7 @@ class Renderer:
         (eye, mvp), k, geo = self._camera(scene), self._keys, self._geo
         f = FrameInputs(scene, self._be, geo, self._mat["kappa"], self._mat["mu"], self._edited, self._E_t, self._inc,
                         self._beams, self._phi_b, k.get("geometry"), k.get("material"), k.get("light"), k.get("solve"),
-                        self._solutions, self._edit_version, eye)
+                        self._solutions, self._edit_version, eye, self._light_maps(scene))
         ms, vis, ss = self._terms.multiple(f), self._terms.visibility(f), self._terms.added(f, self.split_part)
         return shade(self.ctx, geo["vertices"], geo["faces"], geo["normals"], ms, vis, ss, shader_lights(scene), eye,
                      mvp, scene.material.eta, scene.specular.rho_s, scene.specular.alpha,
@@ -462,6 +477,9 @@ class Renderer:
     def release(self) -> None:
         if self._backend is not None:
             self._backend.release()
+        if self._depth is not None:
+            self._depth.release()
+            self._depth = None
 
     def __enter__(self) -> "Renderer":
         return self

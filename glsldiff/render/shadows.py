@@ -59,7 +59,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any
+from typing import Any, Sequence
 
 import moderngl
 import numpy as np
@@ -477,16 +477,28 @@ def _entry_normals_kernel(y: NDArray[np.float64], views: NDArray[np.void], size:
                                                             texels[i], tri, cn, on_face)
 
 
+def _atlas_shape(views: list[View], size: int) -> tuple[int, int]:
+    """``(width, height)`` texels of the atlas holding ``views``' ``size``-texel tiles."""
+    return (max(v.tile[0] for v in views) + 1) * size, (max(v.tile[1] for v in views) + 1) * size
+
+
 class DepthRenderer:
     """GL resources to render a mesh's front/back depth (and on request the faces for entry
     normals) from lights; release with ``release`` (or use as a context manager). Coordinates
     are relative to the bounding-sphere centre. ``mesh``: a :class:`glsldiff.mesh.Mesh` (its
     ``corner_normals`` are read only for entry normals). The face draw's program and targets
-    are made on its first use."""
+    are made on its first use.
 
-    def __init__(self, ctx: moderngl.Context, mesh: Any) -> None:
+    ``keep_maps``: :meth:`shadow_map` keeps each light's map (one view set per light, not the
+    ``direction`` views of environment lights) and hands it out again while it is asked for
+    with the same size, adding the face atlas when a later caller wants entry normals: the
+    renderer's pass 1, shading visibility and 3-D march then share one map per light
+    (:meth:`keep_lights` drops the maps of lights no longer in the scene)."""
+
+    def __init__(self, ctx: moderngl.Context, mesh: Any, keep_maps: bool = False) -> None:
         self.ctx = ctx
         self.mesh = mesh
+        self._kept: dict[tuple[str, int], ShadowMap] | None = {} if keep_maps else None
         v = np.asarray(mesh.vertices, dtype=np.float64)
         f = np.asarray(mesh.faces, dtype=np.int64)
         lo, hi = v.min(axis=0), v.max(axis=0)
@@ -642,9 +654,7 @@ class DepthRenderer:
         """Depth maps of ``views`` packed in an atlas of ``size``-texel tiles, read back; with
         ``normals`` the face atlas too (:meth:`ShadowMap.entry_normals`)."""
         ctx = self.ctx
-        cols = max(v.tile[0] for v in views) + 1
-        rows = max(v.tile[1] for v in views) + 1
-        shape = (cols * size, rows * size)
+        shape = _atlas_shape(views, size)
         max_tex = int(ctx.info.get("GL_MAX_TEXTURE_SIZE", 8192))
         if max(shape) > max_tex:
             raise InputError(f"shadow_map_size={size} needs a {shape[0]}x{shape[1]} texture, beyond "
@@ -701,7 +711,26 @@ class DepthRenderer:
     def shadow_map(self, light: Light, size: int, direction: NDArray[np.float64] | None = None,
                    normals: bool = False) -> ShadowMap:
         """The shadow map of ``light`` (``direction``: an orthographic view towards it instead,
-        e.g. one direction of an environment light; ``normals``: with entry normals)."""
+        e.g. one direction of an environment light; ``normals``: with entry normals); a kept
+        one where this renderer keeps maps (class docstring)."""
+        key = (repr(light), int(size))
+        if self._kept is None or direction is not None:
+            return self._light_map(light, size, direction, normals)
+        sm = self._kept.get(key)
+        if sm is None:
+            sm = self._kept[key] = self._light_map(light, size, None, normals)
+        elif normals and sm.face is None:           # the same views' faces, added to the kept map
+            sm.face, sm.surface = self._render_faces(sm.views, sm.size, _atlas_shape(sm.views, sm.size)), self._surface()
+        return sm
+
+    def keep_lights(self, lights: Sequence[Light]) -> None:
+        """Drop the kept maps of lights not among ``lights``."""
+        if self._kept:
+            names = {repr(lt) for lt in lights}
+            self._kept = {k: v for k, v in self._kept.items() if k[0] in names}
+
+    def _light_map(self, light: Light, size: int, direction: NDArray[np.float64] | None,
+                   normals: bool) -> ShadowMap:
         if isinstance(light, ProjectorLight):
             light = light.spot
         if isinstance(light, DirectionalLight) or direction is not None:

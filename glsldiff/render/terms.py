@@ -107,6 +107,7 @@ class FrameInputs:
     solution: int                   # pass 2's solution count: a new fluence each
     edit_version: int
     eye: Array                      # (3,) the camera position, mm
+    depth: DepthRenderer | None = None   # the renderer's map-keeping DepthRenderer of geo["mesh"] (None: own ones)
 
     @property
     def view(self) -> tuple[float, ...]:
@@ -260,7 +261,7 @@ class SurfaceTerms:
             vis, tint = np.ones((len(v), MAX_SHADER_LIGHTS)), np.ones((len(v), MAX_SHADER_LIGHTS, 3))
             for i, light in enumerate(shader_lights(f.scene)):
                 if light.shadows:
-                    vis[:, i] = visibility(mesh, v, light, ctx=self.ctx, normals=nrm)
+                    vis[:, i] = visibility(mesh, v, light, ctx=self.ctx, normals=nrm, depth=f.depth)
                 if isinstance(light, ProjectorLight):
                     tint[:, i] = projector_factor(light, v)
             return vis * tint.mean(axis=2)     # the shader's visibility is one number per light
@@ -321,6 +322,8 @@ class SurfaceTerms:
                               lambda: medium_lattice(self.medium(f), mesh))
 
         def beams() -> Any:
+            if f.depth is not None:                 # the maps pass 1 rendered, with faces added
+                return light_beams(f.scene.lights, f.depth)
             with DepthRenderer(self.ctx, mesh) as depth:
                 return light_beams(f.scene.lights, depth)
         return {"medium": medium, "march_beams": self._cached("march beams", key(f.geometry_key, f.light_key), beams)}
@@ -359,7 +362,8 @@ class SurfaceTerms:
         rho_key = key(f.geometry_key, mat.reflectance, mat.volume)
         rho = self._cached("rho", rho_key, lambda: geo["interp"] @ surface_reflectance(f.scene, f.backend.grid))
         return self._cached("diffuse", key(rho_key, f.light_key), lambda: rho * incident_light(
-            geo["mesh"], geo["vertices"], geo["normals"], f.scene.lights, None, ctx=self.ctx)[0] / math.pi)
+            geo["mesh"], geo["vertices"], geo["normals"], f.scene.lights, None, ctx=self.ctx, depth=f.depth)[0]
+            / math.pi)
 
     def medium(self, f: FrameInputs) -> Medium:
         """The material for path integrals through the object: ``(sigma_a, sigma_s')`` RGB
