@@ -11,10 +11,9 @@ import numpy as np
 import pytest
 
 from glsldiff.mesh import box_mesh, torus_mesh
-from glsldiff.mesh.closest import closest_on_triangles
+from glsldiff.mesh.closest import closest_on_triangle, closest_on_triangles
 from glsldiff.mesh.types import normalize
 from glsldiff.physics.lights import DirectionalLight, PointLight, SpotLight, to_light
-from glsldiff.render import shadows
 from glsldiff.render.shadows import ON_FACE_TEXELS, DepthRenderer, ShadowMap
 
 SIZE = 256
@@ -166,7 +165,7 @@ def test_entry_of_no_points_and_repeated_calls(ctx):
 
 
 def _kernel_bary(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    return np.array([shadows._closest_on_triangle(*map(float, q), tuple(map(float, (*ta, *tb, *tc))))
+    return np.array([closest_on_triangle(*map(float, q), tuple(map(float, (*ta, *tb, *tc))))
                      for q, ta, tb, tc in zip(p, a, b, c)])
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from glsldiff.core.jit import kernel
 from glsldiff.mesh.accel import PAIR_CHUNK
 from glsldiff.mesh.types import Mesh, normalize, query_points
 
@@ -55,6 +56,58 @@ def closest_on_triangles(p: NDArray[np.float64], a: NDArray[np.float64], b: NDAr
     bad = ~np.isfinite(bary).all(axis=1)
     bary[bad] = (1.0, 0.0, 0.0)
     return bary
+
+
+@kernel
+def closest_on_triangle(p0: float, p1: float, p2: float, t: tuple[float, ...]
+                         ) -> tuple[float, float, float]:
+    """Barycentrics of the closest point to p on the triangle ``t`` (corners a, b, c, 3
+    coordinates each): :func:`closest_on_triangles` for one point
+    (Ericson 5.1.5; a non-finite result, as of a degenerate triangle, becomes (1, 0, 0)); a
+    kernel helper, for compiled loops."""
+    ab0, ab1, ab2 = t[3] - t[0], t[4] - t[1], t[5] - t[2]
+    ac0, ac1, ac2 = t[6] - t[0], t[7] - t[1], t[8] - t[2]
+    ap0, ap1, ap2 = p0 - t[0], p1 - t[1], p2 - t[2]
+    bp0, bp1, bp2 = p0 - t[3], p1 - t[4], p2 - t[5]
+    cp0, cp1, cp2 = p0 - t[6], p1 - t[7], p2 - t[8]
+    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
+    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
+    d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
+    d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
+    d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    # the corner and edge regions in closest_on_triangles' order of precedence, then the
+    # interior; a zero denominator gives NaN (numpy: inf or NaN), replaced by (1, 0, 0) as there
+    if d1 <= 0 and d2 <= 0:
+        return 1.0, 0.0, 0.0
+    if d3 >= 0 and d4 <= d3:
+        return 0.0, 1.0, 0.0
+    if vc <= 0 and d1 >= 0 and d3 <= 0:
+        u = d1 / (d1 - d3) if d1 - d3 != 0.0 else np.nan
+        return _finite_or_a(1 - u, u, 0.0)
+    if d6 >= 0 and d5 <= d6:
+        return 0.0, 0.0, 1.0
+    if vb <= 0 and d2 >= 0 and d6 <= 0:
+        u = d2 / (d2 - d6) if d2 - d6 != 0.0 else np.nan
+        return _finite_or_a(1 - u, 0.0, u)
+    if va <= 0 and d4 - d3 >= 0 and d5 - d6 >= 0:
+        s = (d4 - d3) + (d5 - d6)
+        u = (d4 - d3) / s if s != 0.0 else np.nan
+        return _finite_or_a(0.0, 1 - u, u)
+    den = va + vb + vc
+    if den == 0.0:
+        return 1.0, 0.0, 0.0
+    v, w = vb / den, vc / den
+    return _finite_or_a(1 - v - w, v, w)
+
+
+@kernel
+def _finite_or_a(b0: float, b1: float, b2: float) -> tuple[float, float, float]:
+    """Barycentrics (b0, b1, b2), or corner a's (1, 0, 0) where one is not finite."""
+    if np.isfinite(b0) and np.isfinite(b1) and np.isfinite(b2):
+        return b0, b1, b2
+    return 1.0, 0.0, 0.0
 
 
 def _exact(mesh: Mesh, pi: NDArray[np.int64], fi: NDArray[np.int64], p: NDArray[np.float64]

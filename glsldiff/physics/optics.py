@@ -17,9 +17,11 @@ from scipy import integrate, optimize
 
 from glsldiff.core.checks import finite_values, require
 from glsldiff.core.errors import InputError
+from glsldiff.core.jit import kernel
 
 __all__ = [
-    "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "transmitted_cosine", "refracted_cosine",
+    "PAPER_C", "optical_pair", "fresnel_reflectance", "fresnel_transmittance", "fresnel_transmittance_at",
+    "transmitted_cosine", "refracted_cosine",
     "refract",
     "fdr", "fdr_integral", "fresnel_moments", "moment_boundary_constant",
     "boundary_constant", "eta_for_boundary_constant", "DipoleConstants",
@@ -90,6 +92,21 @@ def _fresnel_r(eta: NDArray[np.float64], c: NDArray[np.float64]) -> NDArray[np.f
 def fresnel_transmittance(eta: ArrayLike, cos_i: ArrayLike) -> NDArray[np.float64] | np.float64:
     """Fresnel transmittance F_t = 1 - F_r (dimensionless); arguments as `fresnel_reflectance`."""
     return _out(1.0 - np.asarray(fresnel_reflectance(eta, cos_i)))
+
+
+@kernel
+def fresnel_transmittance_at(eta: float, c: float) -> float:
+    """:func:`fresnel_transmittance` of one cosine ``c`` in [0, 1] (unchecked; :func:`_fresnel_r`'s
+    formula), a kernel helper for compiled loops."""
+    if eta == 1.0:
+        return 1.0
+    sin_t2 = (1.0 - c * c) / (eta * eta)
+    if sin_t2 >= 1.0:
+        return 0.0
+    cos_t = np.sqrt(min(max(1.0 - sin_t2, 0.0), 1.0))
+    r_s = (c - eta * cos_t) / (c + eta * cos_t)
+    r_p = (eta * c - cos_t) / (eta * c + cos_t)
+    return 1.0 - 0.5 * (r_s * r_s + r_p * r_p)
 
 
 def transmitted_cosine(eta: float | None, cos: ArrayLike) -> NDArray[np.float64]:

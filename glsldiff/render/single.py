@@ -61,7 +61,7 @@ from glsldiff.mesh import closest_points
 from glsldiff.mesh.raycast import first_hits
 from glsldiff.physics.area import solid_angles, sub_rectangles
 from glsldiff.physics.lights import AreaLight, DirectionalLight, EnvironmentLight, Light, incidence, to_light
-from glsldiff.physics.optics import fresnel_transmittance, refract
+from glsldiff.physics.optics import fresnel_transmittance, fresnel_transmittance_at, refract
 from glsldiff.physics.sh import fibonacci_directions, sh_evaluate
 from glsldiff.render.shadows import ON_FACE_TEXELS, DepthRenderer, entry_at, entry_normal_at
 
@@ -367,20 +367,6 @@ def _beam(bl: _Beams, b: int, x: Array, st_x: Array, up: Array, mesh: Any, med: 
     out[idx] += res
 
 
-@kernel
-def _fresnel_t(eta: float, c: float) -> float:
-    """Fresnel transmittance ``F_t(eta, c)`` (:func:`glsldiff.physics.optics.fresnel_transmittance`)."""
-    if eta == 1.0:
-        return 1.0
-    sin_t2 = (1.0 - c * c) / (eta * eta)
-    if sin_t2 >= 1.0:
-        return 0.0
-    cos_t = np.sqrt(min(max(1.0 - sin_t2, 0.0), 1.0))
-    r_s = (c - eta * cos_t) / (c + eta * cos_t)
-    r_p = (eta * c - cos_t) / (eta * c + cos_t)
-    return 1.0 - 0.5 * (r_s * r_s + r_p * r_p)
-
-
 @kernel(parallel=True)
 def _beam_terms(x: Array, y: Array, ell: Array, w: Array, n_y: Array, E_n: Array, up: Array, st_x: Array,
                 eta: float, g: float, grid: Array, lo: Array, hi: Array, homogeneous: bool) -> Array:
@@ -444,7 +430,7 @@ def _add_term(i: int, x: Array, y0: float, y1: float, y2: float, ell: float, w0:
     sin2 = e * e * (1.0 - c * c)
     cos_t = np.sqrt(min(max(1.0 - sin2, 0.0), 1.0))      # the refracted cosine
     t = max(cos_t, 1e-6)
-    share = c * _fresnel_t(eta, c) / t
+    share = c * fresnel_transmittance_at(eta, c) / t
     path = ell * c / t
     # refracted propagation: Snell for -w crossing the surface (normal n) from outside
     k = e * c - cos_t
