@@ -22,7 +22,6 @@ import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
-import moderngl
 import numpy as np
 from numpy.typing import NDArray
 
@@ -32,7 +31,6 @@ from glsldiff.physics.exitance import halfspace_bracket
 from glsldiff.physics.split import (ExternalBeam, collided_halfspace, combine, diffusion_weight, external_beams,
                                     gather_share, gathered_halfspace, local_multiple, local_single, marshak_halfspace)
 from glsldiff.render.fluence import FluenceLattice
-from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import scattering_frame
 
 __all__ = ["SplitInputs", "SplitResult", "SplitStatic", "split_again", "split_radiance", "split_repaint", "FAR_MODELS"]
@@ -67,7 +65,7 @@ class SplitInputs:
     mesh: Any = None                           # the march: the mesh its rays and depth maps use
     lights: Sequence[Any] = ()
     medium: Any = None
-    march_beams: Any = None                    # the march: the lights' beams kept from the last frame (or None)
+    march_beams: Any = None                    # the march: the lights' beams (single.light_beams; kept across frames)
 
 
 @dataclass(frozen=True)
@@ -179,7 +177,7 @@ def _info(inp: SplitInputs, eta: float, X_loc: Array, n_vertices: int) -> str:
             f" ({int(lit.sum()):,} of {n_vertices:,} vertices lit)")
 
 
-def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = None) -> SplitResult:
+def split_radiance(inp: SplitInputs, eye: Array) -> SplitResult:
     """The split's subsurface radiance per vertex (module docstring), for the camera at ``eye``."""
     t0 = time.perf_counter()
     v, n = inp.vertices, inp.normals
@@ -196,14 +194,9 @@ def split_radiance(inp: SplitInputs, eye: Array, ctx: moderngl.Context | None = 
     M = local_multiple(tables, albedo, ext, nu_o)
     gathered = None
     if inp.march:
-        fl = inp.fluence if inp.far == "gather" else None
-        if inp.march_beams is not None:
-            single, gathered = scattering_frame(inp.mesh, v, n, eye, eta, inp.lights, inp.medium, None, fluence=fl,
-                                                beams=inp.march_beams)
-        else:
-            with DepthRenderer(ctx, inp.mesh) as depth:
-                single, gathered = scattering_frame(inp.mesh, v, n, eye, eta, inp.lights, inp.medium, depth,
-                                                    fluence=fl)
+        single, gathered = scattering_frame(inp.mesh, v, n, eye, eta, inp.lights, inp.medium, None,
+                                            fluence=inp.fluence if inp.far == "gather" else None,
+                                            beams=inp.march_beams)
     else:
         single = local_single(eta, albedo, ext, nu_o)
     if inp.far == "gather":

@@ -107,7 +107,7 @@ class FrameInputs:
     solution: int                   # pass 2's solution count: a new fluence each
     edit_version: int
     eye: Array                      # (3,) the camera position, mm
-    depth: DepthRenderer | None = None   # the renderer's map-keeping DepthRenderer of geo["mesh"] (None: own ones)
+    depth: DepthRenderer            # the renderer's map-keeping DepthRenderer of geo["mesh"] (shadows.py)
 
     @property
     def view(self) -> tuple[float, ...]:
@@ -311,7 +311,7 @@ class SurfaceTerms:
                           q=f.q, source_distance_mfp=thick, fluence=fluence, mesh=geo["mesh"], lights=f.scene.lights,
                           **(self._march_inputs(f) if march else {}))
         again = split_repaint(painted, inp) if painted is not None else None
-        return again if again is not None else split_radiance(inp, f.eye, self.ctx)
+        return again if again is not None else split_radiance(inp, f.eye)
 
     def _march_inputs(self, f: FrameInputs) -> dict[str, Any]:
         """The 3-D march's medium lattice and the lights' beams (depth maps), kept while the
@@ -321,12 +321,9 @@ class SurfaceTerms:
         medium = self._cached("march medium", key(f.material_key, f.edit_version, f.geometry_key),
                               lambda: medium_lattice(self.medium(f), mesh))
 
-        def beams() -> Any:
-            if f.depth is not None:                 # the maps pass 1 rendered, with faces added
-                return light_beams(f.scene.lights, f.depth)
-            with DepthRenderer(self.ctx, mesh) as depth:
-                return light_beams(f.scene.lights, depth)
-        return {"medium": medium, "march_beams": self._cached("march beams", key(f.geometry_key, f.light_key), beams)}
+        beams = self._cached("march beams", key(f.geometry_key, f.light_key),   # pass 1's maps, faces added
+                             lambda: light_beams(f.scene.lights, f.depth))
+        return {"medium": medium, "march_beams": beams}
 
     def single(self, f: FrameInputs) -> Array:
         """Per-vertex single scattering of every light, reflection and transmission
