@@ -192,15 +192,22 @@ def test_stalled_frames_remake_the_coarse_levels_and_still_converge_to_the_cold_
     assert _rel(edited, ref) < 1e-4
 
 
+def _march_scenes(scene):
+    """The scene with the 3-D march (surface far field), it with the camera moved, and that with
+    the light turned."""
+    opts = dataclasses.replace(scene.options, source="surface", single_scattering=True)
+    sc = dataclasses.replace(scene, options=opts)
+    moved = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, position=(40.0, 25.0, 70.0)))
+    relit = dataclasses.replace(moved, lights=(dataclasses.replace(sc.lights[0], direction=(-0.5, 0.2, 0.8)),))
+    return sc, moved, relit
+
+
 def test_march_frames_keep_the_lights_maps_and_equal_fresh_renders(scene):
     """With the 3-D march, a camera move keeps the lights' depth maps and the medium lattice
     (the same objects) and shades what a fresh renderer shades at the new camera; a light
     change makes new maps (a kept map would shade the old light); its pass 2 starts from the
     last solution, so it equals the fresh render to the solver's tolerance."""
-    opts = dataclasses.replace(scene.options, source="surface", single_scattering=True)
-    sc = dataclasses.replace(scene, options=opts)
-    moved = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, position=(40.0, 25.0, 70.0)))
-    relit = dataclasses.replace(moved, lights=(dataclasses.replace(sc.lights[0], direction=(-0.5, 0.2, 0.8)),))
+    sc, moved, relit = _march_scenes(scene)
     with Renderer(cache_solutions=False) as r:
         r.render(sc)
         beams, medium = r._terms._kept["march beams"], r._terms._kept["march medium"]
@@ -232,10 +239,7 @@ def test_a_frame_renders_each_lights_map_once(scene, monkeypatch):
         return faces(self, *a, **k)
     monkeypatch.setattr(DepthRenderer, "render", counted_render)
     monkeypatch.setattr(DepthRenderer, "_render_faces", counted_faces)
-    opts = dataclasses.replace(scene.options, source="surface", single_scattering=True)
-    sc = dataclasses.replace(scene, options=opts)
-    moved = dataclasses.replace(sc, camera=dataclasses.replace(sc.camera, position=(40.0, 25.0, 70.0)))
-    relit = dataclasses.replace(moved, lights=(dataclasses.replace(sc.lights[0], direction=(-0.5, 0.2, 0.8)),))
+    sc, moved, relit = _march_scenes(scene)
     with Renderer(cache_solutions=False) as r:
         r.render(sc)
         assert calls == {"depth": 1, "faces": 1}

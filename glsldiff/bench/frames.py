@@ -66,6 +66,13 @@ def _timed(r: Renderer, scene: Scene) -> tuple[float, Any, Any]:
     return time.perf_counter() - t0, img, rep
 
 
+def _row(mode: str, phase: str, k: int, s: float, since: float, err: float, rep: Any) -> dict[str, Any]:
+    """A per-frame row: the frame's seconds ``s``, seconds ``since`` its phase's change, the
+    image error (NaN: not measured) and the passes it ran."""
+    return {"mode": mode, "phase": phase, "frame": k, "s": s, "since_change_s": since, "rel_l2": err,
+            "passes": " ".join(p["pass"] for p in rep.passes if p["ran"])}
+
+
 def frames_study(modes: Sequence[str] = MODES, size: int = 512, orbit: int = 6, step_deg: float = 5.0,
                  unchanged: int = 3, frame_sweeps: int = 10, ref_tol: float = 1e-7, max_frames: int = 100,
                  status: Any = None) -> tuple[list[dict], list[dict]]:
@@ -85,39 +92,32 @@ def frames_study(modes: Sequence[str] = MODES, size: int = 512, orbit: int = 6, 
         with Renderer(status=say, frame_sweeps=frame_sweeps, allow_unconverged=True) as r:
             first, _, rep = _timed(r, scene)
             setup = rep.seconds.get("setup", 0.0)
-            frames.append({"mode": mode, "phase": "first", "frame": 0, "s": first, "since_change_s": first,
-                           "rel_l2": np.nan, "passes": " ".join(p["pass"] for p in rep.passes if p["ran"])})
+            frames.append(_row(mode, "first", 0, first, first, np.nan, rep))
             t_same = []
             for k in range(unchanged):
                 dt, _, rep = _timed(r, scene)
                 t_same.append(dt)
-                frames.append({"mode": mode, "phase": "unchanged", "frame": k, "s": dt, "since_change_s": dt,
-                               "rel_l2": np.nan, "passes": " ".join(p["pass"] for p in rep.passes if p["ran"])})
+                frames.append(_row(mode, "unchanged", k, dt, dt, np.nan, rep))
             eye, target, up = r.framing(scene)
             t_cam = []
             for k in range(1, orbit + 1):
                 moved = _orbit(scene, eye, target, up, k * step_deg)
                 dt, _, rep = _timed(r, moved)
                 t_cam.append(dt)
-                frames.append({"mode": mode, "phase": "camera", "frame": k, "s": dt, "since_change_s": dt,
-                               "rel_l2": np.nan, "passes": " ".join(p["pass"] for p in rep.passes if p["ran"])})
+                frames.append(_row(mode, "camera", k, dt, dt, np.nan, rep))
             relit = dataclasses.replace(moved, lights=(dataclasses.replace(
                 scene.lights[0], direction=tuple(np.asarray(NEW_LIGHT) / np.linalg.norm(NEW_LIGHT))),))
             say(f"bench frames: {mode}: the reference of the new light (to {ref_tol:g})")
             with Renderer(status=say, frame_sweeps=frame_sweeps) as rr:
                 ref, _ = rr.render(dataclasses.replace(relit, options=dataclasses.replace(relit.options, tol=ref_tol)))
-            t0, light_rows = time.perf_counter(), []
+            t0, last, light_rows = time.perf_counter(), 0.0, []
             for k in range(max_frames):
                 img, rep = r.render(relit)
                 since = time.perf_counter() - t0
-                light_rows.append({"mode": mode, "phase": "light", "frame": k, "s": np.nan, "since_change_s": since,
-                                   "rel_l2": rel_l2(img, ref),
-                                   "passes": " ".join(p["pass"] for p in rep.passes if p["ran"])})
+                light_rows.append(_row(mode, "light", k, since - last, since, rel_l2(img, ref), rep))
+                last = since
                 if r.converged:
                     break
-            for j in range(len(light_rows)):         # each frame's own time
-                before = light_rows[j - 1]["since_change_s"] if j else 0.0
-                light_rows[j]["s"] = light_rows[j]["since_change_s"] - before
             frames += light_rows
         hit = [row["since_change_s"] for row in light_rows if row["rel_l2"] <= CONVERGED]
         summary.append({"mode": mode, "single scattering": "closed form" if mode == "viewer" else "3-D march",

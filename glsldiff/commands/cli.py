@@ -314,7 +314,8 @@ def cmd_bench_frames(args: argparse.Namespace) -> int:
                 first=("mode", "glsldiff render first frame s", "unchanged ms", "camera ms", "light to 0.5 % s"),
                 rest=f"all in {args.out}/frames_summary.csv")
     print("first frame: a fresh renderer after another filled the disk caches (set-up: grid from the cache, render "
-          "mesh, surface map; the interactive renderer's also builds the GPU multigrid); unchanged / camera: median (and fastest) frame with nothing changed / with the eye "
+          "mesh, surface map; the interactive renderer's also builds the GPU multigrid); unchanged / camera: median "
+          "(and fastest) frame with nothing changed / with the eye "
           f"turned {args.orbit} times by 5 degrees about the target; light to 0.5 %: seconds from the light's change "
           "to the first frame within 0.5 % (rel. L2) of a fresh render of the new light to 1e-7, pass 2 "
           "frame-coherent; viewer: closed-form single scattering; render: the 3-D march (glsldiff render).")
