@@ -125,3 +125,27 @@ def test_fresnel_and_bracket_alone(ctx):
     co = wo[:, 2] / np.linalg.norm(wo, axis=1)
     ref = np.asarray(fresnel_transmittance(eta, co))[:, None] * ms
     np.testing.assert_allclose(img.reshape(-1, 3), ref, rtol=1e-5, atol=1e-7)
+
+
+def test_kept_shader_gives_the_fresh_image(ctx):
+    """A :class:`Shader` kept across frames (new values, a new mesh, a new size) shades what a
+    fresh one does."""
+    from glsldiff.core.camera import look_at, projection
+    from glsldiff.mesh.primitives import box_mesh, sphere_mesh
+    from glsldiff.render.shading import Shader
+
+    def args(mesh, eye, size, seed):
+        v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        rng = np.random.default_rng(seed)
+        mvp = projection(3.0 * size[1] / size[0], 3.0, 1.0, 100.0) @ look_at(eye, (0.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+        return (v, f, mesh.vertex_normals, rng.uniform(0.1, 1.0, (len(v), 3)), np.ones((len(v), MAX_SHADER_LIGHTS)),
+                rng.uniform(0.0, 0.1, (len(v), 3)), LIGHTS[:1], np.asarray(eye), mvp, 1.3, 0.05, 0.3, size)
+
+    frames = [args(sphere_mesh(5.0, 3), (3.0, 4.0, 30.0), (40, 32), 0),
+              args(sphere_mesh(5.0, 3), (-8.0, 2.0, 25.0), (40, 32), 1),
+              args(box_mesh((6.0, 4.0, 5.0), (-3.0, -2.0, -2.5)), (9.0, 7.0, 20.0), (36, 30), 2)]
+    with Shader(ctx) as kept:
+        for a in frames:
+            fresh = shade(ctx, *a)
+            assert np.count_nonzero(fresh.sum(axis=2)) > 100
+            np.testing.assert_array_equal(kept.shade(*a), fresh)

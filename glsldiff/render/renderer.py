@@ -43,7 +43,7 @@ from glsldiff.render.load import (GATHER_MAX_H_SIGMA, Q_MAX, Incidence, boundary
 from glsldiff.render.materials import node_material
 from glsldiff.render.report import RenderReport
 from glsldiff.render.scene import TETRAHEDRAL, Scene
-from glsldiff.render.shading import shade
+from glsldiff.render.shading import Shader
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.terms import LIT_SHARE, FrameInputs, SurfaceTerms, key as _key, shader_lights
 from glsldiff.oracle.assembly import LinearSystem
@@ -101,6 +101,7 @@ class Renderer:
         self._depth: DepthRenderer | None = None  # the lights' maps of the grid's mesh, shared by passes 1 and 3
         self._light_info: list[dict[str, Any]] = []
         self._terms = SurfaceTerms(self.ctx)      # pass 3's per-vertex terms and their caches
+        self._shader = Shader(self.ctx)           # pass 3's program, buffers and target, kept across frames
         self._notes = FrameNotes()
         #: validation: shade only the split's "single" or "multiple" scattering part (None: all of it)
         self.split_part: str | None = None
@@ -125,7 +126,9 @@ class Renderer:
 
     @property
     def frame_vertices(self) -> NDArray[np.float64]:
-        """The vertices the camera frames (the uncut mesh, mm), after the first frame."""
+        """``(2, 3)`` the lowest and highest corner of the box the camera frames (the uncut mesh's,
+        mm; what :func:`~glsldiff.render.camera.frame_camera` reads of its vertices), after the
+        first frame."""
         return self._geo["frame"]
 
     @property
@@ -189,7 +192,8 @@ class Renderer:
             self._backend.release()
         self._backend = make_backend(scene, self.ctx, self._say, self.frame_sweeps, self.cache_solutions,
                                      self.allow_unconverged)
-        frame = np.asarray(mesh.vertices)           # the uncut surface frames the camera
+        uncut = np.asarray(mesh.vertices)           # the uncut surface frames the camera: its box's
+        frame = np.array([uncut.min(axis=0), uncut.max(axis=0)])   # corners frame it the same (min, max, extent)
         mesh, crease = self._backend.setup(scene, mesh)
         render_mesh = subdivide(mesh if crease is None else crease, self._backend.h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
@@ -312,9 +316,9 @@ class Renderer:
                         self._beams, self._phi_b, k.get("geometry"), k.get("material"), k.get("light"), k.get("solve"),
                         self._solutions, self._edit_version, eye, self._light_maps(scene))
         ms, vis, ss = self._terms.multiple(f), self._terms.visibility(f), self._terms.added(f, self.split_part)
-        return shade(self.ctx, geo["vertices"], geo["faces"], geo["normals"], ms, vis, ss, shader_lights(scene), eye,
-                     mvp, scene.material.eta, scene.specular.rho_s, scene.specular.alpha,
-                     (scene.output.width, scene.output.height)), f
+        return self._shader.shade(geo["vertices"], geo["faces"], geo["normals"], ms, vis, ss, shader_lights(scene), eye,
+                                  mvp, scene.material.eta, scene.specular.rho_s, scene.specular.alpha,
+                                  (scene.output.width, scene.output.height)), f
 
     # -- the frame -----------------------------------------------------------------
     def render(self, scene: Scene) -> tuple[NDArray[np.float32], RenderReport]:
@@ -475,6 +479,7 @@ class Renderer:
                          source=str(self._mat["info"].get("material")))
 
     def release(self) -> None:
+        self._shader.release()
         if self._backend is not None:
             self._backend.release()
         if self._depth is not None:

@@ -88,38 +88,103 @@ def _light_uniforms(lights: list[DirectLight]) -> dict[str, Any]:
             "u_power": tup(power), "u_cone": tup(cone)}
 
 
+class Shader:
+    """Pass 3's GL objects, kept from frame to frame (a camera move re-uploads the per-vertex
+    values only): the program, the mesh's buffers (made again when its faces or vertex count
+    change) and the target (made again when the image size changes). Owned by its creator:
+    release with :meth:`release` (or use as a context manager)."""
+
+    def __init__(self, ctx: moderngl.Context) -> None:
+        self.ctx = ctx
+        self._prog: Any = None
+        self._mesh: gl.Resources | None = None
+        self._faces: NDArray | None = None           # the faces the index buffer holds
+        self._vbo: Any = None
+        self._vao: Any = None
+        self._n_vertices = -1
+        self._target: gl.Resources | None = None
+        self._fbo: Any = None
+        self._size: tuple[int, int] | None = None
+
+    def _buffers(self, n_vertices: int, faces: NDArray) -> None:
+        same = self._faces is not None and (self._faces is faces or (self._faces.shape == faces.shape
+                                                                      and np.array_equal(self._faces, faces)))
+        if same and n_vertices == self._n_vertices:
+            return
+        if self._mesh is not None:
+            self._mesh.release()
+        self._mesh = res = gl.Resources()
+        self._vbo = res.add(self.ctx.buffer(reserve=n_vertices * 16 * 4))
+        ibo = res.add(self.ctx.buffer(np.ascontiguousarray(faces, dtype="i4").tobytes()))
+        self._vao = res.add(self.ctx.vertex_array(self._prog, [(self._vbo, "3f 3f 3f 4f 3f", "in_pos", "in_normal",
+                                                                "in_ms", "in_vis", "in_ss")], index_buffer=ibo))
+        self._faces, self._n_vertices = faces, n_vertices
+
+    def _framebuffer(self, size: tuple[int, int]) -> Any:
+        if self._size != size:
+            if self._target is not None:
+                self._target.release()
+            self._target = res = gl.Resources()
+            color = res.add(self.ctx.texture(size, 4, dtype="f4"))
+            depth = res.add(self.ctx.depth_renderbuffer(size))
+            self._fbo = res.add(self.ctx.framebuffer(color_attachments=[color], depth_attachment=depth))
+            self._size = size
+        return self._fbo
+
+    def shade(self, vertices: NDArray, faces: NDArray, normals: NDArray, ms: NDArray, vis: NDArray, ss: NDArray,
+              lights: list[DirectLight], eye: NDArray, mvp: NDArray, eta: float, rho_s: float, alpha: float,
+              size: tuple[int, int]) -> NDArray[np.float32]:
+        """Pass 3: rasterise the mesh into an ``(h, w, 3)`` float image (row 0 = top).
+
+        ``vertices``, ``normals``, ``ms``, ``ss``: ``(V, 3)``; ``vis``: ``(V, MAX_SHADER_LIGHTS)``;
+        ``faces``: ``(F, 3)``; ``lights``: at most :data:`MAX_SHADER_LIGHTS`, no environment;
+        ``eye``: camera position (mm); ``mvp``: row-major world -> clip matrix; ``size``: ``(w, h)``.
+        """
+        ctx = self.ctx
+        gl.make_current(ctx)
+        w, h = size
+        if self._prog is None:
+            self._prog = gl.program(ctx, "shade.vert", "shade.frag", {"MAX_LIGHTS": MAX_SHADER_LIGHTS})
+        self._buffers(len(vertices), faces)
+        data = np.empty((len(vertices), 16), dtype="f4")
+        data[:, 0:3], data[:, 3:6], data[:, 6:9], data[:, 9:13], data[:, 13:16] = vertices, normals, ms, vis, ss
+        self._vbo.write(data)
+        gl.set_uniforms(self._prog, {"u_mvp": np.asarray(mvp), "u_eye": tuple(float(x) for x in eye),
+                                     "u_eta": float(eta), "u_rho_s": float(rho_s), "u_alpha": float(alpha),
+                                     **_light_uniforms(lights)})
+        with gl.keep_framebuffer(ctx):       # the caller's framebuffer bound again after ours
+            fbo = self._framebuffer((w, h))
+            fbo.use()
+            fbo.viewport = (0, 0, w, h)
+            fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            ctx.enable(moderngl.DEPTH_TEST)
+            try:
+                self._vao.render(moderngl.TRIANGLES)
+                ctx.finish()
+            finally:
+                ctx.disable(moderngl.DEPTH_TEST)
+            img = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype=np.float32).reshape(h, w, 4)
+        return np.ascontiguousarray(img[::-1, :, :3])
+
+    def release(self) -> None:
+        for res in (self._target, self._mesh):
+            if res is not None:
+                res.release()
+        if self._prog is not None:
+            self._prog.release()
+        self._prog = self._mesh = self._target = self._faces = None
+        self._size, self._n_vertices = None, -1
+
+    def __enter__(self) -> "Shader":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
 def shade(ctx: moderngl.Context, vertices: NDArray, faces: NDArray, normals: NDArray, ms: NDArray,
           vis: NDArray, ss: NDArray, lights: list[DirectLight], eye: NDArray, mvp: NDArray, eta: float,
           rho_s: float, alpha: float, size: tuple[int, int]) -> NDArray[np.float32]:
-    """Pass 3: rasterise the mesh into an ``(h, w, 3)`` float image (row 0 = top).
-
-    ``vertices``, ``normals``, ``ms``, ``ss``: ``(V, 3)``; ``vis``: ``(V, MAX_SHADER_LIGHTS)``;
-    ``faces``: ``(F, 3)``; ``lights``: at most :data:`MAX_SHADER_LIGHTS`, no environment;
-    ``eye``: camera position (mm); ``mvp``: row-major world -> clip matrix; ``size``: ``(w, h)``.
-    """
-    gl.make_current(ctx)
-    w, h = size
-    with gl.Resources() as res, gl.keep_framebuffer(ctx):   # ours released after the caller's is bound
-        prog = res.add(gl.program(ctx, "shade.vert", "shade.frag", {"MAX_LIGHTS": MAX_SHADER_LIGHTS}))
-        data = np.hstack([vertices, normals, ms, vis, ss]).astype("f4")
-        vbo = res.add(ctx.buffer(np.ascontiguousarray(data).tobytes()))
-        ibo = res.add(ctx.buffer(np.ascontiguousarray(faces.astype("i4")).tobytes()))
-        vao = res.add(ctx.vertex_array(prog, [(vbo, "3f 3f 3f 4f 3f", "in_pos", "in_normal", "in_ms", "in_vis",
-                                               "in_ss")], index_buffer=ibo))
-        color = res.add(ctx.texture((w, h), 4, dtype="f4"))
-        depth = res.add(ctx.depth_renderbuffer((w, h)))
-        fbo = res.add(ctx.framebuffer(color_attachments=[color], depth_attachment=depth))
-        gl.set_uniforms(prog, {"u_mvp": np.asarray(mvp), "u_eye": tuple(float(x) for x in eye),
-                               "u_eta": float(eta), "u_rho_s": float(rho_s), "u_alpha": float(alpha),
-                               **_light_uniforms(lights)})
-        fbo.use()
-        fbo.viewport = (0, 0, w, h)
-        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
-        ctx.enable(moderngl.DEPTH_TEST)
-        try:
-            vao.render(moderngl.TRIANGLES)
-            ctx.finish()
-        finally:
-            ctx.disable(moderngl.DEPTH_TEST)
-        img = np.frombuffer(fbo.read(components=4, dtype="f4"), dtype=np.float32).reshape(h, w, 4)
-        return np.ascontiguousarray(img[::-1, :, :3])
+    """:meth:`Shader.shade` once, its GL objects released after (a renderer keeps a :class:`Shader`)."""
+    with Shader(ctx) as shader:
+        return shader.shade(vertices, faces, normals, ms, vis, ss, lights, eye, mvp, eta, rho_s, alpha, size)
