@@ -147,6 +147,34 @@ def test_converging_frames_keep_the_split_static_terms(scene):
         assert _rel(img, again) < 1e-9
 
 
+def test_camera_moves_keep_the_view_independent_terms(scene):
+    """A camera move of the marching split keeps the vertex terms (material and beams at the
+    vertices), the march's medium and beams and the shader's GL objects, and its image equals
+    the same camera's with every pass-3 term and the shader made afresh; the regime notes stay."""
+    from glsldiff.render.shading import Shader
+    from glsldiff.render.terms import SurfaceTerms
+    sc = dataclasses.replace(scene, options=dataclasses.replace(scene.options, single_scattering=True))
+    with Renderer(frame_sweeps=10, cache_solutions=False, allow_unconverged=True) as r:
+        _converge(r, sc)
+        eye = np.array([60.0, 25.0, 70.0])
+        kept = None
+        for turn in (0.0, 0.3, 0.6):
+            c, s_ = np.cos(turn), np.sin(turn)
+            moved = dataclasses.replace(sc, camera=dataclasses.replace(
+                sc.camera, position=(c * eye[0] + s_ * eye[2], eye[1], -s_ * eye[0] + c * eye[2]), target=(0, 0, 0)))
+            img, rep = r.render(moved)
+            assert not rep.ran("pass1") and not rep.ran("pass2")
+            vt = r._terms._kept["split vertex terms"]
+            assert kept is None or vt is kept                   # one VertexTerms across the moves
+            kept = vt
+        r._terms, r._shader = SurfaceTerms(r.ctx), Shader(r.ctx)
+        again, rep2 = r.render(moved)
+        assert r._terms._kept["split vertex terms"] is not kept
+        np.testing.assert_array_equal(again, img)
+        assert rep2.warnings == rep.warnings
+        assert [n for n in rep2.notes if n.startswith("regime")] == [n for n in rep.notes if n.startswith("regime")]
+
+
 def test_painting_frames_repaint_the_split_where_the_brush_went(scene, monkeypatch):
     """A painting frame recomputes the split's half-space terms only at the vertices the brush
     changed (split_repaint), and its radiance equals every term made afresh."""

@@ -38,6 +38,7 @@ class FrameNotes:
     def __init__(self) -> None:
         self._thickness: tuple[str | None, NDArray[np.int64], NDArray[np.float64]] | None = None   # key, nodes, mm
         self._inside: tuple[str, bool] | None = None
+        self._regime: tuple[str, str, list[str]] | None = None   # key, the regime line, its warnings
 
     def fill(self, rep: RenderReport, f: FrameInputs, terms: SurfaceTerms, material: Any, model_note: str,
              light_info: Sequence[dict[str, Any]]) -> None:
@@ -66,8 +67,9 @@ class FrameNotes:
                          f"unscattered light: {f'{terms.unscattered_seconds:.2f} s' if through else 'off'}; "
                          f"diffuse surface reflectance: "
                          f"{'off' if scene.material.reflectance is None else scene.material.reflectance}")
-        rep.notes.append(regime(f.kappa, f.mu, f.backend.h, o.model))
-        rep.warnings = self.regime_warnings(f)
+        line, warnings = self._material_regime(f)
+        rep.notes.append(line)
+        rep.warnings = list(warnings)
         eye = f.eye
         if self._camera_inside(f):
             rep.warnings.append(f"the camera at ({eye[0]:.4g}, {eye[1]:.4g}, {eye[2]:.4g}) mm is inside the object: "
@@ -76,6 +78,14 @@ class FrameNotes:
         for info in light_info:
             rep.notes.append("light: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
                                                    for k, v in info.items()))
+
+    def _material_regime(self, f: FrameInputs) -> tuple[str, list[str]]:
+        """The regime line and :meth:`regime_warnings`, kept while the geometry, the material
+        (edits too), eta and the options stay (a camera move keeps them)."""
+        k = key(f.geometry_key, f.material_key, f.edit_version, f.scene.material.eta, f.scene.options)
+        if self._regime is None or self._regime[0] != k:
+            self._regime = (k, regime(f.kappa, f.mu, f.backend.h, f.scene.options.model), self.regime_warnings(f))
+        return self._regime[1], self._regime[2]
 
     def regime_warnings(self, f: FrameInputs) -> list[str]:
         """The scene's ways out of what its model was validated on (:mod:`glsldiff.physics.regime`):

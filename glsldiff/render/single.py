@@ -51,6 +51,7 @@ how finely an entry point is placed.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, Callable, Sequence
 
 import numpy as np
@@ -120,14 +121,14 @@ def _cell(v: float, lo: float, hi: float, G: int) -> tuple[int, float]:
 
 
 @kernel(inline=True)
-def _lookup(grid: Array, lo: Array, hi: Array, x: float, y: float, z: float, out: Array) -> None:
+def _lookup(grid: Array, lo: Array, hi: Array, x: float, y: float, z: float, out: Array, first: int = 0) -> None:
     """Trilinear value ``(6,)`` of ``grid`` ``(G, G, G, 6)`` spanning ``[lo, hi]`` at one point,
-    into ``out``."""
+    into ``out``: channels ``first`` to 5 (3: sigma_t alone)."""
     G = grid.shape[0]
     i, fx = _cell(x, lo[0], hi[0], G)
     j, fy = _cell(y, lo[1], hi[1], G)
     k, fz = _cell(z, lo[2], hi[2], G)
-    for c in range(6):
+    for c in range(first, 6):
         out[c] = ((1.0 - fx) * ((1.0 - fy) * ((1.0 - fz) * grid[i, j, k, c] + fz * grid[i, j, k + 1, c])
                                 + fy * ((1.0 - fz) * grid[i, j + 1, k, c] + fz * grid[i, j + 1, k + 1, c]))
                   + fx * ((1.0 - fy) * ((1.0 - fz) * grid[i + 1, j, k, c] + fz * grid[i + 1, j, k + 1, c])
@@ -267,11 +268,10 @@ def scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Array, eta
     d, _ = refract(-w_o[idx], n[idx], 1.0 / eta)                             # view ray, propagating in
     _, st0 = med(v[idx])
     lam = np.maximum(st0.min(axis=1), 1e-12)                                 # mm^-1; a clear channel: uniform
-    h = 1e-6 * float(np.ptp(v, axis=0).max())
+    h = 1e-6 * float(np.max(mesh.extents))                                  # off the surface (mm)
     S, _ = first_hits(mesh, v[idx] + h * d, d, t_max=float(REACH / lam.min()))
     S = np.minimum(S + h, REACH / lam)                                       # no hit: the reach
-    x_gl, w_gl = np.polynomial.legendre.leggauss(samples)
-    u, wu = 0.5 * (x_gl + 1.0), 0.5 * w_gl
+    u, wu = _nodes(samples)
     f_o = np.asarray(fresnel_transmittance(eta, mu_o[idx])) / eta**2
     for a in range(0, len(idx), _CHUNK):
         sl = slice(a, a + _CHUNK)
@@ -290,6 +290,13 @@ def scattering_frame(mesh: Any, vertices: Array, normals: Array, eye: Array, eta
             phi = np.maximum(fluence(x), 0.0).reshape(m, samples, 3)
             gathered[idx[sl]] = f_o[sl, None] * np.einsum("mkc,mkc->mc", weight, phi) / (4.0 * np.pi)
     return out, gathered
+
+
+@functools.lru_cache(maxsize=4)
+def _nodes(samples: int) -> tuple[Array, Array]:
+    """Gauss-Legendre nodes and weights of ``samples`` points on [0, 1]."""
+    x, w = np.polynomial.legendre.leggauss(samples)
+    return 0.5 * (x + 1.0), 0.5 * w
 
 
 @kernel(parallel=True)
@@ -437,14 +444,15 @@ def _add_term(i: int, x: Array, y0: float, y1: float, y2: float, ell: float, w0:
     T0, T1, T2 = -e * w0 + k * n0, -e * w1 + k * n1, -e * w2 + k * n2
     norm = max(np.sqrt(T0 * T0 + T1 * T1 + T2 * T2), 1e-300)
     mu = (T0 * up[i, 0] + T1 * up[i, 1] + T2 * up[i, 2]) / norm
-    f = share * (1.0 - g * g) / (4.0 * np.pi * (1.0 + g * g - 2.0 * g * mu) ** 1.5)
+    den = 1.0 + g * g - 2.0 * g * mu
+    f = share * (1.0 - g * g) / (4.0 * np.pi * den * np.sqrt(den))       # Henyey-Greenstein
     if homogeneous:
         out[i, 0] += f * E0 * np.exp(-path * grid[0, 0, 0, 3])
         out[i, 1] += f * E1 * np.exp(-path * grid[0, 0, 0, 4])
         out[i, 2] += f * E2 * np.exp(-path * grid[0, 0, 0, 5])
         return
-    _lookup(grid, lo, hi, 0.5 * (x[i, 0] + y0), 0.5 * (x[i, 1] + y1), 0.5 * (x[i, 2] + y2), mid)
-    _lookup(grid, lo, hi, y0, y1, y2, end)
+    _lookup(grid, lo, hi, 0.5 * (x[i, 0] + y0), 0.5 * (x[i, 1] + y1), 0.5 * (x[i, 2] + y2), mid, 3)
+    _lookup(grid, lo, hi, y0, y1, y2, end, 3)
     out[i, 0] += f * E0 * np.exp(-path * (st_x[i, 0] + 4.0 * mid[3] + end[3]) / 6.0)
     out[i, 1] += f * E1 * np.exp(-path * (st_x[i, 1] + 4.0 * mid[4] + end[4]) / 6.0)
     out[i, 2] += f * E2 * np.exp(-path * (st_x[i, 2] + 4.0 * mid[5] + end[5]) / 6.0)

@@ -33,7 +33,8 @@ from glsldiff.physics.split import (ExternalBeam, collided_halfspace, combine, d
 from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.single import scattering_frame
 
-__all__ = ["SplitInputs", "SplitResult", "SplitStatic", "split_again", "split_radiance", "split_repaint", "FAR_MODELS"]
+__all__ = ["SplitInputs", "SplitResult", "SplitStatic", "VertexTerms", "split_again", "split_radiance", "split_repaint",
+           "vertex_terms", "FAR_MODELS"]
 
 Array = NDArray[np.float64]
 #: The split's far-field models: the gathered collided fluence (first-collision source) or the
@@ -66,6 +67,28 @@ class SplitInputs:
     lights: Sequence[Any] = ()
     medium: Any = None
     march_beams: Any = None                    # the march: the lights' beams (single.light_beams; kept across frames)
+    at_vertices: "VertexTerms | None" = None   # vertex_terms(this), kept while the material and the lights stay
+
+
+@dataclass(frozen=True)
+class VertexTerms:
+    """The view-independent inputs of :func:`split_radiance` at the render vertices: ``kappa``
+    (mm), ``mu`` (mm^-1) and albedo ``(V, 3)``, the beams (transmitted irradiance ``(V, 3)``,
+    refracted cosine ``(V,)``) and their external form (:func:`~glsldiff.physics.split.external_beams`).
+    A camera move keeps them (:func:`vertex_terms`)."""
+
+    kappa: Array
+    mu: Array
+    albedo: Array
+    beams: list[tuple[Array, Array]]
+    external: list[ExternalBeam]
+
+
+def vertex_terms(inp: SplitInputs) -> VertexTerms:
+    """``inp``'s boundary material and beams at the render vertices (:class:`VertexTerms`)."""
+    kv, mv = np.asarray(inp.interp @ inp.kappa), np.asarray(inp.interp @ inp.mu)
+    beams_t = _at_vertices(inp.interp, inp.beams)
+    return VertexTerms(kv, mv, _albedo(kv * mv), beams_t, external_beams(beams_t, float(inp.eta)))
 
 
 @dataclass(frozen=True)
@@ -186,11 +209,8 @@ def split_radiance(inp: SplitInputs, eye: Array) -> SplitResult:
     facing = nu_o > 0.0
     eta = float(inp.eta)
     tables = halfspace_tables(eta)
-    kv = np.asarray(inp.interp @ inp.kappa)
-    mv = np.asarray(inp.interp @ inp.mu)
-    albedo = _albedo(kv * mv)
-    beams_t = _at_vertices(inp.interp, inp.beams)
-    ext = external_beams(beams_t, eta)
+    at = inp.at_vertices if inp.at_vertices is not None else vertex_terms(inp)
+    kv, mv, albedo, beams_t, ext = at.kappa, at.mu, at.albedo, at.beams, at.external
     M = local_multiple(tables, albedo, ext, nu_o)
     gathered = None
     if inp.march:

@@ -53,7 +53,7 @@ from glsldiff.render.shading import MAX_SHADER_LIGHTS
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.single import light_beams, medium_lattice, scattering_frame
 from glsldiff.render.split_frame import (SplitInputs, SplitResult, SplitStatic, split_again, split_radiance,
-                                         split_repaint)
+                                         split_repaint, vertex_terms)
 from glsldiff.render.unscattered import sees_through, unscattered
 
 __all__ = ["FrameInputs", "SurfaceTerms", "LIT_SHARE", "key", "lit_distance", "shader_lights"]
@@ -311,7 +311,12 @@ class SurfaceTerms:
                           q=f.q, source_distance_mfp=thick, fluence=fluence, mesh=geo["mesh"], lights=f.scene.lights,
                           **(self._march_inputs(f) if march else {}))
         again = split_repaint(painted, inp) if painted is not None else None
-        return again if again is not None else split_radiance(inp, f.eye)
+        if again is not None:
+            return again
+        inp.at_vertices = self._cached("split vertex terms", key(f.geometry_key, f.material_key, f.edit_version,
+                                                                 f.light_key, f.scene.material.eta),
+                                       lambda: vertex_terms(inp))
+        return split_radiance(inp, f.eye)
 
     def _march_inputs(self, f: FrameInputs) -> dict[str, Any]:
         """The 3-D march's medium lattice and the lights' beams (depth maps), kept while the
