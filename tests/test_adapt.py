@@ -177,3 +177,25 @@ def test_refinement_stops_at_the_node_limit(coarse):
     capped, rep = refine_for_source(g, lambda P, N: (P[:, 0] > 0.3).astype(float), max_nodes=len(g.positions) + 10)
     assert rep.at_limit and "stopped at the node limit" in rep.line() and not rep_full.at_limit
     assert 0 < rep.edges < rep_full.edges
+
+
+def test_the_refined_grid_is_read_back_for_the_same_lights(coarse, tmp_path, monkeypatch):
+    """``cached_refined_grid``: the same source reads back the refined grid (same arrays, said so);
+    another source (a light moved) refines anew; with the cache off it refines every time."""
+    from glsldiff.grids.cache import cached_refined_grid
+
+    def step(at):
+        return lambda P, N: (P[:, 0] > at).astype(float)
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
+    first, rep, hit = cached_refined_grid(coarse, "sphere", step(0.3), depth=1.0)
+    assert not hit and rep.edges > 0
+    again, rep2, hit2 = cached_refined_grid(coarse, "sphere", step(0.3), depth=1.0)
+    assert hit2 and rep2.edges == rep.edges
+    assert np.array_equal(again.positions, first.positions) and np.array_equal(again.tets, first.tets)
+    other, _, hit3 = cached_refined_grid(coarse, "sphere", step(-2.0), depth=1.0)
+    assert not hit3 and not np.array_equal(other.positions, first.positions)
+    _, _, hit4 = cached_refined_grid(coarse, "another grid", step(0.3), depth=1.0)
+    assert not hit4
+    monkeypatch.setenv("GLSLDIFF_CACHE", "off")
+    _, _, hit5 = cached_refined_grid(coarse, "sphere", step(0.3), depth=1.0)
+    assert not hit5

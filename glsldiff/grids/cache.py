@@ -7,11 +7,14 @@ Entries are keyed by the mesh's vertex and face bytes, the build parameters and
 """
 from __future__ import annotations
 
+import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 
 from glsldiff.core import cache
+from glsldiff.grids.adapt import AdaptReport, SourceFunction, refine_for_source
 from glsldiff.grids.fem_grid import FemGrid, build_fem_grid
 from glsldiff.grids.polygrid import Polygrid, build_polygrid
 from glsldiff.mesh import Mesh
@@ -45,3 +48,25 @@ def cached_polygrid(mesh: Mesh, **params: Any) -> tuple[Polygrid, bool]:
 def cached_fem_grid(mesh: Mesh, **params: Any) -> tuple[FemGrid, bool]:
     """:func:`~glsldiff.grids.fem_grid.build_fem_grid` ``(mesh, **params)`` through the cache."""
     return _cached("femgrid", build_fem_grid, FemGrid, mesh, params)
+
+
+def cached_refined_grid(grid: FemGrid, grid_key: str, source: SourceFunction, **params: Any
+                        ) -> tuple[FemGrid, AdaptReport, bool]:
+    """:func:`~glsldiff.grids.adapt.refine_for_source` ``(grid, source, **params)`` through the
+    cache: keyed by ``grid_key`` (the unrefined grid's, :func:`polygrid_key`), the parameters
+    and the source at the grid's surface nodes (the lights' footprint: a scene whose lights do
+    not change reads the refined grid back; one entry per light set, the size of the grid's);
+    returns the grid, the refinement's report and whether it came from the cache."""
+    t0 = time.perf_counter()
+    q0 = np.asarray(source(grid.boundary_positions, grid.normals), dtype=np.float64)
+    key = cache.digest(f"adapt v{CACHE_VERSION}", grid_key, q0, sorted(params.items()))
+    hit = cache.load("adapt", key, tuple)
+    if hit is not None and len(hit) == 2 and isinstance(hit[0], FemGrid) and isinstance(hit[1], AdaptReport):
+        return hit[0], replace(hit[1], seconds=time.perf_counter() - t0), True   # its seconds: this read's
+    pending = [q0]
+
+    def reuse(P: np.ndarray, N: np.ndarray) -> np.ndarray:   # its first call asks for the same nodes
+        return pending.pop() if pending else source(P, N)
+    refined, rep = refine_for_source(grid, reuse, **params)
+    cache.store("adapt", key, (refined, rep))
+    return refined, rep, False

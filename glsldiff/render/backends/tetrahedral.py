@@ -33,8 +33,8 @@ from numpy.typing import NDArray
 from glsldiff import gl
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
-from glsldiff.grids.adapt import ADAPT_TOL, refine_for_source
-from glsldiff.grids.cache import cached_fem_grid
+from glsldiff.grids.adapt import ADAPT_TOL
+from glsldiff.grids.cache import cached_fem_grid, cached_refined_grid, polygrid_key
 from glsldiff.grids.fem_grid import FEM_MAX_NODES, SPLIT_LENGTH
 from glsldiff.grids.shapes import SHAPE_TARGET
 from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
@@ -323,9 +323,9 @@ class TetBackend(GridBackend):
         self.grid, self.h = pg, float(pg.h)
         self._pixels = None
         self.surface_triangles = pg.surface_triangles
-        # a grid read from the cache keeps its P1 factors and render-mesh interpolation there too; a
-        # cut or refined grid changes with the scene's lights or cut (no entry per variant: ~170 MB each)
-        self._cached = scene.cut is None and not scene.refines
+        # a grid read from the cache keeps its P1 factors and render-mesh interpolation there too (a
+        # refined grid one entry per light set, as its grid); a cut changes with every stroke (no entry)
+        self._cached = scene.cut is None
         self.geo = cached_tet_geometry(pg) if self._cached else tet_geometry(pg)
         self.pass2 = TetPass2(self.ctx, self.geo, np.asarray(pg.active, dtype=bool), cached_pattern=self._cached,
                               cached_hierarchy=self._cached and self.cache_solutions)
@@ -337,10 +337,11 @@ class TetBackend(GridBackend):
         def source(P: NDArray, N: NDArray) -> NDArray:
             E_t, _ = incident_light(mesh, P, N, scene.lights, scene.material.eta, ctx=self.ctx)
             return source_from_irradiance(np.asarray(E_t, dtype=np.float64), scene.material.eta, scene.options.exitant)
-        pg, rep = refine_for_source(pg, source, max_nodes=FEM_MAX_NODES)
+        base = polygrid_key(mesh, "femgrid", n=scene.polygrid.n, n_cubes=scene.polygrid.cubes)
+        pg, rep, cached = cached_refined_grid(pg, base, source, max_nodes=FEM_MAX_NODES)
         self.adapt_report = rep
         if rep.edges:
-            self.say(f"setup: {rep.line()} ({pg.n_active:,} nodes)")
+            self.say(f"setup: {rep.line()}{' (read from the cache)' if cached else ''} ({pg.n_active:,} nodes)")
         return pg
 
     def _cut(self, scene: Scene, tm: Any, frame: NDArray) -> tuple[Any, Mesh, Mesh]:
