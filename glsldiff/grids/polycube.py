@@ -73,6 +73,15 @@ def _scanline(cubes: NDArray[np.int64]) -> NDArray[np.int64]:
     return np.lexsort((cubes[:, 0], cubes[:, 1], cubes[:, 2]))
 
 
+class PolycubeNotFound(InputError):
+    """No set of cubes at any threshold has the mesh's topology (one component, no cavity, its
+    genus); ``failures``: one line per threshold tried (what the cubes had instead)."""
+
+    def __init__(self, message: str, failures: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.failures = list(failures or [])
+
+
 @dataclass(frozen=True, eq=False)
 class Polycube:
     """Equal axis-aligned cubes; cube ``(i, j, k)`` spans ``origin + size * [i, i+1] x ...``.
@@ -460,8 +469,8 @@ def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int 
             return pc
         failures.append(f"threshold {t:g} ({len(cubes)} cubes of {s:.4g} mm): {topo.components} "
                         f"component(s), {topo.cavities} cavit(y/ies), genus {topo.genus}")
-    raise InputError(
+    raise PolycubeNotFound(
         f"no polycube of {name} (extents {ext_txt}, genus {mesh.genus}) with one component, "
         f"no cavity and genus {mesh.genus} was found: " + "; ".join(failures) +
-        ". Use a smaller cube_size (or a larger n_cubes), or pass an explicit cube list to "
-        "polycube_from_cubes")
+        ". Use smaller cubes (a scene's [polygrid] cubes; here cube_size or n_cubes), or give the cubes "
+        "(polycube_from_cubes)", failures)

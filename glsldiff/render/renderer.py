@@ -34,7 +34,7 @@ from glsldiff.core.io import write_npz
 from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, cached_load_mesh, generated_mesh, subdivide
 from glsldiff.physics.editing import Edit, EditResult, EditView
 from glsldiff.physics.material import coefficients, optical_properties
-from glsldiff.render.backends import GridBackend, Pass2Inputs, make_backend
+from glsldiff.render.backends import GridBackend, Pass2Inputs, as_built, set_up_backend
 from glsldiff.render.camera import frame_camera, scene_camera
 from glsldiff.render.editing import MaterialHistory
 from glsldiff.render.frame_report import THICKNESS_SAMPLES, FrameNotes
@@ -96,6 +96,8 @@ class Renderer:
         self._edit_version = 0
         self._surface: tuple[Any, NDArray] | None = None
         self._model_note = ""
+        self._built_grid: Any = None              # the polygrid built instead of the scene's (no polycube of it)
+        self._grid_note = ""                      # and why, in one line
         self._edited = False                      # the node material differs from the scene's (edits)
         self._solutions = 0                       # pass-2 solutions so far (pass 3's caches follow each)
         self._depth: DepthRenderer | None = None  # the lights' maps of the grid's mesh, shared by passes 1 and 3
@@ -190,11 +192,11 @@ class Renderer:
             mesh = cached_load_mesh(src, size_mm=m.size_mm)
         if self._backend is not None:
             self._backend.release()
-        self._backend = make_backend(scene, self.ctx, self._say, self.frame_sweeps, self.cache_solutions,
-                                     self.allow_unconverged)
+            self._backend = None
         uncut = np.asarray(mesh.vertices)           # the uncut surface frames the camera: its box's
         frame = np.array([uncut.min(axis=0), uncut.max(axis=0)])   # corners frame it the same (min, max, extent)
-        mesh, crease = self._backend.setup(scene, mesh)
+        self._backend, mesh, crease, self._built_grid, self._grid_note = set_up_backend(
+            scene, mesh, self.ctx, self._say, self.frame_sweeps, self.cache_solutions, self.allow_unconverged)
         render_mesh = subdivide(mesh if crease is None else crease, self._backend.h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
         self._geo = {"mesh": mesh, "render_mesh": render_mesh, "vertices": v, "faces": f,
@@ -355,6 +357,7 @@ class Renderer:
             self._keys.pop("material", None)
             self._keys.pop("light", None)
             self._keys.pop("solve", None)
+        scene = as_built(scene, self._built_grid)      # the lattice where the mesh has no tetrahedral grid
         new_mat = stage("material", "material", mat_key, lambda: self._material(scene), "material unchanged", None)
         scene = self._effective(scene)       # the model's concrete source and single scattering
         volume = scene.options.source == "volume"
@@ -388,6 +391,7 @@ class Renderer:
         rep.nodes, rep.boundary_nodes = int(pg.n_active), int(len(pg.boundary_positions))
         rep.solver = self._solve_report
         self._notes.fill(rep, f, self._terms, self._mat["info"].get("material"), self._model_note, self._light_info)
+        rep.warnings[:0] = [self._grid_note] if self._grid_note else []
         return img, rep
 
     def _camera(self, scene: Scene) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

@@ -19,7 +19,7 @@ The interface (:class:`GridBackend`):
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Callable
 
 import moderngl
@@ -30,10 +30,12 @@ from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.mesh import Mesh
 from glsldiff.physics.editing import Edit, EditResult, EditView
-from glsldiff.render.scene import Scene
+from glsldiff.grids.polycube import PolycubeNotFound
+from glsldiff.render.scene import PolygridSpec, Scene, default_cubes
 from glsldiff.system.report import SolveReport
 
-__all__ = ["GridBackend", "Pass2Frame", "Pass2Inputs", "PASS2_HINT", "SOLUTION_CACHE_VERSION", "make_backend"]
+__all__ = ["FALLBACK_POLYGRID", "GridBackend", "Pass2Frame", "Pass2Inputs", "PASS2_HINT", "SOLUTION_CACHE_VERSION",
+           "as_built", "make_backend", "set_up_backend"]
 
 #: Part of every cached pass-2 solution's key: bump it when the discrete system changes.
 SOLUTION_CACHE_VERSION = 2   # 2: the volume source solves with the Fresnel-moment boundary constant
@@ -162,3 +164,50 @@ def make_backend(scene: Scene, ctx: moderngl.Context, say: Callable[[str], None]
     from glsldiff.render.backends.tetrahedral import TetBackend
     kind = TetBackend if TetBackend.handles(scene.polygrid.discretisation) else LatticeBackend
     return kind(ctx, say, frame_sweeps, cache_solutions, allow_unconverged)
+
+
+#: The grid of a scene whose mesh has no tetrahedral polygrid (no set of cubes with its topology:
+#: spikes, thin sheets): the lattice polygrid's defaults (n = 8, 253 cubes, 3 levels), whose larger
+#: cubes step over the parts that break the finer search.
+FALLBACK_POLYGRID = PolygridSpec(8, default_cubes("conservative", 8), 3, "conservative", adapt=False)
+
+
+def as_built(scene: Scene, polygrid: PolygridSpec | None) -> Scene:
+    """``scene`` on the grid the renderer built instead of its own (``polygrid``; None: its
+    own): the lattice takes the boundary flux (it has no surface triangles to smooth on)."""
+    if polygrid is None or scene.polygrid == polygrid:
+        return scene
+    return replace(scene, polygrid=polygrid, options=replace(scene.options, flux="boundary"))
+
+
+def set_up_backend(scene: Scene, mesh: Mesh, ctx: moderngl.Context, say: Callable[[str], None],
+                   frame_sweeps: int | None, cache_solutions: bool, allow_unconverged: bool
+                   ) -> tuple[GridBackend, Mesh, Mesh | None, PolygridSpec | None, str]:
+    """The backend of ``scene`` (:func:`make_backend`) set up on ``mesh``: ``(backend, mesh, render
+    mesh with creases or None, the polygrid built instead of the scene's or None, why in one
+    line)``. A default (``fem``) grid whose mesh has no polycube of its topology falls back to
+    :data:`FALLBACK_POLYGRID`, said with the reason and the way back."""
+    def make(s: Scene) -> GridBackend:
+        return make_backend(s, ctx, say, frame_sweeps, cache_solutions, allow_unconverged)
+    backend = make(scene)
+    try:
+        return (backend, *backend.setup(scene, mesh), None, "")
+    except PolycubeNotFound as exc:
+        backend.release()
+        if scene.polygrid.discretisation != "fem":
+            raise
+        why = exc.failures[-1] if exc.failures else str(exc)
+        fallback = as_built(scene, FALLBACK_POLYGRID)
+        note = (f"no tetrahedral polygrid of {scene.mesh.source} with {scene.polygrid.cubes} cubes ({why}): rendered "
+                f"on the lattice polygrid instead (n = {FALLBACK_POLYGRID.n}, {FALLBACK_POLYGRID.cubes} cubes); for "
+                "the tetrahedral grid give [polygrid] cubes more, or repair the mesh's spikes and thin sheets")
+        say("setup: " + note)
+        backend = make(fallback)
+        try:
+            return (backend, *backend.setup(fallback, mesh), FALLBACK_POLYGRID, note)
+        except PolycubeNotFound as exc2:
+            backend.release()
+            raise InputError(f"no polygrid of {scene.mesh.source}: the tetrahedral grid ({why}) and the lattice "
+                             f"fallback ({exc2.failures[-1] if exc2.failures else exc2}) found no set of cubes with "
+                             "its topology; give [polygrid] cubes more, or repair the mesh's spikes and thin "
+                             "sheets") from exc2
