@@ -11,7 +11,7 @@ from numpy.typing import NDArray
 
 from glsldiff.physics.editing import OPS, PROPERTIES, Brush, Edit
 from glsldiff.physics.lights import DirectionalLight
-from glsldiff.render.camera import frame_camera
+from glsldiff.render.camera import Framing, frame_camera
 from glsldiff.render.scene import CameraSpec, Scene
 
 #: Radians per pixel of mouse drag.
@@ -54,9 +54,10 @@ class Orbit:
                           fov_deg=fov_deg)
 
 
-def scene_orbit(scene: Scene, vertices: NDArray) -> Orbit:
-    """The orbit through the scene's camera (framed on ``vertices`` when it has no position)."""
-    eye, target, _ = frame_camera(scene, vertices)
+def scene_orbit(scene: Scene, frame: Framing | NDArray) -> Orbit:
+    """The orbit through the scene's camera (the mesh's :class:`~glsldiff.render.camera.Framing`, or
+    its vertices, when it has no position)."""
+    eye, target, _ = frame_camera(scene, frame)
     return Orbit.of(eye, target)
 
 

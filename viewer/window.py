@@ -162,7 +162,7 @@ class Viewer:
             self._show(status_frame(self.message, scene.output.width, scene.output.height, None))
             return
         if self.orbit is None:
-            self.orbit = scene_orbit(scene, self.renderer.frame_vertices)
+            self.orbit = scene_orbit(scene, self.renderer.mesh_framing)
         if self.exposure is None:
             self.exposure = auto_exposure(img)
         dt = time.perf_counter() - t0

@@ -35,7 +35,7 @@ from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, cached_load_mesh, gen
 from glsldiff.physics.editing import Edit, EditResult, EditView
 from glsldiff.physics.material import coefficients, optical_properties
 from glsldiff.render.backends import GridBackend, Pass2Inputs, as_built, set_up_backend
-from glsldiff.render.camera import frame_camera, scene_camera
+from glsldiff.render.camera import Framing, frame_camera, scene_camera
 from glsldiff.render.editing import MaterialHistory
 from glsldiff.render.frame_report import THICKNESS_SAMPLES, FrameNotes
 from glsldiff.render.load import (GATHER_MAX_H_SIGMA, Q_MAX, Incidence, boundary_C, effective_scene, h_sigma_t,
@@ -127,10 +127,8 @@ class Renderer:
         return not self._partial
 
     @property
-    def frame_vertices(self) -> NDArray[np.float64]:
-        """``(2, 3)`` the lowest and highest corner of the box the camera frames (the uncut mesh's,
-        mm; what :func:`~glsldiff.render.camera.frame_camera` reads of its vertices), after the
-        first frame."""
+    def mesh_framing(self) -> Framing:
+        """How the automatic camera frames the (uncut) mesh, after the first frame."""
         return self._geo["frame"]
 
     @property
@@ -193,8 +191,7 @@ class Renderer:
         if self._backend is not None:
             self._backend.release()
             self._backend = None
-        uncut = np.asarray(mesh.vertices)           # the uncut surface frames the camera: its box's
-        frame = np.array([uncut.min(axis=0), uncut.max(axis=0)])   # corners frame it the same (min, max, extent)
+        frame = Framing.of_mesh(mesh)                # the uncut surface frames the camera
         self._backend, mesh, crease, self._built_grid, self._grid_note = set_up_backend(
             scene, mesh, self.ctx, self._say, self.frame_sweeps, self.cache_solutions, self.allow_unconverged)
         render_mesh = subdivide(mesh if crease is None else crease, self._backend.h)
@@ -407,7 +404,7 @@ class Renderer:
         """``(eye, target, up)`` (mm) of ``scene``'s camera on the mesh the last frame rendered
         (:func:`~glsldiff.render.camera.frame_camera`; the automatic framing when ``[camera]`` has
         no position)."""
-        return frame_camera(scene, self.frame_vertices)
+        return frame_camera(scene, self.mesh_framing)
 
     # -- editing (Wang et al. 2008, section 5.4) --------------------------------------
     def edit_view(self, scene: Scene) -> EditView:

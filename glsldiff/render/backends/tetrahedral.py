@@ -46,7 +46,7 @@ from glsldiff.oracle.fem_update import P1System, cached_p1_pattern
 from glsldiff.physics.editing import Edit, EditResult, EditView, apply_edit
 from glsldiff.physics.exitance import source_from_irradiance
 from glsldiff.render.backends import PASS2_HINT, GridBackend, Pass2Frame, Pass2Inputs
-from glsldiff.render.camera import scene_camera
+from glsldiff.render.camera import Framing, scene_camera
 from glsldiff.render.collision import first_collision_load, node_columns, surface_columns
 from glsldiff.render.fluence import FluenceLattice
 from glsldiff.render.pass1 import incident_light
@@ -319,7 +319,7 @@ class TetBackend(GridBackend):
             pg = self._adapt(scene, mesh, pg)
         crease = None
         if scene.cut is not None:
-            pg, mesh, crease = self._cut(scene, pg, np.asarray(mesh.vertices))
+            pg, mesh, crease = self._cut(scene, pg, Framing.of_mesh(mesh))   # as the renderer frames it
         self.grid, self.h = pg, float(pg.h)
         self._pixels = None
         self.surface_triangles = pg.surface_triangles
@@ -344,7 +344,7 @@ class TetBackend(GridBackend):
             self.say(f"setup: {rep.line()}{' (read from the cache)' if cached else ''} ({pg.n_active:,} nodes)")
         return pg
 
-    def _cut(self, scene: Scene, tm: Any, frame: NDArray) -> tuple[Any, Mesh, Mesh]:
+    def _cut(self, scene: Scene, tm: Any, frame: Framing) -> tuple[Any, Mesh, Mesh]:
         """TransCut's cut of the fTetWild mesh ``tm`` (``[cut]``), its report kept in
         :attr:`cut_report`: the cut mesh, its boundary as a triangle mesh (shadows, ray casts)
         and as a render mesh whose cut faces have their own vertices (a crease: the cut face and
