@@ -9,6 +9,7 @@ import pytest
 from glsldiff.core.errors import InputError
 from glsldiff.grids.polycube import PolycubeNotFound
 import glsldiff.render.backends as backends
+from glsldiff.render.grid_check import discretisation_error
 from glsldiff.render.renderer import Renderer
 from glsldiff.render.scene import PolygridSpec, parse_scene
 
@@ -43,6 +44,8 @@ def test_no_tetrahedral_polycube_falls_back_to_the_lattice(monkeypatch):
         assert "cube_size" not in warning and "n_cubes" not in warning   # scene keys, not arguments
         _, rep2 = r.render(scene)                                        # kept: no second search
         assert not rep2.ran("setup") and rep2.warnings[0] == warning
+        with pytest.raises(InputError, match="needs a tetrahedral grid"):   # --check-grid: one line
+            discretisation_error(r, scene)
     with Renderer() as r:                                                # the same as asking for it
         direct, _ = r.render(parse_scene({**_raw(), "polygrid": {"discretisation": SMALL.discretisation, "n": SMALL.n,
                                                                    "cubes": SMALL.cubes, "levels": SMALL.levels}}))

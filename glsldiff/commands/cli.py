@@ -48,6 +48,7 @@ from glsldiff.grids.polygrid import build_polygrid
 from glsldiff.mesh import load_mesh, sphere_mesh
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
 from glsldiff.render.output import check_output, save
+from glsldiff.render.grid_check import check_scene, discretisation_error
 from glsldiff.render.renderer import Renderer
 from glsldiff.physics.exitance import INCIDENCE
 from glsldiff.render.scene import (FLUXES, MODELS, TETWILD_EDGES_PER_SIZE, CutSpec, MeshSpec, PolygridSpec, default_scene,
@@ -106,14 +107,14 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise InputError("give a scene file or --example NAME, not both")
     scene = load_scene(args.scene) if args.scene else example_scene(args.example) if args.example else default_scene()
     if args.check_grid:
-        Renderer.check_discretisation_scene(scene)
+        check_scene(scene)
     with Renderer(allow_unconverged=args.allow_unconverged, status=_status) as r:
         img, rep = r.render(scene)
         print(f"scene: {scene.source}")
         print("\n".join(rep.lines() if args.verbose else rep.summary_lines()))
         _warn(rep)
         if args.check_grid:
-            err, nodes, seconds = r.discretisation_error(scene)
+            err, nodes, seconds = discretisation_error(r, scene)
             print(f"discretisation: exitance within {err.rel_rms:.2%} RMS (max {err.rel_max:.2%} of the largest) of "
                   f"the 1:8 refined grid's ({nodes:,} nodes, green channel, {seconds:.1f} s); the "
                   f"grid's own error is about 4/3 of that; negative surface fluence at {err.negative_surface} nodes "

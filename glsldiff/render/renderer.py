@@ -42,12 +42,11 @@ from glsldiff.render.load import (GATHER_MAX_H_SIGMA, Q_MAX, Incidence, boundary
                                   light_load, split_incidence)
 from glsldiff.render.materials import node_material
 from glsldiff.render.report import RenderReport
-from glsldiff.render.scene import TETRAHEDRAL, Scene
+from glsldiff.render.scene import Scene
 from glsldiff.render.shading import Shader
 from glsldiff.render.shadows import DepthRenderer
 from glsldiff.render.terms import LIT_SHARE, FrameInputs, SurfaceTerms, key as _key, shader_lights
 from glsldiff.oracle.assembly import LinearSystem
-from glsldiff.oracle.refined import RefinedComparison, RefinedError
 from glsldiff.system.tet_problem import TetProblem
 from glsldiff.system.transcut import paint_blend, paint_weights
 
@@ -218,9 +217,13 @@ class Renderer:
         self._history = MaterialHistory()     # a new material starts a new edit history
         self._edited = False                  # the node material differs from the scene's (edits)
 
-    def _effective(self, scene: Scene) -> Scene:
-        """``scene`` with its options made concrete for the current grid and material
-        (:func:`~glsldiff.render.load.effective_scene`; the reason the model differs goes to the report)."""
+    def effective(self, scene: Scene) -> Scene:
+        """``scene`` as the last frame rendered it: on the grid built (:func:`~glsldiff.render.backends.as_built`),
+        its options made concrete for the grid and material (:func:`~glsldiff.render.load.effective_scene`;
+        the reason the model differs goes to the report); ``scene`` itself before a frame."""
+        if not (self._geo and self._mat):
+            return scene
+        scene = as_built(scene, self._built_grid)
         h_sigma = h_sigma_t(self._be.h, self._mat["kappa"])
         scene, self._model_note = effective_scene(scene, self._be.volume_source, h_sigma, self.frame_sweeps is not None)
         return scene
@@ -280,32 +283,6 @@ class Renderer:
             raise RuntimeError("no frame of a tetrahedral grid rendered yet")
         return self._be.problem(self._pass2_inputs(scene))
 
-    @staticmethod
-    def check_discretisation_scene(scene: Scene) -> None:
-        """Refuse (:class:`InputError`, one line) a scene :meth:`discretisation_error` cannot
-        check, before any work: a lattice grid, or the first-collision volume source."""
-        if scene.polygrid.discretisation not in TETRAHEDRAL:
-            raise InputError(f"the discretisation check needs a tetrahedral grid; this scene's is "
-                             f"{scene.polygrid.discretisation!r} (set [polygrid] discretisation = \"fem\")")
-        if scene.options.source == "volume":
-            raise InputError("the discretisation check does not carry the first-collision load yet (the split takes "
-                             "it where the grid resolves the mean free path); render with [options] source = "
-                             "\"surface\" to check the grid")
-
-    def discretisation_error(self, scene: Scene, channel: int = 1) -> tuple[RefinedError, int, float]:
-        """How far the last frame's pass-2 answer is from the converged one: the same problem
-        solved on the grid's 1:8 refinement (:class:`glsldiff.oracle.refined.RefinedComparison`;
-        one colour ``channel``, exact CPU solves). Returns the comparison, the refined grid's
-        node count and the seconds it all took. Tetrahedral grids with the surface source only
-        (``source = "auto"``: as the last frame resolved it)."""
-        if self._geo and self._mat:
-            scene = self._effective(scene)
-        self.check_discretisation_scene(scene)
-        t0 = time.perf_counter()
-        rc = RefinedComparison(self.fem_problem(scene), channel)
-        err = rc.compare()[0]
-        return err, rc.nodes[1], time.perf_counter() - t0
-
     def _pass3(self, scene: Scene) -> tuple[NDArray[np.float32], FrameInputs]:
         """Shade the frame from the camera: the per-vertex terms of :class:`SurfaceTerms` and Ward
         specular; also what the terms took (:class:`~glsldiff.render.terms.FrameInputs`)."""
@@ -356,7 +333,7 @@ class Renderer:
             self._keys.pop("solve", None)
         scene = as_built(scene, self._built_grid)      # the lattice where the mesh has no tetrahedral grid
         new_mat = stage("material", "material", mat_key, lambda: self._material(scene), "material unchanged", None)
-        scene = self._effective(scene)       # the model's concrete source and single scattering
+        scene = self.effective(scene)       # the model's concrete source and single scattering
         volume = scene.options.source == "volume"
         light_key = _key(geo_key, scene.lights, scene.material.eta, scene.options.exitant, str(scene.base_dir),
                          scene.options.source, scene.options.incidence, scene.options.model,
