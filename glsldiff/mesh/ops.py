@@ -2,22 +2,51 @@
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
-from glsldiff.mesh.types import Mesh
+from glsldiff.mesh.types import Mesh, normalize
 
 
 def subdivide(mesh: Mesh, max_edge: float) -> Mesh:
     """``mesh`` with every edge split down to ``max_edge`` mm (e.g. a 12-triangle box shaded
     per vertex needs vertices at about the node spacing); ``mesh`` itself when no edge is
     longer. Imports trimesh (heavy) only when it splits."""
+    return smooth_subdivide(mesh, max_edge)[0]
+
+
+def smooth_subdivide(mesh: Mesh, max_edge: float) -> tuple[Mesh, NDArray[np.float64]]:
+    """:func:`subdivide` and the new mesh's shading normals ``(V, 3)``: at a vertex the split
+    put inside an old face (or on its edge), the old face's corner normals
+    (:attr:`Mesh.corner_normals`, smoothing groups) interpolated at the vertex's barycentrics,
+    averaged over the old faces that hold it, so a coarse curved surface shades smoothly instead
+    of showing its flat faces; ``mesh.vertex_normals`` when nothing was split."""
     v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
     edges = np.linalg.norm(v[f[:, [1, 2, 0]]] - v[f], axis=2)
     if edges.max() <= max_edge:
-        return mesh
+        return mesh, mesh.vertex_normals
     import trimesh.remesh   # heavy import, needed only for coarse meshes
 
-    v2, f2 = trimesh.remesh.subdivide_to_size(v, f, max_edge=max_edge)
-    return Mesh(np.asarray(v2, float), np.asarray(f2, np.int64), name=mesh.name)
+    v2, f2, parent = trimesh.remesh.subdivide_to_size(v, f, max_edge=max_edge, return_index=True)
+    v2, f2 = np.asarray(v2, float), np.asarray(f2, np.int64)
+    a, b, c = (v[f[parent, k]] for k in range(3))            # each new face's old triangle
+    corners = mesh.corner_normals[parent]                    # (F2, 3 corners, 3)
+    acc = np.zeros_like(v2)
+    for k in range(3):                                       # each new face's corner k
+        bary = _barycentrics(v2[f2[:, k]], a, b, c)
+        np.add.at(acc, f2[:, k], np.einsum("fj,fjc->fc", bary, corners))
+    return Mesh(v2, f2, name=mesh.name), normalize(acc)
+
+
+def _barycentrics(p: NDArray, a: NDArray, b: NDArray, c: NDArray) -> NDArray[np.float64]:
+    """``(N, 3)`` barycentric coordinates of points ``p`` in triangles ``(a, b, c)`` (all ``(N, 3)``;
+    ``p`` in the triangle's plane), clipped to the triangle."""
+    e0, e1, e2 = b - a, c - a, p - a
+    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((e0, e0), (e0, e1), (e1, e1)))
+    d20, d21 = np.einsum("ij,ij->i", e2, e0), np.einsum("ij,ij->i", e2, e1)
+    den = np.maximum(d00 * d11 - d01 * d01, 1e-300)
+    w1, w2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
+    bary = np.clip(np.stack([1.0 - w1 - w2, w1, w2], axis=1), 0.0, 1.0)
+    return bary / bary.sum(axis=1, keepdims=True)
 
 
 def surface_samples(mesh: Mesh, spacing: float, seed: int = 0) -> np.ndarray:

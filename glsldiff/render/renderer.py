@@ -31,7 +31,8 @@ from numpy.typing import NDArray
 from glsldiff import gl
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import write_npz
-from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, cached_load_mesh, generated_mesh, subdivide
+from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES, cached_load_mesh, generated_mesh
+from glsldiff.mesh.ops import smooth_subdivide
 from glsldiff.physics.editing import Edit, EditResult, EditView
 from glsldiff.physics.material import coefficients, optical_properties
 from glsldiff.render.backends import GridBackend, Pass2Inputs, as_built, set_up_backend
@@ -193,10 +194,10 @@ class Renderer:
         frame = Framing.of_mesh(mesh)                # the uncut surface frames the camera
         self._backend, mesh, crease, self._built_grid, self._grid_note = set_up_backend(
             scene, mesh, self.ctx, self._say, self.frame_sweeps, self.cache_solutions, self.allow_unconverged)
-        render_mesh = subdivide(mesh if crease is None else crease, self._backend.h)
+        render_mesh, normals = smooth_subdivide(mesh if crease is None else crease, self._backend.h)
         v, f = np.asarray(render_mesh.vertices), np.asarray(render_mesh.faces)
         self._geo = {"mesh": mesh, "render_mesh": render_mesh, "vertices": v, "faces": f,
-                     "normals": render_mesh.vertex_normals, "interp": self._backend.interpolation(v), "frame": frame}
+                     "normals": normals, "interp": self._backend.interpolation(v), "frame": frame}
 
     def _material(self, scene: Scene) -> None:
         pg = self._grid
