@@ -241,3 +241,5 @@ def test_report_says_how_deep_the_clamped_exitance_went():
     assert "clamped to 0 at 2069 vertices: 30 from below -1 % of the largest (down to -0.19" in lines
     assert "2039 within 1 %" in lines
     assert "clamped" not in "\n".join(RenderReport().lines())
+    split = "\n".join(RenderReport(model="split (surface far field)", clamped_vertices=3, clamped_deep=1).lines())
+    assert "fluence clamped to 0 at 3 vertices: 1 from below -1 %" in split

@@ -58,3 +58,13 @@ def test_a_local_material_change_repaints_only_its_vertices():
     assert not np.allclose(again.radiance, first.radiance)
     assert split_repaint(first.static, replace(inp, kappa=inp.kappa * 0.5)) is None      # everywhere: no
     assert split_repaint(first.static, replace(inp2, march=True)) is None
+
+
+def test_the_split_counts_the_fluence_it_clamps():
+    """fluence_clamped: vertices facing the eye whose interpolated fluence is negative, how deep
+    (over the largest) and how many below -1 %; vertices facing away do not count."""
+    from glsldiff.render.split_frame import fluence_clamped
+    phi = np.array([[1.0, 1.0, 1.0], [-0.005, 0.2, 0.2], [0.3, -0.05, 0.3], [-0.5, -0.5, -0.5]])
+    facing = np.array([True, True, True, False])
+    assert fluence_clamped(sp.identity(4, format="csr"), phi, facing) == (2, 0.05, 1)
+    assert fluence_clamped(sp.identity(4, format="csr"), np.abs(phi), facing) == (0, 0.0, 0)

@@ -52,10 +52,12 @@ class RenderReport:
         return out
 
     def _clamped_lines(self) -> list[str]:
-        """The line on vertices whose exitant radiance was clamped to 0, if any."""
+        """The line on vertices whose exitant radiance (the split: the diffusion's fluence) was
+        clamped to 0, if any."""
         if not self.clamped_vertices:
             return []
-        return [f"exitant radiance clamped to 0 at {self.clamped_vertices} vertices: {self.clamped_deep} "
+        what = "fluence" if self.model.startswith("split") else "exitant radiance"
+        return [f"{what} clamped to 0 at {self.clamped_vertices} vertices: {self.clamped_deep} "
                 f"from below -1 % of the largest (down to -{self.clamped_depth:.2g}: diffusion undershoot), "
                 f"{self.clamped_vertices - self.clamped_deep} within 1 % (undershoot or the solve's tolerance; a "
                 "tighter [options].tol tells them apart)"]

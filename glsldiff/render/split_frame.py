@@ -127,6 +127,7 @@ class SplitResult:
     info: str = ""
     parts: dict[str, float] = field(default_factory=dict)
     static: SplitStatic | None = None
+    clamped: tuple[int, float, int] = (0, 0.0, 0)   # negative fluence at the vertices: fluence_clamped
 
 
 def _at_vertices(interp: Any, beams: Sequence[tuple[Array, Array]]) -> list[tuple[Array, Array]]:
@@ -140,6 +141,18 @@ def _at_vertices(interp: Any, beams: Sequence[tuple[Array, Array]]) -> list[tupl
     return out
 
 
+def fluence_clamped(interp: Any, phi: Array, facing: NDArray[np.bool_]) -> tuple[int, float, int]:
+    """The vertices facing the eye whose interpolated fluence ``interp @ phi`` is negative (the
+    split clamps it to 0; a P1 undershoot, e.g. at a crease): how many, how deep (over the
+    largest value) and how many below -1 % of the largest (``RenderReport.clamped_*``)."""
+    raw = np.asarray(interp @ phi)[facing]
+    if raw.size == 0:
+        return 0, 0.0, 0
+    top = max(float(raw.max()), 1e-300)
+    return (int(np.any(raw < 0.0, axis=1).sum()), float(max(-raw.min(), 0.0) / top),
+            int(np.any(raw < -0.01 * top, axis=1).sum()))
+
+
 def split_again(static: SplitStatic, interp: Any, phi: Array) -> SplitResult:
     """:func:`split_radiance` of a frame whose fluence ``phi`` ``(S, 3)`` alone changed since the
     result that kept ``static`` (surface far field): only the fluence's terms are recomputed."""
@@ -147,7 +160,7 @@ def split_again(static: SplitStatic, interp: Any, phi: Array) -> SplitResult:
     X = np.asarray(interp @ np.maximum(phi, 0.0))
     multiple = combine(static.M, X, static.X_loc, static.c_far, static.w) * static.facing[:, None]
     return SplitResult(static.single + multiple, static.single, multiple, time.perf_counter() - t0, static.info,
-                       static=static)
+                       static=static, clamped=fluence_clamped(interp, phi, static.facing))
 
 
 def split_repaint(previous: SplitStatic, inp: SplitInputs) -> SplitResult | None:
@@ -257,4 +270,5 @@ def split_radiance(inp: SplitInputs, eye: Array) -> SplitResult:
         closed = {} if inp.march else {"km": kv * mv, "nu_o": nu_o, "ext": ext, "B_unit": B_unit, "single_raw": single_raw}
         kept = SplitStatic(M, single, X_loc, np.broadcast_to(c_far, M.shape), np.broadcast_to(w, M.shape), facing, info,
                            **closed)
-    return SplitResult(single + multiple, single, multiple, time.perf_counter() - t0, info, static=kept)
+    return SplitResult(single + multiple, single, multiple, time.perf_counter() - t0, info, static=kept,
+                       clamped=fluence_clamped(inp.interp, inp.phi, facing))

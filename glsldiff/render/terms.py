@@ -244,6 +244,7 @@ class SurfaceTerms:
         if o.split:
             sr = self.split(f)
             ss = {"single": sr.single, "multiple": sr.multiple}.get(split_part or "", sr.radiance)
+            self.clamped = sr.clamped            # the split clamps the diffusion's fluence, not its exitance
         elif o.single_scattering:
             ss = self.single(f)
         if f.scene.material.reflectance is not None:
