@@ -64,6 +64,6 @@ def test_no_polycube_at_all_is_one_input_error(monkeypatch):
     monkeypatch.setattr(tet, "cached_fem_grid", _no_polycube)
     monkeypatch.setattr(lat, "cached_polygrid", _no_polycube)
     monkeypatch.setattr(backends, "FALLBACK_POLYGRID", SMALL)
-    with Renderer() as r, pytest.raises(InputError, match=r"\[polygrid\] cubes") as info:
+    with Renderer() as r, pytest.raises(InputError, match=r"\[polygrid\] cubes = 30000") as info:
         r.render(_scene())
     assert "lattice fallback" in str(info.value) and "cube_size" not in str(info.value)

@@ -205,9 +205,11 @@ def set_up_backend(scene: Scene, mesh: Mesh, ctx: moderngl.Context, say: Callabl
         backend = make(fallback)
         try:
             return (backend, *backend.setup(fallback, mesh), FALLBACK_POLYGRID, note)
-        except PolycubeNotFound as exc2:
+        except InputError as exc2:
             backend.release()
-            raise InputError(f"no polygrid of {scene.mesh.source}: the tetrahedral grid ({why}) and the lattice "
-                             f"fallback ({exc2.failures[-1] if exc2.failures else exc2}) found no set of cubes with "
-                             "its topology; give [polygrid] cubes more, or repair the mesh's spikes and thin "
-                             "sheets") from exc2
+            other = exc2.failures[-1] if isinstance(exc2, PolycubeNotFound) and exc2.failures else str(exc2)
+            raise InputError(f"no polygrid of {scene.mesh.source}: the tetrahedral grid found no set of cubes with "
+                             f"its topology ({why}) and the lattice fallback failed too ({other}); parts of the "
+                             "mesh come closer than a cube (a bridge of cubes adds a handle) or are thinner than "
+                             "one: try [polygrid] cubes = "
+                             f"{2 * scene.polygrid.cubes}, or repair the mesh there") from exc2
