@@ -104,6 +104,7 @@ spacing.
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from typing import Any
@@ -116,6 +117,8 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from glsldiff.core.blas import DOT_SERIAL_LENGTH, blas_threads
+from glsldiff.core.jit import kernel
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
@@ -329,12 +332,54 @@ def _harmonic_interior(cx: PillowComplex, X: NDArray[np.float64], copy_weight: f
 
 
 def _det_gradients(X: NDArray[np.float64], tets: NDArray[np.int64]) -> tuple[NDArray, NDArray]:
-    """``6 V`` of each tetrahedron and its gradient ``(T, 4, 3)`` w.r.t. the four corners."""
+    """``6 V`` of each tetrahedron and its gradient ``(T, 4, 3)`` w.r.t. the four corners
+    (numpy twin of :func:`_shortfall_gradient`)."""
     P = X[tets]
     a, b, c = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
     det = np.einsum("ij,ij->i", np.cross(a, b), c)
     g1, g2, g3 = np.cross(b, c), np.cross(c, a), np.cross(a, b)
     return det, np.stack([-(g1 + g2 + g3), g1, g2, g3], axis=1)
+
+
+@kernel
+def _cross(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float) -> tuple[float, float, float]:
+    """``a x b`` as ``np.cross`` computes it."""
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@kernel
+def _shortfall_gradient(Y: NDArray[np.float64], T: NDArray[np.int64], target: NDArray[np.float64],
+                        scale: float, r: NDArray[np.float64], grad: NDArray[np.float64]) -> None:
+    """Untangling residuals into ``r`` ``(T,)``: ``max(target - 6 V / scale, 0)``, and into
+    ``grad`` ``(n, 3)`` the gradient of ``sum r^2`` w.r.t. the rows of ``Y`` (mm). The same
+    floating-point operations, in the same order, as :func:`_det_gradients` and ``np.add.at``
+    (``np.einsum``'s three-term dot adds the first and third products first)."""
+    grad[:] = 0.0
+    for t in range(len(T)):
+        i0, i1, i2, i3 = T[t, 0], T[t, 1], T[t, 2], T[t, 3]
+        a0, a1, a2 = Y[i1, 0] - Y[i0, 0], Y[i1, 1] - Y[i0, 1], Y[i1, 2] - Y[i0, 2]
+        b0, b1, b2 = Y[i2, 0] - Y[i0, 0], Y[i2, 1] - Y[i0, 1], Y[i2, 2] - Y[i0, 2]
+        c0, c1, c2 = Y[i3, 0] - Y[i0, 0], Y[i3, 1] - Y[i0, 1], Y[i3, 2] - Y[i0, 2]
+        g10, g11, g12 = _cross(b0, b1, b2, c0, c1, c2)
+        g20, g21, g22 = _cross(c0, c1, c2, a0, a1, a2)
+        g30, g31, g32 = _cross(a0, a1, a2, b0, b1, b2)
+        det = (g30 * c0 + g32 * c2) + g31 * c1
+        short = target[t] - det / scale
+        rt = short if short > 0.0 or short != short else 0.0    # np.maximum(short, 0): NaN stays
+        r[t] = rt
+        k = -2.0 * rt
+        grad[i0, 0] += k * (-((g10 + g20) + g30) / scale)
+        grad[i0, 1] += k * (-((g11 + g21) + g31) / scale)
+        grad[i0, 2] += k * (-((g12 + g22) + g32) / scale)
+        grad[i1, 0] += k * (g10 / scale)
+        grad[i1, 1] += k * (g11 / scale)
+        grad[i1, 2] += k * (g12 / scale)
+        grad[i2, 0] += k * (g20 / scale)
+        grad[i2, 1] += k * (g21 / scale)
+        grad[i2, 2] += k * (g22 / scale)
+        grad[i3, 0] += k * (g30 / scale)
+        grad[i3, 1] += k * (g31 / scale)
+        grad[i3, 2] += k * (g32 / scale)
 
 
 #: Rounds of the untangling step in which the surface nodes slide (module docstring, step 3).
@@ -396,22 +441,23 @@ def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[n
     scale = max(float(np.median(tgt)), 1e-300)   # shortfalls in units of a typical target: L-BFGS-B's
     tgt = tgt / scale                            # stopping test is absolute below f = 1
     w = 100.0 / max(edge, 1e-300) ** 2
+    # the selected tetrahedra's own nodes only (free ones among them): no full-grid temporaries
+    nodes, local = np.unique(T, return_inverse=True)
+    T, mine = local.reshape(T.shape), np.searchsorted(nodes, free)
+    Y, r, grad = X[nodes], np.empty(len(T)), np.empty((len(nodes), 3))
 
     def objective(x: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        Y = X.copy()
-        Y[free] = x.reshape(-1, 3)
-        d, G = _det_gradients(Y, T)
-        d, G = d / scale, G / scale
-        r = np.maximum(tgt - d, 0.0)
-        grad = np.zeros_like(Y)
-        np.add.at(grad, T.ravel(), (-2.0 * r[:, None, None] * G).reshape(-1, 3))
-        f, g = float((r * r).sum()), grad[free]
+        Y[mine] = x.reshape(-1, 3)
+        _shortfall_gradient(Y, T, tgt, scale, r, grad)
+        f, g = float((r * r).sum()), grad[mine]
         if nf is not None:
-            off = np.einsum("ij,ij->i", Y[free] - x0, nf)
+            off = np.einsum("ij,ij->i", Y[mine] - x0, nf)
             f += w * float((off * off).sum())
             g = g + 2.0 * w * off[:, None] * nf
         return f, g.ravel()
-    res = so.minimize(objective, X[free].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": iterations})
+    # one BLAS thread where that gives the same bits (glsldiff.core.blas): far faster on busy cores
+    with blas_threads(1) if free.size * 3 <= DOT_SERIAL_LENGTH else nullcontext():
+        res = so.minimize(objective, X[free].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": iterations})
     X[free] = res.x.reshape(-1, 3)
     return int(bad.sum())
 

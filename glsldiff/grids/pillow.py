@@ -33,6 +33,7 @@ import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
+from glsldiff.core.jit import kernel
 from glsldiff.grids.lattice import Lattice
 
 __all__ = ["PillowComplex", "KUHN", "TET_EDGES", "edge_adjacency", "mean_operator", "node_tets", "prism_tets", "signed_volumes",
@@ -279,8 +280,45 @@ def unique_tet_edges(tets: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64]
     bunny's 4.7 M edge copies)."""
     a = tets[:, TET_EDGES[:, 0]].astype(np.int64)
     b = tets[:, TET_EDGES[:, 1]].astype(np.int64)
-    keys, inverse = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
-    return np.stack([keys // n, keys % n], axis=1), inverse.reshape(len(tets), 6)
+    lo, hi, inverse = _unique_pairs(np.minimum(a, b).ravel(), np.maximum(a, b).ravel(), n)
+    return np.stack([lo, hi], axis=1), inverse.reshape(len(tets), 6)
+
+
+@kernel
+def _unique_pairs(lo: NDArray[np.int64], hi: NDArray[np.int64], n: int
+                  ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """The distinct pairs ``(lo, hi)`` (``lo`` in ``0 .. n-1``) in lexicographic order and the
+    index of each input pair among them: ``np.unique`` of the keys ``lo * n + hi``, by
+    bucketing on ``lo`` (linear in the pairs; a node's few pairs sorted by insertion)."""
+    m = len(lo)
+    start = np.zeros(n + 1, dtype=np.int64)
+    for k in range(m):
+        start[lo[k] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    order = np.empty(m, dtype=np.int64)
+    for k in range(m):
+        order[fill[lo[k]]] = k
+        fill[lo[k]] += 1
+    inverse = np.empty(m, dtype=np.int64)
+    out_lo, out_hi = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64)
+    e = 0
+    for a in range(n):
+        s = start[a]
+        for i in range(s + 1, start[a + 1]):      # stable insertion sort of the bucket by hi
+            k, j = order[i], i - 1
+            while j >= s and hi[order[j]] > hi[k]:
+                order[j + 1] = order[j]
+                j -= 1
+            order[j + 1] = k
+        for i in range(s, start[a + 1]):
+            k = order[i]
+            if i == s or hi[k] != out_hi[e - 1]:
+                out_lo[e], out_hi[e] = a, hi[k]
+                e += 1
+            inverse[k] = e - 1
+    return out_lo[:e].copy(), out_hi[:e].copy(), inverse
 
 
 def edge_lookup(edges: NDArray[np.int64], n: int, a: NDArray[np.int64], b: NDArray[np.int64]

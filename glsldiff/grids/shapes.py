@@ -30,7 +30,8 @@ import numpy as np
 import scipy.optimize as so
 from numpy.typing import NDArray
 
-from glsldiff.grids.pillow import TET_EDGES, edge_adjacency, node_tets, tet_edges, triangle_edges
+from glsldiff.core.jit import kernel
+from glsldiff.grids.pillow import TET_EDGES, edge_adjacency, node_tets, triangle_edges, unique_tet_edges
 
 __all__ = ["SHAPE_TARGET", "ShapeReport", "improve_shapes", "shape_quality"]
 
@@ -42,19 +43,37 @@ SHAPE_SWEEPS = 6
 SEARCH_EVALUATIONS = 80
 SEARCH_SIMPLEX = 0.2
 
-_I, _J = TET_EDGES[:, 0], TET_EDGES[:, 1]
+#: TET_EDGES' ends as tuples (a kernel reading a global array cannot be cached)
+_EDGE_FROM, _EDGE_TO = tuple(int(i) for i in TET_EDGES[:, 0]), tuple(int(j) for j in TET_EDGES[:, 1])
 Project = Callable[[NDArray[np.float64], NDArray[np.int64]], NDArray[np.float64]]
 
 
 def shape_quality(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
     """``(T,)`` volume over the regular tetrahedron's of the same mean edge length (1 regular,
     <= 0 inverted)."""
-    P = X[tets]
-    E = P[:, _J] - P[:, _I]                                     # (T, 6, 3) edge vectors
-    mean = np.sqrt(np.einsum("tek,tek->te", E, E)).mean(axis=1)
-    a, b, c = E[:, 0].T, E[:, 1].T, E[:, 2].T                   # 6 V: (p1 - p0) x (p2 - p0) . (p3 - p0)
-    det = (a[1] * b[2] - a[2] * b[1]) * c[0] + (a[2] * b[0] - a[0] * b[2]) * c[1] + (a[0] * b[1] - a[1] * b[0]) * c[2]
-    return det * np.sqrt(2.0) / np.maximum(mean, 1e-300) ** 3
+    det, mean = np.empty(len(tets)), np.empty(len(tets))
+    _volume_and_edge(np.asarray(X, dtype=np.float64), np.asarray(tets, dtype=np.int64), det, mean)
+    return det * np.sqrt(2.0) / np.maximum(mean, 1e-300) ** 3   # numpy's power: its bits
+
+
+@kernel
+def _volume_and_edge(X: NDArray[np.float64], tets: NDArray[np.int64], det: NDArray[np.float64],
+                     mean: NDArray[np.float64]) -> None:
+    """``6 V`` (mm^3) and the mean edge length (mm) of each tetrahedron, with the floating-point
+    operations of the numpy expressions they replace (edge vectors along ``TET_EDGES``, their
+    squares summed as ``np.einsum`` does: first and third first)."""
+    for t in range(len(tets)):
+        s = 0.0
+        for e in range(6):
+            i, j = tets[t, _EDGE_FROM[e]], tets[t, _EDGE_TO[e]]
+            d0, d1, d2 = X[j, 0] - X[i, 0], X[j, 1] - X[i, 1], X[j, 2] - X[i, 2]
+            s += np.sqrt((d0 * d0 + d2 * d2) + d1 * d1)
+        mean[t] = s / 6.0
+        p0, p1, p2, p3 = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        a0, a1, a2 = X[p1, 0] - X[p0, 0], X[p1, 1] - X[p0, 1], X[p1, 2] - X[p0, 2]
+        b0, b1, b2 = X[p2, 0] - X[p0, 0], X[p2, 1] - X[p0, 1], X[p2, 2] - X[p0, 2]
+        c0, c1, c2 = X[p3, 0] - X[p0, 0], X[p3, 1] - X[p0, 1], X[p3, 2] - X[p0, 2]
+        det[t] = (a1 * b2 - a2 * b1) * c0 + (a2 * b0 - a0 * b2) * c1 + (a0 * b1 - a1 * b0) * c2
 
 
 @dataclass
@@ -90,7 +109,7 @@ def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArra
     movable = free | sliding
     start = X.copy()
     incident = node_tets(tets, n)
-    volume_nb = edge_adjacency(tet_edges(tets), n)
+    volume_nb = edge_adjacency(unique_tet_edges(tets, n)[0], n)   # as of every copy of each edge, faster
     surface_nb = edge_adjacency(triangle_edges(surface), n)
 
     def place(v: int, p: NDArray[np.float64]) -> NDArray[np.float64]:

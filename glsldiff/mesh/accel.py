@@ -171,5 +171,8 @@ class BVH:
             bmax = bmax.reshape(-1, 2, 3).max(axis=1)
             self.boxes.append((bmin, bmax))
         self.boxes.reverse()  # boxes[level], level 0 = root
+        #: ``(2^(depth+1) - 1, 3)`` min and max corners of every node, node ``2^level - 1 + k``
+        #: being ``boxes[level]``'s ``k``-th (an implicit heap: children ``2 i + 1``, ``2 i + 2``)
+        self.heap_boxes = (np.concatenate([b[0] for b in self.boxes]), np.concatenate([b[1] for b in self.boxes]))
         self.tree = cKDTree(vertices)
         self.vf_order, self.vf_start = faces_around_vertices(faces, len(vertices))

@@ -1,6 +1,6 @@
 """Exact closest points on a closed mesh's surface (coordinates in mm).
 
-:func:`closest_points` finds, for each query point, the nearest face by a vectorised
+:func:`closest_points` finds, for each query point, the nearest face by a compiled
 branch-and-bound descent of the mesh's :class:`~glsldiff.mesh.accel.BVH` (leaves of 4
 triangles in Morton order), seeded with the distance to the faces around the nearest
 vertex, then the exact point on that face (Ericson, *Real-Time Collision Detection*,
@@ -11,8 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from glsldiff.core.jit import kernel
-from glsldiff.mesh.accel import PAIR_CHUNK
+from glsldiff.core.jit import kernel, prange
 from glsldiff.mesh.types import Mesh, normalize, query_points
 
 
@@ -70,12 +69,13 @@ def closest_on_triangle(p0: float, p1: float, p2: float, t: tuple[float, ...]
     ap0, ap1, ap2 = p0 - t[0], p1 - t[1], p2 - t[2]
     bp0, bp1, bp2 = p0 - t[3], p1 - t[4], p2 - t[5]
     cp0, cp1, cp2 = p0 - t[6], p1 - t[7], p2 - t[8]
-    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
-    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
-    d3 = ab0 * bp0 + ab1 * bp1 + ab2 * bp2
-    d4 = ac0 * bp0 + ac1 * bp1 + ac2 * bp2
-    d5 = ab0 * cp0 + ab1 * cp1 + ab2 * cp2
-    d6 = ac0 * cp0 + ac1 * cp1 + ac2 * cp2
+    # summed as np.einsum sums three products (the first and third first): the numpy path's bits
+    d1 = (ab0 * ap0 + ab2 * ap2) + ab1 * ap1
+    d2 = (ac0 * ap0 + ac2 * ap2) + ac1 * ap1
+    d3 = (ab0 * bp0 + ab2 * bp2) + ab1 * bp1
+    d4 = (ac0 * bp0 + ac2 * bp2) + ac1 * bp1
+    d5 = (ab0 * cp0 + ab2 * cp2) + ab1 * cp1
+    d6 = (ac0 * cp0 + ac2 * cp2) + ac1 * cp1
     va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
     # the corner and edge regions in closest_on_triangles' order of precedence, then the
     # interior; a zero denominator gives NaN (numpy: inf or NaN), replaced by (1, 0, 0) as there
@@ -110,74 +110,109 @@ def _finite_or_a(b0: float, b1: float, b2: float) -> tuple[float, float, float]:
     return 1.0, 0.0, 0.0
 
 
-def _exact(mesh: Mesh, pi: NDArray[np.int64], fi: NDArray[np.int64], p: NDArray[np.float64]
-           ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """Squared distances and barycentrics of points ``p[pi]`` to their faces ``fi``."""
-    t = mesh.triangles[fi]
-    bary = closest_on_triangles(p[pi], t[:, 0], t[:, 1], t[:, 2])
-    cp = np.einsum("ij,ijk->ik", bary, t)
-    d2 = ((p[pi] - cp) ** 2).sum(axis=1)
-    return d2, bary
+@kernel
+def face_distance(p0: float, p1: float, p2: float, t: tuple[float, ...]
+                  ) -> tuple[float, tuple[float, float, float]]:
+    """Squared distance (mm^2) from p to its closest point on the triangle ``t`` (as
+    :func:`closest_on_triangle`), and that point's barycentrics: the floating-point operations
+    of the numpy path (``einsum`` over the corners, then the squares summed in order); a kernel
+    helper, for compiled loops."""
+    b = closest_on_triangle(p0, p1, p2, t)
+    q0 = (b[0] * t[0] + b[1] * t[3]) + b[2] * t[6] - p0
+    q1 = (b[0] * t[1] + b[1] * t[4]) + b[2] * t[7] - p1
+    q2 = (b[0] * t[2] + b[1] * t[5]) + b[2] * t[8] - p2
+    return q0 * q0 + q1 * q1 + q2 * q2, b
 
 
-def _update(best: NDArray[np.float64], best_f: NDArray[np.int64], pi: NDArray[np.int64],
-            fi: NDArray[np.int64], d2: NDArray[np.float64]) -> None:
-    """Lower ``best``/``best_f`` by the pairs (pi, fi, d2); ``pi`` must be non-decreasing."""
-    if len(pi) == 0:
-        return
-    start = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
-    gmin = np.minimum.reduceat(d2, start)
-    group = np.repeat(np.arange(len(start)), np.diff(np.r_[start, len(pi)]))
-    hit = np.flatnonzero(d2 == gmin[group])
-    first = hit[np.r_[True, group[hit][1:] != group[hit][:-1]]]  # first minimum per point
-    pts = pi[first]
-    better = d2[first] < best[pts]
-    best[pts[better]] = d2[first][better]
-    best_f[pts[better]] = fi[first][better]
+@kernel(inline=True)
+def _distance_to_face(tri: NDArray[np.float64], f: int, p0: float, p1: float, p2: float) -> float:
+    """Squared distance (mm^2) from p to face ``f`` of ``tri`` ``(F, 3, 3)``."""
+    return face_distance(p0, p1, p2, (tri[f, 0, 0], tri[f, 0, 1], tri[f, 0, 2], tri[f, 1, 0], tri[f, 1, 1],
+                                      tri[f, 1, 2], tri[f, 2, 0], tri[f, 2, 1], tri[f, 2, 2]))[0]
+
+
+@kernel(inline=True)
+def _box_gap2(lo: NDArray[np.float64], hi: NDArray[np.float64], k: int, p0: float, p1: float, p2: float) -> float:
+    """Squared distance (mm^2) from p to box ``k`` (0 inside)."""
+    g0 = max(max(lo[k, 0] - p0, p0 - hi[k, 0]), 0.0)
+    g1 = max(max(lo[k, 1] - p1, p1 - hi[k, 1]), 0.0)
+    g2 = max(max(lo[k, 2] - p2, p2 - hi[k, 2]), 0.0)
+    return g0 * g0 + g1 * g1 + g2 * g2
+
+
+@kernel(inline=True)
+def _nearest_face(p0: float, p1: float, p2: float, vertex: int, vf_order: NDArray[np.int64],
+                  vf_start: NDArray[np.int64], tri: NDArray[np.float64], lo: NDArray[np.float64],
+                  hi: NDArray[np.float64], depth: int, leaf_faces: NDArray[np.int64], exact: bool) -> int:
+    """The face nearest to p: first the faces around its nearest ``vertex``, then (``exact``) a
+    depth-first descent of the BVH (boxes ``lo``/``hi`` of node ``2^level - 1 + k``), left child
+    first, pruned by the best distance so far. Of equally near faces the first met wins, as in
+    the breadth-first numpy descent it replaces (which visited the leaves in the same order and
+    pruned with the first bound only: a box pruned here holds no nearer face)."""
+    best, best_f = np.inf, 0
+    for j in range(vf_start[vertex], vf_start[vertex + 1]):
+        d2 = _distance_to_face(tri, vf_order[j], p0, p1, p2)
+        if d2 < best:
+            best, best_f = d2, vf_order[j]
+    if not exact:
+        return best_f
+    stack = np.empty(depth + 2, dtype=np.int64)
+    stack[0], top = 0, 1
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        if _box_gap2(lo, hi, node, p0, p1, p2) > best * (1 + 1e-9) + 1e-300:
+            continue
+        leaf = node - ((1 << depth) - 1)
+        if leaf < 0:    # an inner node: right child under the left one
+            stack[top], stack[top + 1] = 2 * node + 2, 2 * node + 1
+            top += 2
+            continue
+        for f in leaf_faces[leaf]:
+            if f >= 0:
+                d2 = _distance_to_face(tri, f, p0, p1, p2)
+                if d2 < best:
+                    best, best_f = d2, f
+    return best_f
+
+
+@kernel(parallel=True)
+def _nearest_faces(p: NDArray[np.float64], vertex: NDArray[np.int64], vf_order: NDArray[np.int64],
+                   vf_start: NDArray[np.int64], tri: NDArray[np.float64], lo: NDArray[np.float64],
+                   hi: NDArray[np.float64], depth: int, leaf_faces: NDArray[np.int64], exact: bool,
+                   out: NDArray[np.int64]) -> None:
+    """``out[i]``: :func:`_nearest_face` of ``p[i]``, over threads."""
+    for i in prange(p.shape[0]):
+        out[i] = _nearest_face(p[i, 0], p[i, 1], p[i, 2], vertex[i], vf_order, vf_start, tri, lo, hi, depth,
+                               leaf_faces, exact)
+
+
+@kernel
+def _nearest_faces_serial(p: NDArray[np.float64], vertex: NDArray[np.int64], vf_order: NDArray[np.int64],
+                          vf_start: NDArray[np.int64], tri: NDArray[np.float64], lo: NDArray[np.float64],
+                          hi: NDArray[np.float64], depth: int, leaf_faces: NDArray[np.int64], exact: bool,
+                          out: NDArray[np.int64]) -> None:
+    """:func:`_nearest_faces` on one thread (a few points: no thread start-up)."""
+    for i in range(p.shape[0]):
+        out[i] = _nearest_face(p[i, 0], p[i, 1], p[i, 2], vertex[i], vf_order, vf_start, tri, lo, hi, depth,
+                               leaf_faces, exact)
+
+
+#: Fewer query points than this are searched on one thread.
+SERIAL_POINTS = 512
 
 
 def _closest_faces(mesh: Mesh, p: NDArray[np.float64], exact: bool = True) -> NDArray[np.int64]:
     """Index of the face nearest to each point (branch and bound over the BVH; with
     ``exact=False`` the nearest of the faces around the nearest vertex, the bound's start)."""
     bvh = mesh.bvh
-    n = len(p)
-    # upper bound: the faces around the nearest vertex
     _, vi = bvh.tree.query(p)
-    s, e = bvh.vf_start[vi], bvh.vf_start[vi + 1]
-    cnt = e - s
-    pi = np.repeat(np.arange(n), cnt)
-    k = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt)
-    fi = bvh.vf_order[np.repeat(s, cnt) + k]
-    best = np.full(n, np.inf)
-    best_f = np.zeros(n, dtype=np.int64)
-    d2, _ = _exact(mesh, pi, fi, p)
-    _update(best, best_f, pi, fi, d2)
-    if not exact:
-        return best_f
-    bound = best * (1 + 1e-9) + 1e-300
-    # descend the tree, keeping nodes whose box is within the bound
-    pts = np.arange(n)
-    nodes = np.zeros(n, dtype=np.int64)
-    for level in range(bvh.depth + 1):
-        bmin, bmax = bvh.boxes[level]
-        pp = p[pts]
-        gap = np.maximum(np.maximum(bmin[nodes] - pp, pp - bmax[nodes]), 0.0)
-        keep = (gap ** 2).sum(axis=1) <= bound[pts]
-        pts, nodes = pts[keep], nodes[keep]
-        if level < bvh.depth:
-            pts = np.repeat(pts, 2)
-            nodes = (np.repeat(nodes, 2) * 2 + np.tile([0, 1], len(nodes)))
-    # exact distances to the faces of the surviving leaves, in chunks
-    step = max(1, PAIR_CHUNK // bvh.LEAF)
-    for i in range(0, len(pts), step):
-        lp, ln = pts[i:i + step], nodes[i:i + step]
-        fi = bvh.leaf_faces[ln].ravel()
-        pi = np.repeat(lp, bvh.LEAF)
-        ok = fi >= 0
-        pi, fi = pi[ok], fi[ok]
-        d2, _ = _exact(mesh, pi, fi, p)
-        _update(best, best_f, pi, fi, d2)
-    return best_f
+    lo, hi = bvh.heap_boxes
+    out = np.empty(len(p), dtype=np.int64)
+    search = _nearest_faces_serial if len(p) < SERIAL_POINTS else _nearest_faces
+    search(p, vi.astype(np.int64), bvh.vf_order, bvh.vf_start, mesh.triangles, lo, hi, bvh.depth, bvh.leaf_faces,
+           exact, out)
+    return out
 
 
 def closest_points(mesh: Mesh, points: ArrayLike, exact: bool = True
@@ -200,10 +235,7 @@ def closest_points(mesh: Mesh, points: ArrayLike, exact: bool = True
         across sharp edges) interpolated barycentrically, then normalised.
     """
     p = query_points(points)
-    faces = np.empty(len(p), dtype=np.int64)
-    step = 8192  # bounds the tree frontier
-    for i in range(0, len(p), step):
-        faces[i:i + step] = _closest_faces(mesh, p[i:i + step], exact)
+    faces = _closest_faces(mesh, p, exact)
     t = mesh.triangles[faces]
     bary = closest_on_triangles(p, t[:, 0], t[:, 1], t[:, 2])
     cp = np.einsum("ij,ijk->ik", bary, t)

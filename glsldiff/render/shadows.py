@@ -69,7 +69,7 @@ from glsldiff import gl
 from glsldiff.core.camera import orthonormal_frame, projection, view_matrix
 from glsldiff.core.errors import InputError
 from glsldiff.core.jit import kernel, prange
-from glsldiff.mesh.closest import closest_on_triangle
+from glsldiff.mesh.closest import face_distance
 from glsldiff.physics.lights import DirectionalLight, Light, ProjectorLight, SpotLight
 
 __all__ = ["DepthRenderer", "ShadowMap", "View", "BIAS_TEXELS", "BIAS_SLOPE", "MAX_BIAS_TAN",
@@ -340,18 +340,6 @@ def _entry_kernel(p: NDArray[np.float64], views: NDArray[np.void], size: int,
         out[i] = entry_at(p[i, 0], p[i, 1], p[i, 2], views, size, front)
 
 
-@kernel
-def _face_distance(p0: float, p1: float, p2: float, t: tuple[float, ...]
-                   ) -> tuple[float, tuple[float, float, float]]:
-    """Squared distance from p to its closest point on the triangle ``t`` (as
-    :func:`~glsldiff.mesh.closest.closest_on_triangle`), and that point's barycentrics."""
-    b = closest_on_triangle(p0, p1, p2, t)
-    q0 = (b[0] * t[0] + b[1] * t[3]) + b[2] * t[6] - p0
-    q1 = (b[0] * t[1] + b[1] * t[4]) + b[2] * t[7] - p1
-    q2 = (b[0] * t[2] + b[1] * t[5]) + b[2] * t[8] - p2
-    return q0 * q0 + q1 * q1 + q2 * q2, b
-
-
 @kernel(inline=True)
 def _normal_from_taps(y0: float, y1: float, y2: float, faces: tuple[int, int, int, int], nearest: int,
                       texel: float, tri: NDArray[np.float64], cn: NDArray[np.float64],
@@ -372,7 +360,7 @@ def _normal_from_taps(y0: float, y1: float, y2: float, faces: tuple[int, int, in
                 new = new and faces[m] != fj
             if not new:
                 continue
-        dj, bj = _face_distance(y0, y1, y2, (tri[fj, 0, 0], tri[fj, 0, 1], tri[fj, 0, 2],
+        dj, bj = face_distance(y0, y1, y2, (tri[fj, 0, 0], tri[fj, 0, 1], tri[fj, 0, 2],
                                              tri[fj, 1, 0], tri[fj, 1, 1], tri[fj, 1, 2],
                                              tri[fj, 2, 0], tri[fj, 2, 1], tri[fj, 2, 2]))
         if dj < d2:
