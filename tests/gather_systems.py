@@ -5,7 +5,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import assemble_tet
 from glsldiff.system.tet_problem import TetProblem

@@ -1,4 +1,4 @@
-"""Refinement under sharp light (glsldiff.grids.adapt): where it refines, what it keeps, and
+"""Refinement under sharp light (glsldiff.grids.tetrahedral.adapt): where it refines, what it keeps, and
 that it lowers the error against the exact sphere series."""
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from glsldiff.bench.sphere_lights import ETA, KAPPA, MU, bench_lights, fem_case
-from glsldiff.grids.adapt import refine_for_source
-from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.grids.tetrahedral.adapt import refine_for_source
+from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
 from glsldiff.grids.polycube import polycube_from_mesh
-from glsldiff.grids.shapes import shape_quality
+from glsldiff.grids.tetrahedral.shapes import shape_quality
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.sphere_lights import sphere_from_light
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from glsldiff.grids.fem_grid import _det_gradients, _shortfall_gradient
-from glsldiff.grids.pillow import TET_EDGES, unique_tet_edges
-from glsldiff.grids.shapes import shape_quality
+from glsldiff.grids.tetrahedral.fem_grid import _det_gradients, _shortfall_gradient
+from glsldiff.grids.tetrahedral.pillow import TET_EDGES, unique_tet_edges
+from glsldiff.grids.tetrahedral.shapes import shape_quality
 from glsldiff.mesh import sphere_mesh
 from glsldiff.mesh.closest import (SERIAL_POINTS, _closest_faces, closest_on_triangle, closest_on_triangles,
                                    closest_points)

@@ -86,7 +86,7 @@ def test_tetrahedral_grid_loads_conserve_the_collided_light(mu0):
     ``sum_s A_s E_s (1 - exp(-sigma_t 6 / t))`` over the lit nodes' surface areas. Without the
     conservation step they were 7 % (normal incidence) and 16 % (mu0 = 0.2) short on
     validate's 60 mm slab."""
-    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
     from glsldiff.oracle.fem import tet_geometry
     from glsldiff.render.collision import first_collision_load
     g = build_fem_grid(box_mesh((30.0, 30.0, 6.0), origin=(-15.0, -15.0, -6.0)), n=2, cube_size=3.0)
@@ -115,7 +115,7 @@ def test_a_thin_slab_collides_its_light_at_every_depth():
     slab (sigma_t' 1 /mm) lit on its top face the half nearer the unlit face gets its share,
     (e^-1 - e^-2) / (1 - e^-2) = 0.269 of the collided light, and the load's mean depth is the
     exact one, within 5 %."""
-    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
     from glsldiff.oracle.fem import tet_geometry
     from glsldiff.render.collision import first_collision_load
     g = build_fem_grid(box_mesh((30.0, 30.0, 2.0), origin=(-15.0, -15.0, -2.0)), n=2, cube_size=1.0)

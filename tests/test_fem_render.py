@@ -8,7 +8,7 @@ from glsldiff.bench.meshes import mesh_bench
 from glsldiff.bench.sphere_lights import sphere_light_study
 from glsldiff.commands.cli import main
 from glsldiff.core.errors import InputError
-from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import solve_tet_direct
 from glsldiff.render.renderer import Renderer

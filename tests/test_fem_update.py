@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import assemble_tet, tet_geometry
 from glsldiff.oracle.fem_update import P1Pattern, P1System, cached_p1_pattern

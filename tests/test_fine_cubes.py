@@ -1,12 +1,12 @@
 """Tetrahedral grids fall back to cubes of FINE_CUBE_NODES nodes where cubes of the n asked
-for cannot carry the mesh (glsldiff.grids.fem_grid, step 7)."""
+for cannot carry the mesh (glsldiff.grids.tetrahedral.fem_grid, step 7)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.fem_grid import COVERAGE_TARGET, FINE_CUBE_NODES, FINE_TRIGGER, build_fem_grid
+from glsldiff.grids.tetrahedral.fem_grid import COVERAGE_TARGET, FINE_CUBE_NODES, FINE_TRIGGER, build_fem_grid
 from glsldiff.grids.polycube import outside_distance, polycube_from_cubes, polycube_from_mesh
 from glsldiff.mesh import box_mesh, sphere_mesh, surface_samples
 
@@ -91,8 +91,8 @@ def test_retries_other_cube_sizes_until_the_targets_are_met(monkeypatch, sphere)
     best is kept and the report says what it took (the real builds: the bench's meshes)."""
     from types import SimpleNamespace
 
-    from glsldiff.grids import fem_grid
-    from glsldiff.grids.fem_grid import MappingQuality, RETRY_SIZES
+    from glsldiff.grids.tetrahedral import fem_grid
+    from glsldiff.grids.tetrahedral.fem_grid import MappingQuality, RETRY_SIZES
 
     outcomes = {1.0: (1, 1.1), RETRY_SIZES[0]: (0, 2.0), RETRY_SIZES[1]: (0, 1.2), RETRY_SIZES[2]: (0, 1.0)}
     calls = []

@@ -325,7 +325,7 @@ def test_single_level_release_and_profile(ctx):
 def editable():
     """A P1 system on a fixed pattern (oracle.fem_update.P1System) of a pillowed sphere and a
     local edit of its material: (P1System, kappa2, mu2)."""
-    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
     from glsldiff.mesh import sphere_mesh
     from glsldiff.oracle.fem import tet_geometry
     from glsldiff.oracle.fem_update import P1System

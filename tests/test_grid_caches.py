@@ -14,7 +14,7 @@ import pytest
 import scipy.sparse as sp
 
 from glsldiff.core import cache
-from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
 from glsldiff.mesh import sphere_mesh, subdivide
 from glsldiff.oracle.fem import CACHED_FACTORS, cached_tet_geometry, tet_geometry
 from glsldiff.physics import halfspace

@@ -245,7 +245,7 @@ def test_polygrid_node_budget(tmp_path, capsys):
         scene.write_text(f'[mesh]\nsource = "sphere"\n[polygrid]\nn = 256\ndiscretisation = "{disc}"\n'
                          '[[lights]]\ntype = "directional"\ndirection = [0, 0, 1]\n')
         _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "r.exr")]), expect)
-    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
     from glsldiff.mesh import sphere_mesh
     with pytest.raises(InputError, match="tetrahedral grid: 20000 cubes of n = 4 .* limit is 1e\\+06: use n <= 3 or fewer cubes"):
         build_fem_grid(sphere_mesh(10.0, subdivisions=2), n=4, n_cubes=20000)

@@ -181,7 +181,7 @@ def test_area_light_up_parallel_to_its_normal_is_one_line():
 
 
 def test_recovered_gradient_is_exact_for_linear_fields():
-    from glsldiff.grids.fem_grid import build_fem_grid
+    from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
     from glsldiff.mesh import sphere_mesh
     from glsldiff.oracle.fem import tet_geometry
     g = build_fem_grid(sphere_mesh(10.0, subdivisions=3), n=2, cube_size=5.0)

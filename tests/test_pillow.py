@@ -1,4 +1,4 @@
-"""The pillowed polycube complex (grids.pillow), its mapping (grids.fem_grid) and the P1
+"""The pillowed polycube complex (grids.tetrahedral.pillow), its mapping (grids.tetrahedral.fem_grid) and the P1
 finite elements on it (oracle.fem)."""
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
 
-from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
 from glsldiff.grids.lattice import Lattice
-from glsldiff.grids.pillow import PillowComplex, prism_tets, signed_volumes
+from glsldiff.grids.tetrahedral.pillow import PillowComplex, prism_tets, signed_volumes
 from glsldiff.grids.polycube import polycube_from_mesh
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.closed_forms import sphere_fluence
@@ -225,7 +225,7 @@ def test_untangle_keeps_tangent_nodes_in_their_planes():
     tangent penalty of untangle): the apex moves within the plane and the tetrahedron turns
     positive; without the penalty the apex moves straight along the volume gradient, off the
     plane."""
-    from glsldiff.grids.fem_grid import untangle
+    from glsldiff.grids.tetrahedral.fem_grid import untangle
     X = np.array([[0, 0, 0], [0, 1, 0], [0, 0, 1], [-0.5, 0.2, 0.2]])   # 6V = apex x: inverted
     T = np.array([[0, 1, 2, 3]])
     ref = np.array([1.0])                                                 # 6V of the apex at x = 1
@@ -244,7 +244,7 @@ def test_untangle_keeps_tangent_nodes_in_their_planes():
 def test_tips_get_a_surface_node():
     """A thin pyramid whose apex the surface nodes do not reach: the nearest free node (within
     3 h) moves onto the apex; fixed nodes stay; nodes already within reach are not moved."""
-    from glsldiff.grids.fem_grid import TIP_REACH, _snap_tips
+    from glsldiff.grids.tetrahedral.fem_grid import TIP_REACH, _snap_tips
     from glsldiff.mesh import mesh_from_arrays
     V = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [0, 0, 10]], dtype=float)
     F = np.array([[0, 2, 1], [0, 3, 2], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])

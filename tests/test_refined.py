@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import KUHN, CORNERS, signed_volumes
-from glsldiff.grids.tetwild import boundary_faces
+from glsldiff.grids.tetrahedral.pillow import KUHN, CORNERS, signed_volumes
+from glsldiff.grids.tetrahedral.tetwild import boundary_faces
 from glsldiff.oracle.fem import solve_tet_direct
 from glsldiff.oracle.refined import RefinedComparison, RefinedGrid, extend_p1, refine_grid
 from glsldiff.physics.exitance import exitant_bracket

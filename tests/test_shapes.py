@@ -1,10 +1,10 @@
-"""Shape quality of tetrahedra and the shape step of the fem grid (glsldiff.grids.shapes)."""
+"""Shape quality of tetrahedra and the shape step of the fem grid (glsldiff.grids.tetrahedral.shapes)."""
 from __future__ import annotations
 
 import numpy as np
 
-from glsldiff.grids.pillow import KUHN, signed_volumes
-from glsldiff.grids.shapes import SHAPE_TARGET, improve_shapes, shape_quality
+from glsldiff.grids.tetrahedral.pillow import KUHN, signed_volumes
+from glsldiff.grids.tetrahedral.shapes import SHAPE_TARGET, improve_shapes, shape_quality
 
 
 def _kuhn_block(m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -1,11 +1,11 @@
-"""Splitting long edges (glsldiff.grids.split): the refined grid is conforming, keeps its volume
+"""Splitting long edges (glsldiff.grids.tetrahedral.split): the refined grid is conforming, keeps its volume
 and boundary, reproduces linear data, and its P1 solve is closer to the converged one."""
 import numpy as np
 import pytest
 
-from glsldiff.grids.pillow import TET_EDGES, signed_volumes
-from glsldiff.grids.split import split_long_edges
-from glsldiff.grids.tetwild import boundary_faces
+from glsldiff.grids.tetrahedral.pillow import TET_EDGES, signed_volumes
+from glsldiff.grids.tetrahedral.split import split_long_edges
+from glsldiff.grids.tetrahedral.tetwild import boundary_faces
 from glsldiff.oracle.refined import RefinedComparison, RefinedGrid
 from glsldiff.system.tet_problem import TetProblem
 from test_refined import kuhn_box, spot

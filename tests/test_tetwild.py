@@ -15,7 +15,7 @@ from glsldiff.physics.optics import boundary_constant, fdr
 from glsldiff.system.transcut import cotangent_weights, de_matrix, de_rhs
 
 pytest.importorskip("pytetwild")
-from glsldiff.grids.tetwild import SLIVER_DEG, cached_tetrahedralize, tetrahedralize, tet_quality  # noqa: E402
+from glsldiff.grids.tetrahedral.tetwild import SLIVER_DEG, cached_tetrahedralize, tetrahedralize, tet_quality  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,7 @@ import scipy.sparse.linalg as spla
 from scipy.spatial import Delaunay
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import signed_volumes
+from glsldiff.grids.tetrahedral.pillow import signed_volumes
 from glsldiff.solve import graph_hierarchy as gh
 from glsldiff.solve.graph_hierarchy import GraphHierarchy, coarsen_graph, independent_set
 from glsldiff.system.transcut import de_matrix, de_rhs
@@ -155,7 +155,7 @@ def test_bad_hierarchy_input():
 
 
 def test_refine_splits_every_tetrahedron_in_eight():
-    from glsldiff.grids.tetwild import TetMesh, refine, tet_quality
+    from glsldiff.grids.tetrahedral.tetwild import TetMesh, refine, tet_quality
     X, T, S = ball(400, seed=3)
     nodes = np.unique(S)
     normals = X[nodes] / np.linalg.norm(X[nodes], axis=1, keepdims=True)
@@ -206,14 +206,14 @@ def test_paint_updates_only_the_painted_rows_and_equals_a_rebuild():
 
 
 def _ball_mesh(n=3000, seed=5):
-    from glsldiff.grids.tetwild import TetMesh, tet_quality
+    from glsldiff.grids.tetrahedral.tetwild import TetMesh, tet_quality
     X, T, S = ball(n, seed=seed)
     nodes = np.unique(S)
     return TetMesh(X, T, S, X[nodes] / np.linalg.norm(X[nodes], axis=1, keepdims=True), tet_quality(X, T, S), 2.0)
 
 
 def test_plane_cut_removes_one_side_and_relaxes_onto_the_plane():
-    from glsldiff.grids.tetcut import MIN_DIHEDRAL_DEG, cut, plane_side
+    from glsldiff.grids.tetrahedral.tetcut import MIN_DIHEDRAL_DEG, cut, plane_side
     from glsldiff.mesh.types import unique_edges
     tm = _ball_mesh()
     side = plane_side([0.0, 0.0, 2.0], 1.0)                   # removes z > 1 mm
@@ -239,7 +239,7 @@ def test_plane_cut_removes_one_side_and_relaxes_onto_the_plane():
 
 
 def test_cut_errors_and_stroke_side():
-    from glsldiff.grids.tetcut import cut, plane_side, stroke_side
+    from glsldiff.grids.tetrahedral.tetcut import cut, plane_side, stroke_side
     tm = _ball_mesh(500)
     with pytest.raises(InputError, match="whole object"):
         cut(tm, plane_side([0, 0, 1.0], -100.0))

@@ -20,8 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.bench.peers import JACOBI_CG, fem_reference_label, krylov_label
-from glsldiff.grids.tetcut import CutReport
-from glsldiff.grids.tetwild import TetMesh
+from glsldiff.grids.tetrahedral.tetcut import CutReport
+from glsldiff.grids.tetrahedral.tetwild import TetMesh
 from glsldiff.oracle.fem import solve_matrix_reference
 from glsldiff.solve.graph_hierarchy import GraphHierarchy, jacobi_cg
 from glsldiff.system.transcut import de_matrix, de_rhs

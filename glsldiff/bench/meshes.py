@@ -4,17 +4,17 @@ For each mesh (the pymeshlab samples bunny, cow, bone, airplane; a torus; a 100 
 tile; a 100 mm cube; the public meshes of :mod:`glsldiff.bench.public_meshes`, CGAL's hand,
 camel, elk, triceratops, fandisk and couplingdown; all 100 mm long), each n asked for and each target cube count (default:
 the scene default's for that n): the cubes actually used (``cube_nodes`` nodes per edge:
-:data:`glsldiff.grids.fem_grid.FINE_CUBE_NODES` where cubes of n nodes cannot carry the
+:data:`glsldiff.grids.tetrahedral.fem_grid.FINE_CUBE_NODES` where cubes of n nodes cannot carry the
 mesh, ``fine_reason`` says why; ``retries`` the rebuilds with other cube sizes,
 ``size_factor`` the kept one's size over the first's; see
-:func:`glsldiff.grids.fem_grid.build_fem_grid`), the grid's node count, inverted and worst
+:func:`glsldiff.grids.tetrahedral.fem_grid.build_fem_grid`), the grid's node count, inverted and worst
 tetrahedra (quality 1 = regular, <= 0 inverted), coverage (largest and 99th-percentile
 distance from a mesh vertex to its nearest surface node, in lattice spacings h), the pass-2
 solve (sweeps, status) and the render time, with a front-lit and a back-lit render of each
 (veined marble, 256 x 256, the automatic camera) saved as PNG beside ``meshes.csv`` and
 on one labelled contact sheet, ``meshes.png``, a row per mesh. Where the default grid found no
 polycube and the renderer fell back to the lattice, ``grid`` says so. The grids are measured as built: ``[polygrid] adapt = false`` (no refinement
-under the lights' sharp edges, :mod:`glsldiff.grids.adapt`), so both lights share one grid.
+under the lights' sharp edges, :mod:`glsldiff.grids.tetrahedral.adapt`), so both lights share one grid.
 
 Against the oracle, on the front-lit frame: the GLSL solve's largest surface-fluence
 difference from the CPU solve of the same system (:func:`glsldiff.oracle.fem.solve_system_direct`:

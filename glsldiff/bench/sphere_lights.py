@@ -10,16 +10,16 @@ is solved to convergence (SuperLU, or pyamg far below the discretisation error o
 ``solver`` names what ran, ``solver_rtol`` its tolerance, ``residual`` the Jacobi-scaled residual
 it reached), so the table shows discretisation error only:
 
-* ``fem``: P1 finite elements on the pillowed polycube (:mod:`glsldiff.grids.fem_grid`);
+* ``fem``: P1 finite elements on the pillowed polycube (:mod:`glsldiff.grids.tetrahedral.fem_grid`);
 * ``fem-adapt``: the same grid refined for each light where its source is not linear over a
-  surface edge (:mod:`glsldiff.grids.adapt`, ``[polygrid] adapt = true``; what the scene default
+  surface edge (:mod:`glsldiff.grids.tetrahedral.adapt`, ``[polygrid] adapt = true``; what the scene default
   ``"auto"`` builds under a spot), compared at the unrefined
   grid's surface nodes (the first ones of the refined grid) so both rows share their points;
   ``nodes`` is then the refined count and ``adapt_s`` the refinement's time;
 * ``paper`` / ``conservative``: the polygrid with the appendix-B weights and the paper's or
   the conservative stencil (:mod:`glsldiff.system.problem`);
 * ``tetwild`` (on request; pytetwild): the same P1 elements on fTetWild meshes that follow the
-  sphere (:mod:`glsldiff.grids.tetwild`), series ``edge`` over the target edge lengths.
+  sphere (:mod:`glsldiff.grids.tetrahedral.tetwild`), series ``edge`` over the target edge lengths.
 
 Error of the exitant bracket ``B = a phi - b q`` (the view-independent factor of the exitant
 radiance, ``p1`` convention) at the surface / boundary nodes against the series at the same
@@ -46,11 +46,11 @@ from glsldiff.bench.peers import fem_reference_label, reference_solve
 from glsldiff.bench.timing import repeat
 from glsldiff.core import io
 from glsldiff.core.plotting import pyplot, save_figure
-from glsldiff.grids.adapt import refine_for_source
-from glsldiff.grids.fem_grid import build_fem_grid
+from glsldiff.grids.tetrahedral.adapt import refine_for_source
+from glsldiff.grids.tetrahedral.fem_grid import build_fem_grid
 from glsldiff.grids.polycube import polycube_from_mesh
 from glsldiff.grids.polygrid import build_polygrid
-from glsldiff.grids.tetwild import cached_tetrahedralize
+from glsldiff.grids.tetrahedral.tetwild import cached_tetrahedralize
 from glsldiff.mesh import sphere_mesh
 from glsldiff.oracle.fem import solve_tet_direct
 from glsldiff.oracle.sphere_lights import sphere_from_light
@@ -92,7 +92,7 @@ class Case:
 
 def fem_case(g: Any, build: float, adapt: bool = False) -> Case:
     """The case of a tetrahedral grid (built in ``build`` seconds); ``adapt``: refined for each
-    source first (:func:`glsldiff.grids.adapt.refine_for_source`)."""
+    source first (:func:`glsldiff.grids.tetrahedral.adapt.refine_for_source`)."""
 
     def solve(source: Source) -> tuple[NDArray[np.float64], dict[str, object]]:
         grid, info = g, {}

@@ -38,7 +38,7 @@ from glsldiff.core import io
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.core.plotting import pyplot, save_figure
-from glsldiff.grids.tetwild import TetMesh, cached_tetrahedralize, refine as refine_mesh
+from glsldiff.grids.tetrahedral.tetwild import TetMesh, cached_tetrahedralize, refine as refine_mesh
 from glsldiff.mesh import Mesh
 from glsldiff.oracle.fem import positive_couplings, solve_matrix_reference
 from glsldiff.physics.material import coefficients

@@ -14,13 +14,13 @@ from typing import Any
 import numpy as np
 
 from glsldiff.core import cache
-from glsldiff.grids.adapt import AdaptReport, SourceFunction, refine_for_source
-from glsldiff.grids.fem_grid import FemGrid, build_fem_grid
+from glsldiff.grids.tetrahedral.adapt import AdaptReport, SourceFunction, refine_for_source
+from glsldiff.grids.tetrahedral.fem_grid import FemGrid, build_fem_grid
 from glsldiff.grids.polygrid import Polygrid, build_polygrid
 from glsldiff.mesh import Mesh
 
 #: Part of every key: entries of an older construction are never read.
-CACHE_VERSION = 16
+CACHE_VERSION = 17   # 17: the tetrahedral modules moved to grids.tetrahedral (pickled class paths)
 
 
 def polygrid_key(mesh: Mesh, kind: str = "polygrid", **params: Any) -> str:
@@ -46,13 +46,13 @@ def cached_polygrid(mesh: Mesh, **params: Any) -> tuple[Polygrid, bool]:
 
 
 def cached_fem_grid(mesh: Mesh, **params: Any) -> tuple[FemGrid, bool]:
-    """:func:`~glsldiff.grids.fem_grid.build_fem_grid` ``(mesh, **params)`` through the cache."""
+    """:func:`~glsldiff.grids.tetrahedral.fem_grid.build_fem_grid` ``(mesh, **params)`` through the cache."""
     return _cached("femgrid", build_fem_grid, FemGrid, mesh, params)
 
 
 def cached_refined_grid(grid: FemGrid, grid_key: str, source: SourceFunction, **params: Any
                         ) -> tuple[FemGrid, AdaptReport, bool]:
-    """:func:`~glsldiff.grids.adapt.refine_for_source` ``(grid, source, **params)`` through the
+    """:func:`~glsldiff.grids.tetrahedral.adapt.refine_for_source` ``(grid, source, **params)`` through the
     cache: keyed by ``grid_key`` (the unrefined grid's, :func:`polygrid_key`), the parameters
     and the source at the grid's surface nodes (the lights' footprint: a scene whose lights do
     not change reads the refined grid back; one entry per light set, the size of the grid's);

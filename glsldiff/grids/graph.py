@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 INACTIVE, INTERIOR, BOUNDARY = 0, 1, 2
@@ -91,3 +92,16 @@ class NodeGraph:
             raise ValueError("a boundary node links to a node that is not interior")
         if n_b and not np.all(self.d > 0):
             raise ValueError("boundary distances d must be > 0")
+
+
+def edge_adjacency(edges: NDArray[np.int64], n: int) -> sp.csr_matrix:
+    """``(n, n)`` 0/1 adjacency of the undirected ``edges`` ``(E, 2)`` (repeats count once)."""
+    A = sp.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
+                      shape=(n, n)).tocsr()
+    A.data[:] = 1.0
+    return A
+
+
+def mean_operator(A: sp.csr_matrix) -> sp.csr_matrix:
+    """Row-normalised ``A``: the mean over each node's neighbours (isolated nodes: zero rows)."""
+    return sp.diags(1.0 / np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1)) @ A

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
-from glsldiff.grids.pillow import edge_adjacency, mean_operator
+from glsldiff.grids.graph import edge_adjacency, mean_operator
 from glsldiff.mesh import Mesh, axis_hits, closest_points, contains
 
 logger = logging.getLogger(__name__)

@@ -255,7 +255,7 @@ MAX_NODES = 30_000_000
 
 def node_budget_problem(cubes: int, n: int, limit: int = MAX_NODES, bytes_per_node: int = 150) -> str | None:
     """Why ``cubes`` cubes of ``n^3`` nodes exceed ``limit`` (default :data:`MAX_NODES`; the
-    tetrahedral grid's is :data:`glsldiff.grids.fem_grid.FEM_MAX_NODES`) and what fits, or None."""
+    tetrahedral grid's is :data:`glsldiff.grids.tetrahedral.fem_grid.FEM_MAX_NODES`) and what fits, or None."""
     nodes = int(cubes) * int(n) ** 3
     if nodes <= limit:
         return None

@@ -23,7 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import TET_EDGES
+from glsldiff.grids.tetrahedral.pillow import TET_EDGES
 from glsldiff.oracle.assembly import LinearSystem, row_entries
 from glsldiff.oracle.fem import TetGeometry
 

@@ -1,5 +1,5 @@
 """How far a tetrahedral grid's P1 solution is from the converged one: the same problem on the
-grid's regular 1:8 refinement (:func:`glsldiff.grids.pillow.subdivide_tets`).
+grid's regular 1:8 refinement (:func:`glsldiff.grids.tetrahedral.pillow.subdivide_tets`).
 
 The refined grid keeps the grid's boundary (the new surface nodes are midpoints of the old
 surface edges) and carries the P1 interpolants of the node material and of the boundary
@@ -27,7 +27,7 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import edge_lookup, subdivide_tets
+from glsldiff.grids.tetrahedral.pillow import edge_lookup, subdivide_tets
 from glsldiff.oracle.fem import TetGeometry, assemble_p1, solve_matrix_reference, tet_geometry
 from glsldiff.physics.exitance import exitant_bracket
 from glsldiff.system.tet_problem import TetProblem

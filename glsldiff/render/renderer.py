@@ -170,7 +170,7 @@ class Renderer:
 
     @property
     def cut_report(self) -> Any:
-        """The :class:`~glsldiff.grids.tetcut.CutReport` of a scene's ``[cut]`` (None without one)."""
+        """The :class:`~glsldiff.grids.tetrahedral.tetcut.CutReport` of a scene's ``[cut]`` (None without one)."""
         return getattr(self._backend, "cut_report", None)
 
     @property

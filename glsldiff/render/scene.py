@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import not_a_file, read_image, read_npz
-from glsldiff.grids.fem_grid import FEM_BYTES_PER_NODE, FEM_MAX_NODES
+from glsldiff.grids.tetrahedral.fem_grid import FEM_BYTES_PER_NODE, FEM_MAX_NODES
 from glsldiff.grids.polygrid import node_budget_problem
 from glsldiff.mesh import GENERATED_MESHES, SAMPLE_MESHES
 from glsldiff.mesh.load import MAX_SIZE_MM, MIN_SIZE_MM
@@ -37,7 +37,7 @@ from glsldiff.physics.material import preset as lookup_preset
 from glsldiff.physics.procedural import POINT_KINDS
 
 #: [polygrid].discretisation: the 6-point lattice stencils (system.problem) or P1 tetrahedra (oracle.fem)
-#: on the pillowed polycube (fem) or on an fTetWild mesh of the surface (tetwild, grids.tetwild).
+#: on the pillowed polycube (fem) or on an fTetWild mesh of the surface (tetwild, grids.tetrahedral.tetwild).
 DISCRETISATIONS = ("conservative", "paper", "fem", "tetwild")
 #: The discretisations on tetrahedra (the P1 system, the volume source, the gradient flux).
 TETRAHEDRAL = ("fem", "tetwild")
@@ -100,7 +100,7 @@ class PolygridSpec:
     levels: int = 1
     discretisation: str = "fem"
     edge_mm: float | None = None     # tetwild: target tetrahedron edge, mm (default size_mm / 40)
-    adapt: bool | str = "auto"       # fem: refine the grid under the lights' sharp edges (grids.adapt):
+    adapt: bool | str = "auto"       # fem: refine the grid under the lights' sharp edges (grids.tetrahedral.adapt):
                                      # true | false | "auto" (when a spot or projector light is in the scene)
 
     def refines(self, lights: Sequence[Light]) -> bool:

@@ -93,7 +93,7 @@ from scipy.spatial import cKDTree
 
 from glsldiff.core.checks import choice, real, rgb
 from glsldiff.core.errors import InputError
-from glsldiff.grids.fem_grid import FemGrid
+from glsldiff.grids.tetrahedral.fem_grid import FemGrid
 from glsldiff.grids.graph import INACTIVE, NEIGHBOURS
 from glsldiff.grids.lattice import STEPS
 from glsldiff.grids.polygrid import Polygrid

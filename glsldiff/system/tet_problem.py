@@ -4,7 +4,7 @@ grid, material per node, boundary source per surface node, validated.
 A tetrahedral grid is any object with ``positions`` ``(n, 3)`` mm, right-handed ``tets``
 ``(T, 4)``, outward ``surface`` triangles ``(F, 3)``, ``surface_nodes`` ``(S,)`` (the nodes the
 surface triangles use, in source order) and ``active`` ``(n,)`` (nodes of some tetrahedron):
-:class:`glsldiff.grids.fem_grid.FemGrid`, or a TransCut tetrahedral mesh.
+:class:`glsldiff.grids.tetrahedral.fem_grid.FemGrid`, or a TransCut tetrahedral mesh.
 """
 from __future__ import annotations
 

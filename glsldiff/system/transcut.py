@@ -28,8 +28,8 @@ import scipy.sparse as sp
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import TET_EDGES, signed_volumes
-from glsldiff.grids.tetwild import dihedral_cos_sin
+from glsldiff.grids.tetrahedral.pillow import TET_EDGES, signed_volumes
+from glsldiff.grids.tetrahedral.tetwild import dihedral_cos_sin
 from glsldiff.mesh import vertex_areas
 from glsldiff.physics.material import coefficients
 from glsldiff.physics.optics import boundary_constant, fdr
@@ -49,7 +49,7 @@ def _check(positions: ArrayLike, tets: ArrayLike) -> tuple[NDArray[np.float64], 
 
 def cotangent_weights(positions: ArrayLike, tets: ArrayLike, kappa_t: ArrayLike) -> NDArray[np.float64]:
     """``(T, 6)`` ``w_ijt = -(1/6) kappa_t |kl| cot(theta_kl)`` for the edges ``{i, j}`` of
-    :data:`glsldiff.grids.pillow.TET_EDGES` (eq. 10), ``{k, l}`` the opposite edge (``5 - e``) and
+    :data:`glsldiff.grids.tetrahedral.pillow.TET_EDGES` (eq. 10), ``{k, l}`` the opposite edge (``5 - e``) and
     ``theta_kl`` the dihedral angle there; positive where it is obtuse."""
     X, T = _check(positions, tets)
     P = X[T]
@@ -70,7 +70,7 @@ def de_matrix(positions: ArrayLike, tets: ArrayLike, surface: ArrayLike, kappa_t
     """``(n, n)`` TransCut's ``M`` (eqs. 13-14) for per-tetrahedron ``kappa_t``, ``mu_t``
     (scalars: homogeneous), boundary triangles ``surface`` ``(F, 3)``; ``A`` defaults to
     ``boundary_constant(eta)``; ``inert`` ``(T,)`` marks tetrahedra that carry no stiffness
-    (:attr:`glsldiff.grids.tetwild.TetMesh.inert`: slivers; their absorption stays)."""
+    (:attr:`glsldiff.grids.tetrahedral.tetwild.TetMesh.inert`: slivers; their absorption stays)."""
     X, T = _check(positions, tets)
     S = np.asarray(surface, dtype=np.int64)
     A = float(boundary_constant(eta)) if A is None else float(A)

@@ -1,5 +1,5 @@
 """The tetrahedral backend: P1 finite elements on the pillowed polycube (``[polygrid]
-discretisation = "fem"``, :func:`glsldiff.grids.fem_grid.build_fem_grid`, refined under the
+discretisation = "fem"``, :func:`glsldiff.grids.tetrahedral.fem_grid.build_fem_grid`, refined under the
 lights' sharp edges with ``adapt``) or on an fTetWild mesh (``"tetwild"``, with TransCut's
 ``[cut]``), solved on the GPU by multigrid-preconditioned CG.
 
@@ -33,12 +33,12 @@ from numpy.typing import NDArray
 from glsldiff import gl
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError, SolverError
-from glsldiff.grids.adapt import ADAPT_TOL
+from glsldiff.grids.tetrahedral.adapt import ADAPT_TOL
 from glsldiff.grids.cache import cached_fem_grid, cached_refined_grid, polygrid_key
-from glsldiff.grids.fem_grid import FEM_MAX_NODES, SPLIT_LENGTH
-from glsldiff.grids.shapes import SHAPE_TARGET
-from glsldiff.grids.tetcut import cut as cut_tets, plane_side, stroke_side
-from glsldiff.grids.tetwild import cached_tetrahedralize
+from glsldiff.grids.tetrahedral.fem_grid import FEM_MAX_NODES, SPLIT_LENGTH
+from glsldiff.grids.tetrahedral.shapes import SHAPE_TARGET
+from glsldiff.grids.tetrahedral.tetcut import cut as cut_tets, plane_side, stroke_side
+from glsldiff.grids.tetrahedral.tetwild import cached_tetrahedralize
 from glsldiff.mesh import Mesh
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.fem import TetGeometry, cached_tet_geometry, tet_geometry, tet_rhs
@@ -332,7 +332,7 @@ class TetBackend(GridBackend):
         return mesh, crease
 
     def _adapt(self, scene: Scene, mesh: Mesh, pg: Any) -> Any:
-        """The fem grid refined under the lights' sharp edges (:mod:`glsldiff.grids.adapt`),
+        """The fem grid refined under the lights' sharp edges (:mod:`glsldiff.grids.tetrahedral.adapt`),
         marked by pass 1's source sampled at the surface nodes (shadows included)."""
         def source(P: NDArray, N: NDArray) -> NDArray:
             E_t, _ = incident_light(mesh, P, N, scene.lights, scene.material.eta, ctx=self.ctx)

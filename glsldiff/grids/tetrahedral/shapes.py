@@ -18,7 +18,7 @@ Surface nodes move along the surface: ``project`` maps their new positions back 
 mesh (crease nodes onto the creases); nodes that must stay (mesh corners, tips) are in
 neither ``free`` nor ``sliding``. Why it matters: a flat tetrahedron couples its nodes with
 large positive stiffness entries, and the discrete fluence then dips below zero next to lit
-nodes (dark specks on the back-lit bunny's ear rim, see :mod:`glsldiff.grids.fem_grid`).
+nodes (dark specks on the back-lit bunny's ear rim, see :mod:`glsldiff.grids.tetrahedral.fem_grid`).
 """
 from __future__ import annotations
 
@@ -31,7 +31,8 @@ import scipy.optimize as so
 from numpy.typing import NDArray
 
 from glsldiff.core.jit import kernel
-from glsldiff.grids.pillow import TET_EDGES, edge_adjacency, node_tets, triangle_edges, unique_tet_edges
+from glsldiff.grids.graph import edge_adjacency
+from glsldiff.grids.tetrahedral.pillow import TET_EDGES, node_tets, triangle_edges, unique_tet_edges
 
 __all__ = ["SHAPE_TARGET", "ShapeReport", "improve_shapes", "shape_quality"]
 

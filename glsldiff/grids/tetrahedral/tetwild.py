@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import TET_EDGES, signed_volumes, subdivide_tets
+from glsldiff.grids.tetrahedral.pillow import TET_EDGES, signed_volumes, subdivide_tets
 from glsldiff.mesh import Mesh, closest_points
 from glsldiff.mesh.types import unique_edges
 
@@ -51,7 +51,7 @@ SLIVER_DEG = 5.0
 #: coupled through their other tetrahedra (a Delaunay test ball: fluence within 2.8 % of the maximum of keeping them).
 INERT_DIHEDRAL_DEG = 0.5
 #: Part of every cache key: bump it when the construction changes.
-CACHE_VERSION = 1
+CACHE_VERSION = 2   # 2: the module moved to grids.tetrahedral (pickled class paths)
 _FACES = np.array([(1, 2, 3), (0, 3, 2), (0, 1, 3), (0, 2, 1)])     # outward for a positive tetrahedron
 
 
@@ -197,7 +197,7 @@ def _run_tetwild(v: NDArray, f: NDArray, edge_mm: float, epsilon: float, threads
 
 def dihedral_cos_sin(P: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """``(T, 6)`` each of tetrahedra ``P`` ``(T, 4, 3)``: the interior dihedral angle at the
-    edges of :data:`glsldiff.grids.pillow.TET_EDGES` as ``(c, s)``, cosine and sine times one
+    edges of :data:`glsldiff.grids.tetrahedral.pillow.TET_EDGES` as ``(c, s)``, cosine and sine times one
     common positive factor per entry (``|n1| |n2|``, the two faces' edge-normal lengths), so
     ``c / s`` is its cotangent and ``arctan2(s, c)`` the angle."""
     c = np.empty((len(P), 6))
@@ -326,7 +326,7 @@ def cached_tetrahedralize(mesh: Mesh, edge_mm: float, epsilon: float = 1e-3, thr
 
 
 def refine(tm: TetMesh) -> TetMesh:
-    """Regular 1:8 subdivision of every tetrahedron (:func:`glsldiff.grids.pillow.subdivide_tets`):
+    """Regular 1:8 subdivision of every tetrahedron (:func:`glsldiff.grids.tetrahedral.pillow.subdivide_tets`):
     8x the tetrahedra at half the edge length, for timing solvers at scale. The new boundary nodes lie on
     the old boundary triangles (not on the input surface); their normals are the normalised
     mean of the edge ends'."""

@@ -1,7 +1,7 @@
 """The pillowed polycube complex: the lattice's cells, split into tetrahedra, plus one layer
 of "pillow" cells between the lattice and the object's surface.
 
-Topology only (positions come from :mod:`glsldiff.grids.fem_grid`). Nodes ``0 .. N-1`` are
+Topology only (positions come from :mod:`glsldiff.grids.tetrahedral.fem_grid`). Nodes ``0 .. N-1`` are
 the lattice's nodes (:class:`glsldiff.grids.lattice.Lattice`, texture order); nodes
 ``N .. N+S-1`` are the **surface nodes**, one copy of each lattice node on the outer surface
 of the cell complex (:attr:`PillowComplex.outer`), to be placed on the object's surface.
@@ -36,7 +36,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.core.jit import kernel
 from glsldiff.grids.lattice import Lattice
 
-__all__ = ["PillowComplex", "KUHN", "TET_EDGES", "edge_adjacency", "mean_operator", "node_tets", "prism_tets", "signed_volumes",
+__all__ = ["PillowComplex", "KUHN", "TET_EDGES", "node_tets", "prism_tets", "signed_volumes",
            "edge_lookup", "subdivide_tets", "tet_edges", "triangle_edges", "unique_tet_edges"]
 
 #: The six edges of a tetrahedron (local corner pairs); edge ``5 - e`` is the one opposite edge ``e``.
@@ -343,14 +343,3 @@ def node_tets(tets: NDArray[np.int64], n: int) -> sp.csr_matrix:
     return sp.csr_matrix((np.ones(tets.size), (tets.ravel(), np.repeat(np.arange(len(tets)), 4))), shape=(n, len(tets)))
 
 
-def edge_adjacency(edges: NDArray[np.int64], n: int) -> sp.csr_matrix:
-    """``(n, n)`` 0/1 adjacency of the undirected ``edges`` ``(E, 2)`` (repeats count once)."""
-    A = sp.coo_matrix((np.ones(2 * len(edges)), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])),
-                      shape=(n, n)).tocsr()
-    A.data[:] = 1.0
-    return A
-
-
-def mean_operator(A: sp.csr_matrix) -> sp.csr_matrix:
-    """Row-normalised ``A``: the mean over each node's neighbours (isolated nodes: zero rows)."""
-    return sp.diags(1.0 / np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1)) @ A

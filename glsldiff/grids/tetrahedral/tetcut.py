@@ -31,9 +31,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core.errors import InputError
-from glsldiff.grids.pillow import edge_adjacency, node_tets, signed_volumes, tet_edges
-from glsldiff.grids.tetwild import INERT_DIHEDRAL_DEG, TetMesh, boundary_faces, tet_quality
-from glsldiff.grids.tetwild import min_dihedral_deg as smallest_dihedral
+from glsldiff.grids.graph import edge_adjacency
+from glsldiff.grids.tetrahedral.pillow import node_tets, signed_volumes, tet_edges
+from glsldiff.grids.tetrahedral.tetwild import INERT_DIHEDRAL_DEG, TetMesh, boundary_faces, tet_quality
+from glsldiff.grids.tetrahedral.tetwild import min_dihedral_deg as smallest_dihedral
 from glsldiff.mesh import Mesh
 
 __all__ = ["CutReport", "cut", "plane_side", "stroke_side", "RHO", "MIN_DIHEDRAL_DEG"]

@@ -23,8 +23,8 @@ from typing import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.grids.pillow import TET_EDGES, edge_lookup, unique_tet_edges
-from glsldiff.grids.shapes import shape_quality
+from glsldiff.grids.tetrahedral.pillow import TET_EDGES, edge_lookup, unique_tet_edges
+from glsldiff.grids.tetrahedral.shapes import shape_quality
 
 __all__ = ["EdgeSplit", "SPLIT_MIN_QUALITY", "split_edges", "split_long_edges"]
 
@@ -80,7 +80,7 @@ def _independent(cand: NDArray[np.int64], tet_edges: NDArray[np.int64], n_edges:
     return np.asarray(chosen, dtype=np.int64)
 
 
-#: Edges of tetrahedra below this shape quality (:func:`glsldiff.grids.shapes.shape_quality`:
+#: Edges of tetrahedra below this shape quality (:func:`glsldiff.grids.tetrahedral.shapes.shape_quality`:
 #: flat or inverted) are not split.
 SPLIT_MIN_QUALITY = 0.01
 

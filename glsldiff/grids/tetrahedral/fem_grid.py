@@ -56,16 +56,16 @@ Mapping (:func:`map_pillow`):
    (:func:`_rank`). The bunny needs no growth (1.20 h, 0 inverted; growing 18 cubes at an
    ear tip gave 6 inverted); the cow does (ungrown 3.91 h and 8 inverted, grown 1.39 h and
    0), at twice the mapping time.
-5. **Shapes** (after step 3, in every mapping; :mod:`glsldiff.grids.shapes`): untangling
+5. **Shapes** (after step 3, in every mapping; :mod:`glsldiff.grids.tetrahedral.shapes`): untangling
    only asks for a tenth of the reference volume, and tips, coverage moves and released
    creases leave flat tetrahedra (the bunny: worst quality 2.2e-3, 1,132 below 0.1). Every
    node of a tetrahedron below
-   :data:`~glsldiff.grids.shapes.SHAPE_TARGET` is moved if that raises the worst of its own
+   :data:`~glsldiff.grids.tetrahedral.shapes.SHAPE_TARGET` is moved if that raises the worst of its own
    tetrahedra without inverting another: towards its neighbours' mean, else by a Nelder-Mead
    search; surface nodes slide along the mesh (creases along the creases) by at most
    :data:`SHAPE_SLIDE` h, and nodes that are the nearest to a mesh vertex more than
    :data:`SHAPE_COVER` h away stay, so coverage does not get worse. Corner and tip nodes stay.
-6. **Long edges split** (:mod:`glsldiff.grids.split`): edges longer than
+6. **Long edges split** (:mod:`glsldiff.grids.tetrahedral.split`): edges longer than
    :data:`SPLIT_LENGTH` h (the tetrahedra the tips and coverage moves stretch into thin
    parts) are split at their midpoints, in rounds, every tetrahedron and surface triangle on
    them cut in two (conforming; the boundary does not move; new surface nodes get the mesh
@@ -122,10 +122,11 @@ from glsldiff.core.jit import kernel
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
-from glsldiff.grids.pillow import PillowComplex, edge_adjacency, mean_operator, signed_volumes, triangle_edges
+from glsldiff.grids.graph import edge_adjacency, mean_operator
+from glsldiff.grids.tetrahedral.pillow import PillowComplex, signed_volumes, triangle_edges
 from glsldiff.grids.polycube import Polycube, outside_distance, polycube_from_mesh
-from glsldiff.grids.shapes import improve_shapes, shape_quality
-from glsldiff.grids.split import EdgeSplit, split_long_edges
+from glsldiff.grids.tetrahedral.shapes import improve_shapes, shape_quality
+from glsldiff.grids.tetrahedral.split import EdgeSplit, split_long_edges
 from glsldiff.grids.polygrid import check_node_budget, node_budget_problem
 from glsldiff.mesh import Mesh, closest_points, surface_samples
 from glsldiff.mesh.features import Features, mesh_features
@@ -197,7 +198,7 @@ class FemGrid:
     Attributes
     ----------
     complex
-        The topology (:class:`glsldiff.grids.pillow.PillowComplex`); node ``i < N`` is
+        The topology (:class:`glsldiff.grids.tetrahedral.pillow.PillowComplex`); node ``i < N`` is
         lattice node ``i``, node ``N + k`` the surface copy of lattice node ``complex.outer[k]``.
     positions
         ``(N + S + K, 3)`` node positions, mm (lattice nodes of no cell: lattice position);
@@ -206,7 +207,7 @@ class FemGrid:
         ``(S + S', 3)`` outward unit mesh normals at the surface nodes (:attr:`surface_nodes`
         order: the ``S`` copies, then the ``S'`` split midpoints on the surface).
     split
-        The edge split of step 6 (:class:`glsldiff.grids.split.EdgeSplit`), None if no edge was split.
+        The edge split of step 6 (:class:`glsldiff.grids.tetrahedral.split.EdgeSplit`), None if no edge was split.
     """
 
     complex: PillowComplex
@@ -265,7 +266,7 @@ class FemGrid:
 
     def reference_positions(self) -> NDArray[np.float64]:
         """``(N + S + K, 3)`` every node in the polycube's reference geometry
-        (:meth:`glsldiff.grids.pillow.PillowComplex.reference_positions`; split midpoints: the
+        (:meth:`glsldiff.grids.tetrahedral.pillow.PillowComplex.reference_positions`; split midpoints: the
         midpoints of their edges there)."""
         ref = self.complex.reference_positions()
         return ref if self.split is None else self.split.extend(ref)
@@ -273,7 +274,7 @@ class FemGrid:
     @cached_property
     def outward_axes(self) -> NDArray[np.int64]:
         """``(S + S', 3)`` the polycube outward axes (+-1 / 0) of each surface node's outer
-        faces (:attr:`glsldiff.grids.pillow.PillowComplex.outward_axes`); a split midpoint takes
+        faces (:attr:`glsldiff.grids.tetrahedral.pillow.PillowComplex.outward_axes`); a split midpoint takes
         its first parent's."""
         axes = np.asarray(self.complex.outward_axes)
         if self.split is None:
@@ -504,7 +505,7 @@ TIP_PASSES = 5
 SHAPE_SLIDE = 0.25
 SHAPE_COVER = 1.0
 #: Edges longer than this many spacings h are split at their midpoints after the mapping
-#: (step 6; :mod:`glsldiff.grids.split`). A mapped Kuhn lattice's own edges are h, sqrt(2) h
+#: (step 6; :mod:`glsldiff.grids.tetrahedral.split`). A mapped Kuhn lattice's own edges are h, sqrt(2) h
 #: and sqrt(3) h long, so only stretched tetrahedra (thin parts, tips) are cut.
 SPLIT_LENGTH = 2.0
 

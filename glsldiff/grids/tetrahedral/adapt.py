@@ -14,7 +14,7 @@ largest source value; every tetrahedron within ``depth`` h of a marked edge's en
 longest edge split (Rivara), in rounds, the source evaluated at the new surface nodes (normals
 projected onto the mesh) and at the new edges' midpoints after each, until nothing is marked
 or the edges are at ``2 finest`` h. It uses the conforming midpoint splits of
-:mod:`glsldiff.grids.split` (every tetrahedron on a split edge is cut in two; the boundary does
+:mod:`glsldiff.grids.tetrahedral.split` (every tetrahedron on a split edge is cut in two; the boundary does
 not move). Measured on the spot: 1.17 -> 0.89 % RMS, 3.41 -> 2.68 % max, +5.7 % nodes. Splitting
 only the surface edges (no depth) made it worse (1.24 -> 1.78 %): the fluence under a sharp rim
 is as sharp a few h deep, and flattened tetrahedra there do worse than none. A source that is
@@ -30,9 +30,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from glsldiff.grids.fem_grid import FemGrid, measure_quality
-from glsldiff.grids.pillow import triangle_edges
-from glsldiff.grids.split import EdgeSplit, split_edges
+from glsldiff.grids.tetrahedral.fem_grid import FemGrid, measure_quality
+from glsldiff.grids.tetrahedral.pillow import triangle_edges
+from glsldiff.grids.tetrahedral.split import EdgeSplit, split_edges
 from glsldiff.mesh.closest import closest_points
 
 __all__ = ["ADAPT_DEPTH", "ADAPT_FINEST", "ADAPT_TOL", "AdaptReport", "refine_for_source"]
