@@ -1,12 +1,11 @@
 """The compiled loops of the tetrahedral grid's build against the numpy code they replace,
-bit for bit (the grid a mesh gets must not change): the untangling objective, the shape
-quality, the unique edges, the closest faces (glsldiff.grids, glsldiff.mesh.closest)."""
+bit for bit (the grid a mesh gets must not change): the shape quality, the unique edges, the
+closest faces (glsldiff.grids, glsldiff.mesh.closest); the untangling's in test_untangle_kernels.py."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from glsldiff.grids.tetrahedral.fem_grid import _det_gradients, _shortfall_gradient
 from glsldiff.grids.tetrahedral.pillow import TET_EDGES, unique_tet_edges
 from glsldiff.grids.tetrahedral.shapes import shape_quality
 from glsldiff.mesh import sphere_mesh
@@ -20,21 +19,6 @@ def _random_tets(seed: int, n: int = 400, t: int = 3000) -> tuple[np.ndarray, np
     X = rng.standard_normal((n, 3)) * 10.0 ** rng.uniform(-3, 3, (n, 1))
     T = np.array([rng.choice(n, 4, replace=False) for _ in range(t)], dtype=np.int64)
     return X, T
-
-
-@pytest.mark.parametrize("seed", [0, 1])
-def test_shortfall_gradient_equals_numpy(seed):
-    X, T = _random_tets(seed)
-    target = np.abs(np.random.default_rng(seed).standard_normal(len(T))) * 10.0
-    scale = 3.7
-    d, G = _det_gradients(X, T)
-    r_np = np.maximum(target - d / scale, 0.0)
-    g_np = np.zeros_like(X)
-    np.add.at(g_np, T.ravel(), (-2.0 * r_np[:, None, None] * (G / scale)).reshape(-1, 3))
-    r, g = np.empty(len(T)), np.full_like(X, np.nan)
-    _shortfall_gradient(X, T, target, scale, r, g)
-    assert (r_np > 0).any() and (r_np == 0).any()
-    assert np.array_equal(r, r_np) and np.array_equal(g, g_np)
 
 
 def test_shape_quality_equals_numpy():

@@ -48,7 +48,15 @@ Mapping (:func:`map_pillow`):
    (up to :data:`RELEASE_ATTEMPTS` times); the cow (with its thin parts grown): 0 inverted,
    40 nodes released. L-BFGS-B's stopping test is absolute for objectives below 1, so the
    shortfalls are measured in units of the median target (in mm^3 the optimiser stopped at
-   once on small cells).
+   once on small cells). Once the rounds stall (a round's count no lower than the last's),
+   later rounds allow small sub-problems more L-BFGS iterations (:data:`UNTANGLE_WORK`).
+   **Cost**: the objective and its gradient are a compiled loop over the tetrahedra touching
+   the free nodes (:func:`_shortfall`, no copy of all nodes), L-BFGS-B runs with one BLAS
+   thread (:mod:`glsldiff.core.blas`), only the surface nodes a round moved are re-projected.
+   The elk (15,158 cubes, 842k tetrahedra; 1,103 inverted after the harmonic step, in a thin
+   plate 2.4 h thick among them): 300 iterations per call left 2 inverted after 49 calls, so
+   cubes 2 % larger and smaller were mapped too (1,568 s on 2 loaded cores, 0 inverted at the
+   second retry); now 0 inverted in the first mapping, untangling 6.6 s of a 62 s build.
 4. **Thin parts only where needed** (:func:`build_fem_grid`): the polycube is first mapped
    without growing into thin parts; only if that grid has inverted tetrahedra or leaves a
    mesh vertex more than :data:`COVERAGE_TARGET` h from every surface node is the grown
@@ -104,7 +112,6 @@ spacing.
 from __future__ import annotations
 
 import time
-from contextlib import nullcontext
 from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from typing import Any
@@ -117,7 +124,7 @@ import scipy.sparse.linalg as spla
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from glsldiff.core.blas import DOT_SERIAL_LENGTH, blas_threads
+from glsldiff.core.blas import blas_threads
 from glsldiff.core.jit import kernel
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
@@ -332,57 +339,6 @@ def _harmonic_interior(cx: PillowComplex, X: NDArray[np.float64], copy_weight: f
     return out
 
 
-def _det_gradients(X: NDArray[np.float64], tets: NDArray[np.int64]) -> tuple[NDArray, NDArray]:
-    """``6 V`` of each tetrahedron and its gradient ``(T, 4, 3)`` w.r.t. the four corners
-    (numpy twin of :func:`_shortfall_gradient`)."""
-    P = X[tets]
-    a, b, c = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
-    det = np.einsum("ij,ij->i", np.cross(a, b), c)
-    g1, g2, g3 = np.cross(b, c), np.cross(c, a), np.cross(a, b)
-    return det, np.stack([-(g1 + g2 + g3), g1, g2, g3], axis=1)
-
-
-@kernel
-def _cross(a0: float, a1: float, a2: float, b0: float, b1: float, b2: float) -> tuple[float, float, float]:
-    """``a x b`` as ``np.cross`` computes it."""
-    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
-
-
-@kernel
-def _shortfall_gradient(Y: NDArray[np.float64], T: NDArray[np.int64], target: NDArray[np.float64],
-                        scale: float, r: NDArray[np.float64], grad: NDArray[np.float64]) -> None:
-    """Untangling residuals into ``r`` ``(T,)``: ``max(target - 6 V / scale, 0)``, and into
-    ``grad`` ``(n, 3)`` the gradient of ``sum r^2`` w.r.t. the rows of ``Y`` (mm). The same
-    floating-point operations, in the same order, as :func:`_det_gradients` and ``np.add.at``
-    (``np.einsum``'s three-term dot adds the first and third products first)."""
-    grad[:] = 0.0
-    for t in range(len(T)):
-        i0, i1, i2, i3 = T[t, 0], T[t, 1], T[t, 2], T[t, 3]
-        a0, a1, a2 = Y[i1, 0] - Y[i0, 0], Y[i1, 1] - Y[i0, 1], Y[i1, 2] - Y[i0, 2]
-        b0, b1, b2 = Y[i2, 0] - Y[i0, 0], Y[i2, 1] - Y[i0, 1], Y[i2, 2] - Y[i0, 2]
-        c0, c1, c2 = Y[i3, 0] - Y[i0, 0], Y[i3, 1] - Y[i0, 1], Y[i3, 2] - Y[i0, 2]
-        g10, g11, g12 = _cross(b0, b1, b2, c0, c1, c2)
-        g20, g21, g22 = _cross(c0, c1, c2, a0, a1, a2)
-        g30, g31, g32 = _cross(a0, a1, a2, b0, b1, b2)
-        det = (g30 * c0 + g32 * c2) + g31 * c1
-        short = target[t] - det / scale
-        rt = short if short > 0.0 or short != short else 0.0    # np.maximum(short, 0): NaN stays
-        r[t] = rt
-        k = -2.0 * rt
-        grad[i0, 0] += k * (-((g10 + g20) + g30) / scale)
-        grad[i0, 1] += k * (-((g11 + g21) + g31) / scale)
-        grad[i0, 2] += k * (-((g12 + g22) + g32) / scale)
-        grad[i1, 0] += k * (g10 / scale)
-        grad[i1, 1] += k * (g11 / scale)
-        grad[i1, 2] += k * (g12 / scale)
-        grad[i2, 0] += k * (g20 / scale)
-        grad[i2, 1] += k * (g21 / scale)
-        grad[i2, 2] += k * (g22 / scale)
-        grad[i3, 0] += k * (g30 / scale)
-        grad[i3, 1] += k * (g31 / scale)
-        grad[i3, 2] += k * (g32 / scale)
-
-
 #: Rounds of the untangling step in which the surface nodes slide (module docstring, step 3).
 UNTANGLE_ROUNDS = 8
 #: Times the crease and corner nodes at tetrahedra still flat or inverted are let slide.
@@ -398,11 +354,26 @@ def _untangle_targets(reference_det: NDArray[np.float64], fraction: float) -> ND
     return fraction * np.maximum(reference_det, np.median(np.abs(reference_det)) * 0.25)
 
 
+@kernel
+def _six_volumes(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+    """``(T,)`` six times the signed volume of each tetrahedron, mm^3 (``6 *``
+    :func:`~glsldiff.grids.tetrahedral.pillow.signed_volumes` up to rounding, without its ``(T, 4, 3)``
+    temporaries: 0.01 s against 2.4 s for 842k tetrahedra)."""
+    out = np.empty(len(tets))
+    for t in range(len(tets)):
+        i, j, k, m = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        a0, a1, a2 = X[j, 0] - X[i, 0], X[j, 1] - X[i, 1], X[j, 2] - X[i, 2]
+        b0, b1, b2 = X[k, 0] - X[i, 0], X[k, 1] - X[i, 1], X[k, 2] - X[i, 2]
+        c0, c1, c2 = X[m, 0] - X[i, 0], X[m, 1] - X[i, 1], X[m, 2] - X[i, 2]
+        out[t] = (a1 * b2 - a2 * b1) * c0 + (a2 * b0 - a0 * b2) * c1 + (a0 * b1 - a1 * b0) * c2
+    return out
+
+
 def _below_target(X: NDArray[np.float64], tets: NDArray[np.int64], target: NDArray[np.float64],
                   floor: float) -> NDArray[np.bool_]:
     """``(T,)`` tetrahedra whose ``6 V`` is at most ``floor`` of their untangling ``target``
     (``floor`` 0: the inverted ones)."""
-    return 6.0 * signed_volumes(X, tets) <= floor * target
+    return _six_volumes(X, tets) <= floor * target
 
 
 def _near_nodes(n: int, tets: NDArray[np.int64], bad: NDArray[np.bool_], rings: int) -> NDArray[np.bool_]:
@@ -414,51 +385,106 @@ def _near_nodes(n: int, tets: NDArray[np.int64], bad: NDArray[np.bool_], rings: 
     return near
 
 
+@kernel
+def _shortfall(x: NDArray[np.float64], X: NDArray[np.float64], slot: NDArray[np.int64], tets: NDArray[np.int64],
+               target: NDArray[np.float64], scale: float) -> tuple[float, NDArray[np.float64]]:
+    """Knupp's squared untangling objective ``sum_t max(0, target_t - 6 V_t / scale)^2`` over
+    ``tets`` and its gradient ``(F, 3)`` w.r.t. the free nodes: node ``i`` lies at
+    ``x[slot[i]]`` where ``slot[i] >= 0`` (free), else at ``X[i]`` (mm; ``target`` in units of
+    ``scale``, mm^3)."""
+    grad = np.zeros(x.shape)
+    P, G = np.empty((4, 3)), np.empty((4, 3))
+    f = 0.0
+    for t in range(len(tets)):
+        for c in range(4):
+            i = tets[t, c]
+            s = slot[i]
+            for k in range(3):
+                P[c, k] = x[s, k] if s >= 0 else X[i, k]
+        a0, a1, a2 = P[1, 0] - P[0, 0], P[1, 1] - P[0, 1], P[1, 2] - P[0, 2]
+        b0, b1, b2 = P[2, 0] - P[0, 0], P[2, 1] - P[0, 1], P[2, 2] - P[0, 2]
+        c0, c1, c2 = P[3, 0] - P[0, 0], P[3, 1] - P[0, 1], P[3, 2] - P[0, 2]
+        G[3, 0], G[3, 1], G[3, 2] = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0   # a x b
+        r = target[t] - (G[3, 0] * c0 + G[3, 1] * c1 + G[3, 2] * c2) / scale
+        if r <= 0.0:
+            continue
+        f += r * r
+        # d(6V)/d corner: b x c, c x a, a x b for corners 1-3, minus their sum for corner 0
+        G[1, 0], G[1, 1], G[1, 2] = b1 * c2 - b2 * c1, b2 * c0 - b0 * c2, b0 * c1 - b1 * c0
+        G[2, 0], G[2, 1], G[2, 2] = c1 * a2 - c2 * a1, c2 * a0 - c0 * a2, c0 * a1 - c1 * a0
+        for k in range(3):
+            G[0, k] = -(G[1, k] + G[2, k] + G[3, k])
+        w = -2.0 * r / scale
+        for c in range(4):
+            s = slot[tets[t, c]]
+            if s >= 0:
+                for k in range(3):
+                    grad[s, k] += w * G[c, k]
+    return f, grad
+
+
+#: L-BFGS iterations times free coordinates that an untangling round may spend beyond its
+#: ``iterations`` once the rounds stall (:func:`map_pillow`): a fold in a plate 2.4 h thick on
+#: the elk, 2 tetrahedra over ~1,000 coordinates, needed ~1,000 iterations; one costs ~0.3 us
+#: per coordinate. Not from the start: on the bunny and the hand the longer runs slid surface
+#: nodes further and cost coverage and worst quality (1.02 -> 1.34 h, 0.027 -> 0.006).
+UNTANGLE_WORK = 3_000_000
+#: ... up to this many iterations.
+UNTANGLE_MAX_ITERATIONS = 3000
+
+
+def _iterations(iterations: int, free: int, work: int) -> int:
+    """L-BFGS iterations for ``free`` nodes: ``iterations``, or up to ``work / (3 free)`` (at
+    most :data:`UNTANGLE_MAX_ITERATIONS`) where that is more."""
+    extra = min(work // max(3 * free, 1), UNTANGLE_MAX_ITERATIONS)
+    return int(max(iterations, extra))
+
+
 def untangle(X: NDArray[np.float64], tets: NDArray[np.int64], movable: NDArray[np.bool_],
              reference_det: NDArray[np.float64], fraction: float = 0.1, rings: int = 2,
-             iterations: int = 300, tangent: NDArray[np.float64] | None = None, floor: float = 0.0) -> int:
+             iterations: int = 300, tangent: NDArray[np.float64] | None = None, floor: float = 0.0,
+             work: int = 0) -> int:
     """Move ``movable`` nodes near inverted tetrahedra (in place) until every tetrahedron's
     ``6 V`` reaches ``fraction`` of its reference value where possible: L-BFGS on
     ``sum_t max(0, target_t - 6 V_t)^2`` (Knupp's untangling objective, squared), over the
-    movable nodes within ``rings`` tetrahedron rings of an inverted one. ``tangent`` ``(n, 3)``
-    (unit normals, zero rows for free nodes) keeps those nodes in their tangent planes: a
-    penalty on the normal component of their move (surface nodes sliding on the mesh). Returns
-    how many tetrahedra were inverted before (``floor`` > 0: also those below ``floor`` of
-    their target, which are then untangled too)."""
+    movable nodes within ``rings`` tetrahedron rings of an inverted one (only the tetrahedra
+    touching those rings enter, :func:`_shortfall`). ``tangent`` ``(n, 3)`` (unit normals,
+    zero rows for free nodes) keeps those nodes in their tangent planes: a penalty on the
+    normal component of their move (surface nodes sliding on the mesh). ``work``: more
+    iterations on small sub-problems (:func:`_iterations`). Returns how many
+    tetrahedra were inverted before (``floor`` > 0: also those below ``floor`` of their
+    target, which are then untangled too)."""
     target = _untangle_targets(reference_det, fraction)
     bad = _below_target(X, tets, target, floor)
     if not bad.any():
         return 0
     near = _near_nodes(len(X), tets, bad, rings)
     free = np.flatnonzero(near & movable)
+    slot = np.full(len(X), -1, dtype=np.int64)
+    slot[free] = np.arange(len(free))
     sel = np.flatnonzero(near[tets].any(axis=1))
-    T, tgt = tets[sel], target[sel]
-
+    T = np.ascontiguousarray(tets[sel])
     x0 = X[free].copy()
     nf = None if tangent is None else tangent[free]
     # the penalty's scale: a normal move of a tenth of an edge costs as much as a tetrahedron
     # missing its whole target volume
     edge = float(np.median(np.abs(reference_det)) ** (1.0 / 3.0))
+    tgt = target[sel]
     scale = max(float(np.median(tgt)), 1e-300)   # shortfalls in units of a typical target: L-BFGS-B's
     tgt = tgt / scale                            # stopping test is absolute below f = 1
     w = 100.0 / max(edge, 1e-300) ** 2
-    # the selected tetrahedra's own nodes only (free ones among them): no full-grid temporaries
-    nodes, local = np.unique(T, return_inverse=True)
-    T, mine = local.reshape(T.shape), np.searchsorted(nodes, free)
-    Y, r, grad = X[nodes], np.empty(len(T)), np.empty((len(nodes), 3))
 
-    def objective(x: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        Y[mine] = x.reshape(-1, 3)
-        _shortfall_gradient(Y, T, tgt, scale, r, grad)
-        f, g = float((r * r).sum()), grad[mine]
+    def objective(v: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
+        x = v.reshape(-1, 3)
+        f, g = _shortfall(x, X, slot, T, tgt, scale)
         if nf is not None:
-            off = np.einsum("ij,ij->i", Y[mine] - x0, nf)
+            off = np.einsum("ij,ij->i", x - x0, nf)
             f += w * float((off * off).sum())
-            g = g + 2.0 * w * off[:, None] * nf
+            g += 2.0 * w * off[:, None] * nf
         return f, g.ravel()
-    # one BLAS thread where that gives the same bits (glsldiff.core.blas): far faster on busy cores
-    with blas_threads(1) if free.size * 3 <= DOT_SERIAL_LENGTH else nullcontext():
-        res = so.minimize(objective, X[free].ravel(), jac=True, method="L-BFGS-B", options={"maxiter": iterations})
+    with blas_threads(1):   # L-BFGS-B's BLAS calls on long vectors: threads cost more than they do
+        res = so.minimize(objective, x0.ravel(), jac=True, method="L-BFGS-B",
+                          options={"maxiter": _iterations(iterations, len(free), work)})
     X[free] = res.x.reshape(-1, 3)
     return int(bad.sum())
 
@@ -471,6 +497,14 @@ def _project(mesh: Mesh, moved: NDArray[np.float64], features: Features, on_crea
     if on_crease.any():
         xs[on_crease] = features.closest_on_creases(moved[on_crease])[0]
     return xs, nrm
+
+
+def _reproject(mesh: Mesh, xs: NDArray[np.float64], before: NDArray[np.float64], nrm: NDArray[np.float64]) -> None:
+    """The surface nodes ``xs`` (mm) that moved off ``before`` (on the mesh), back onto the mesh;
+    their normals into ``nrm`` (both in place)."""
+    moved = np.flatnonzero(np.any(xs != before, axis=1))
+    if moved.size:
+        xs[moved], _, _, nrm[moved] = closest_points(mesh, xs[moved])
 
 
 def _spread(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], smoother: sp.csr_matrix,
@@ -588,14 +622,20 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     sliding = np.zeros(len(X), dtype=bool)
     sliding[N:] = ~(on_crease | on_corner)
     tangent = np.zeros_like(X)
+    work, last = 0, -1
     for _release in range(RELEASE_ATTEMPTS + 1 if q.untangled else 0):
         for _ in range(UNTANGLE_ROUNDS):   # folds of the surface map: surface nodes slide too
             tangent[N:] = nrm
-            if untangle(X, cx.tets, movable | sliding, reference, fraction=untangle_fraction,
-                        tangent=tangent, floor=DEGENERATE) == 0:
+            before = X[N:].copy()
+            count = untangle(X, cx.tets, movable | sliding, reference, fraction=untangle_fraction,
+                             tangent=tangent, floor=DEGENERATE, work=work)
+            if count == 0:
                 break
-            X[N:][sliding[N:]], _, _, nrm[sliding[N:]] = closest_points(mesh, X[N:][sliding[N:]])
-            untangle(X, cx.tets, movable, reference, fraction=untangle_fraction)
+            if count >= last >= 0:   # stalled: longer L-BFGS runs from now on (UNTANGLE_WORK)
+                work = UNTANGLE_WORK
+            last = count
+            _reproject(mesh, X[N:], before, nrm)
+            untangle(X, cx.tets, movable, reference, fraction=untangle_fraction, work=work)
         # what is left: flat or inverted tetrahedra at crease and corner nodes (three pinned
         # nodes on one crease line make a flat surface triangle): those nodes slide as well
         flat = _below_target(X, cx.tets, _untangle_targets(reference, untangle_fraction), DEGENERATE)
