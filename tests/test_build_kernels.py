@@ -72,3 +72,23 @@ def test_closest_faces_first_of_equals_on_one_and_many_threads():
     sub = np.r_[0:200, SERIAL_POINTS:SERIAL_POINTS + 150, len(p) - 150:len(p)]   # inside/outside, vertices, edges
     assert np.array_equal(many[sub], _brute_force_faces(mesh, p[sub]))
     assert np.array_equal(closest_points(mesh, p)[2], many)
+
+
+def test_a_parallel_kernels_serial_twin_is_compiled_apart():
+    """``kernel(parallel=True)``'s ``.serial``: the same loops on one thread, the same answer,
+    compiled without ``parallel`` under its own name (numba's disk cache keys neither flag)."""
+    from glsldiff.mesh.closest import _nearest_faces
+    mesh = sphere_mesh(10.0, subdivisions=2)
+    bvh = mesh.bvh
+    p = np.random.default_rng(7).uniform(-12, 12, (300, 3))
+    vi = bvh.tree.query(p)[1].astype(np.int64)
+    lo, hi = bvh.heap_boxes
+    args = (p, vi, bvh.vf_order, bvh.vf_start, mesh.triangles, lo, hi, bvh.depth, bvh.leaf_faces, True)
+    many, one = np.empty(len(p), np.int64), np.empty(len(p), np.int64)
+    _nearest_faces(*args, many)
+    _nearest_faces.serial(*args, one)
+    assert np.array_equal(many, one)
+    serial, threaded = _nearest_faces._compile(False), _nearest_faces._compile()
+    if hasattr(serial, "targetoptions"):             # compiled (not GLSLDIFF_JIT=0)
+        assert serial.py_func.__qualname__ == threaded.py_func.__qualname__ + "_serial"
+        assert not serial.targetoptions.get("parallel") and threaded.targetoptions.get("parallel")

@@ -181,19 +181,8 @@ def _nearest_faces(p: NDArray[np.float64], vertex: NDArray[np.int64], vf_order: 
                    vf_start: NDArray[np.int64], tri: NDArray[np.float64], lo: NDArray[np.float64],
                    hi: NDArray[np.float64], depth: int, leaf_faces: NDArray[np.int64], exact: bool,
                    out: NDArray[np.int64]) -> None:
-    """``out[i]``: :func:`_nearest_face` of ``p[i]``, over threads."""
+    """``out[i]``: :func:`_nearest_face` of ``p[i]``, over threads (``.serial``: on this one)."""
     for i in prange(p.shape[0]):
-        out[i] = _nearest_face(p[i, 0], p[i, 1], p[i, 2], vertex[i], vf_order, vf_start, tri, lo, hi, depth,
-                               leaf_faces, exact)
-
-
-@kernel
-def _nearest_faces_serial(p: NDArray[np.float64], vertex: NDArray[np.int64], vf_order: NDArray[np.int64],
-                          vf_start: NDArray[np.int64], tri: NDArray[np.float64], lo: NDArray[np.float64],
-                          hi: NDArray[np.float64], depth: int, leaf_faces: NDArray[np.int64], exact: bool,
-                          out: NDArray[np.int64]) -> None:
-    """:func:`_nearest_faces` on one thread (a few points: no thread start-up)."""
-    for i in range(p.shape[0]):
         out[i] = _nearest_face(p[i, 0], p[i, 1], p[i, 2], vertex[i], vf_order, vf_start, tri, lo, hi, depth,
                                leaf_faces, exact)
 
@@ -209,7 +198,7 @@ def _closest_faces(mesh: Mesh, p: NDArray[np.float64], exact: bool = True) -> ND
     _, vi = bvh.tree.query(p)
     lo, hi = bvh.heap_boxes
     out = np.empty(len(p), dtype=np.int64)
-    search = _nearest_faces_serial if len(p) < SERIAL_POINTS else _nearest_faces
+    search = _nearest_faces.serial if len(p) < SERIAL_POINTS else _nearest_faces
     search(p, vi.astype(np.int64), bvh.vf_order, bvh.vf_start, mesh.triangles, lo, hi, bvh.depth, bvh.leaf_faces,
            exact, out)
     return out
