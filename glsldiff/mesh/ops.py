@@ -4,6 +4,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from glsldiff.mesh.closest import closest_on_triangles
 from glsldiff.mesh.types import Mesh, normalize
 
 
@@ -28,25 +29,13 @@ def smooth_subdivide(mesh: Mesh, max_edge: float) -> tuple[Mesh, NDArray[np.floa
 
     v2, f2, parent = trimesh.remesh.subdivide_to_size(v, f, max_edge=max_edge, return_index=True)
     v2, f2 = np.asarray(v2, float), np.asarray(f2, np.int64)
-    a, b, c = (v[f[parent, k]] for k in range(3))            # each new face's old triangle
+    a, b, c = (mesh.triangles[parent, k] for k in range(3))  # each new face's old triangle
     corners = mesh.corner_normals[parent]                    # (F2, 3 corners, 3)
     acc = np.zeros_like(v2)
     for k in range(3):                                       # each new face's corner k
-        bary = _barycentrics(v2[f2[:, k]], a, b, c)
+        bary = closest_on_triangles(v2[f2[:, k]], a, b, c)   # the vertex lies on its old face
         np.add.at(acc, f2[:, k], np.einsum("fj,fjc->fc", bary, corners))
     return Mesh(v2, f2, name=mesh.name), normalize(acc)
-
-
-def _barycentrics(p: NDArray, a: NDArray, b: NDArray, c: NDArray) -> NDArray[np.float64]:
-    """``(N, 3)`` barycentric coordinates of points ``p`` in triangles ``(a, b, c)`` (all ``(N, 3)``;
-    ``p`` in the triangle's plane), clipped to the triangle."""
-    e0, e1, e2 = b - a, c - a, p - a
-    d00, d01, d11 = (np.einsum("ij,ij->i", x, y) for x, y in ((e0, e0), (e0, e1), (e1, e1)))
-    d20, d21 = np.einsum("ij,ij->i", e2, e0), np.einsum("ij,ij->i", e2, e1)
-    den = np.maximum(d00 * d11 - d01 * d01, 1e-300)
-    w1, w2 = (d11 * d20 - d01 * d21) / den, (d00 * d21 - d01 * d20) / den
-    bary = np.clip(np.stack([1.0 - w1 - w2, w1, w2], axis=1), 0.0, 1.0)
-    return bary / bary.sum(axis=1, keepdims=True)
 
 
 def surface_samples(mesh: Mesh, spacing: float, seed: int = 0) -> np.ndarray:

@@ -2,8 +2,8 @@
 
 The matrix math is :mod:`glsldiff.core.camera`; this module adds the scene's defaults: with
 no ``position`` the camera frames the mesh's bounding sphere (:class:`Framing`) from the
-direction that shows its largest silhouette, slightly above, with the image's up along its
-longest axis, and the depth range hugs the mesh.
+direction that shows its largest silhouette, slightly above, with the image's up +y where +y
+lies across the image (else the object's longest axis), and the depth range hugs the mesh.
 """
 from __future__ import annotations
 
@@ -64,8 +64,7 @@ class Framing:
         nearer +y where +y lies in the image (the OBJ and PLY files' up: a horse stands on its
         legs), else the object's longest axis across the image (the one nearer +z within
         :data:`UP_TIE`)."""
-        v, f = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces)
-        tri = v[f]
+        v, tri = np.asarray(mesh.vertices, dtype=np.float64), mesh.triangles
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         area = 0.5 * np.linalg.norm(cross, axis=1)
         c = tri.mean(axis=1)
