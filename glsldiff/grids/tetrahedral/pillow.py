@@ -36,7 +36,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.core.jit import kernel
 from glsldiff.grids.lattice import Lattice
 
-__all__ = ["PillowComplex", "KUHN", "TET_EDGES", "node_tets", "prism_tets", "signed_volumes",
+__all__ = ["PillowComplex", "six_volumes", "KUHN", "TET_EDGES", "node_tets", "prism_tets", "signed_volumes",
            "edge_lookup", "subdivide_tets", "tet_edges", "triangle_edges", "unique_tet_edges"]
 
 #: The six edges of a tetrahedron (local corner pairs); edge ``5 - e`` is the one opposite edge ``e``.
@@ -229,8 +229,25 @@ class PillowComplex:
                 "tets": len(self.tets), "surface_triangles": len(self.surface)}
 
 
+@kernel
+def six_volumes(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
+    """``(T,)`` six times the signed volume of each tetrahedron, mm^3, with the floating-point
+    operations of :func:`_signed_volumes_of` (``np.cross``, then ``np.einsum``'s three-term dot,
+    which adds the first and third products first) and none of its ``(T, 4, 3)`` temporaries
+    (7 ms against 313 ms for the bunny grid's 807k tetrahedra)."""
+    out = np.empty(len(tets))
+    for t in range(len(tets)):
+        i, j, k, m = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        a0, a1, a2 = X[j, 0] - X[i, 0], X[j, 1] - X[i, 1], X[j, 2] - X[i, 2]
+        b0, b1, b2 = X[k, 0] - X[i, 0], X[k, 1] - X[i, 1], X[k, 2] - X[i, 2]
+        c0, c1, c2 = X[m, 0] - X[i, 0], X[m, 1] - X[i, 1], X[m, 2] - X[i, 2]
+        g0, g1, g2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        out[t] = (g0 * c0 + g2 * c2) + g1 * c1
+    return out
+
+
 def _signed_volumes(X: NDArray[np.float64], tets: NDArray[np.int64]) -> NDArray[np.float64]:
-    return _signed_volumes_of(X[tets])
+    return six_volumes(X, tets) / 6.0
 
 
 def _signed_volumes_of(P: NDArray[np.float64]) -> NDArray[np.float64]:
