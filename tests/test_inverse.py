@@ -334,3 +334,38 @@ def test_cli_synth_mitsuba_refuses_what_it_cannot_render(tmp_path, capsys, args,
     err = capsys.readouterr().err
     assert match in err and err.count("\n") == 1
     assert not (tmp_path / "m.npz").exists()
+
+
+class _Quadratic:
+    """A cheap stand-in for :class:`Objective`: ``sum((kappa - 1)^2 + (mu - 1)^2)``."""
+
+    def __init__(self, n: int) -> None:
+        from types import SimpleNamespace
+        self.model = SimpleNamespace(n=n)
+        self._ns = SimpleNamespace
+
+    def evaluate(self, kappa: np.ndarray, mu: np.ndarray, gradient: bool):
+        self.last_material = (kappa, mu)
+        v = float(np.sum((kappa - 1.0) ** 2) + np.sum((mu - 1.0) ** 2))
+        return self._ns(value=v, data=v, grad_kappa=2.0 * (kappa - 1.0), grad_mu=2.0 * (mu - 1.0))
+
+
+@pytest.mark.parametrize("where", ["outside the objective", "inside the objective"])
+def test_ctrl_c_during_an_nlopt_run_keeps_the_best_point(where: str) -> None:
+    """A real SIGINT during NLopt's L-BFGS, either where NLopt's own code runs (Python then
+    raises it at the callback's entry, which NLopt turned into a bare ``runtime_error``: a CI
+    run's traceback) or inside the objective: the run ends "interrupted" with its best point."""
+    import signal
+
+    class Interrupted(ScaledProblem):
+        def __call__(self, z, grad):
+            if len(self.trace.records) == 3 and where == "outside the objective":
+                signal.raise_signal(signal.SIGINT)
+            return super().__call__(z, grad)
+
+    prob = Interrupted(_Quadratic(20), 1.0, 1.0, "lbfgs", max_evals=100)
+    if where == "inside the objective":
+        prob.callback = lambda rec: rec.evaluation == 3 and signal.raise_signal(signal.SIGINT)
+    z = minimize(prob, np.full(40, np.log(3.0)), stopval=-1.0)
+    assert prob.trace.status == "interrupted" and len(prob.trace.records) in (3, 4)
+    assert np.array_equal(z, prob.best_z) and signal.getsignal(signal.SIGINT) is signal.default_int_handler

@@ -10,7 +10,10 @@ error against time and iterations can be plotted for every method alike.
 from __future__ import annotations
 
 import math
+import signal
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Callable
 
@@ -92,6 +95,8 @@ class ScaledProblem:
         self._t0 = time.perf_counter()
         self.best_z: Array | None = None
         self.stop: Callable[[], None] | None = None  # set by optimisers that stop gracefully
+        self.interrupt_pending = False  # a Ctrl-C held back until the objective's Python runs
+        self._evaluating = False
 
     def material(self, z: Array) -> tuple[Array, Array]:
         """``(kappa, mu)`` over the active nodes for variables ``z``."""
@@ -111,8 +116,15 @@ class ScaledProblem:
         Ctrl-C inside an NLopt run stops it gracefully (NLopt would turn the exception into
         a bare runtime error): the trace says "interrupted" and the best point is kept."""
         try:
-            return self._evaluate(z, grad)
+            if self.interrupt_pending:  # arrived while NLopt's own code ran (see _held_interrupts)
+                raise KeyboardInterrupt
+            self._evaluating = True
+            try:
+                return self._evaluate(z, grad)
+            finally:
+                self._evaluating = False
         except KeyboardInterrupt:
+            self.interrupt_pending = True
             if self.stop is None or not self.trace.records:
                 raise
             self.trace.status = "interrupted"
@@ -196,12 +208,19 @@ def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -
     if problem.method == "lbfgs":
         opt.set_vector_storage(10)
     try:
-        opt.optimize(z0)
+        with _held_interrupts(problem):
+            opt.optimize(z0)
         code = opt.last_optimize_result()
     except nlopt.RoundoffLimited:
         code = "roundoff"
     except nlopt.ForcedStop:
         code = nlopt.FORCED_STOP
+    except Exception:
+        if problem.interrupt_pending:  # whatever NLopt made of the Ctrl-C
+            raise KeyboardInterrupt from None
+        raise
+    if problem.interrupt_pending and problem.trace.status != "interrupted":
+        raise KeyboardInterrupt  # came after the last evaluation: minimize keeps the best point
     problem.trace.iterations = problem.gradients
     if code == nlopt.FORCED_STOP:
         return  # budget or Ctrl-C: status already set
@@ -210,6 +229,31 @@ def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -
                             nlopt.XTOL_REACHED: "converged (x stopped changing)",
                             nlopt.SUCCESS: "converged",
                             nlopt.MAXEVAL_REACHED: "budget spent"}.get(code, f"nlopt code {code}")
+
+
+@contextmanager
+def _held_interrupts(problem: ScaledProblem):
+    """While NLopt runs, raise Ctrl-C's KeyboardInterrupt only inside the objective's own
+    handler. Raised anywhere else (in NLopt's C code the signal waits for the next Python
+    bytecode, which is the callback's entry, outside its ``try``) NLopt turns it into a bare
+    ``runtime_error``. Elsewhere the interrupt is only noted and raised at the next
+    evaluation's start or after NLopt returns. Only on the main thread, and only over
+    Python's default handler."""
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+
+    def hold(signum: int, frame: object) -> None:
+        problem.interrupt_pending = True
+        if problem._evaluating:
+            raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
 
 
 GOLDEN = (math.sqrt(5.0) - 1.0) / 2.0
