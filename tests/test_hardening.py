@@ -161,27 +161,16 @@ def test_fit_command_saves_on_ctrl_c(tmp_path, capsys, monkeypatch):
     """The same through `glsldiff fit`: exit 130, material and trace written, one message."""
     meas = _measurements(tmp_path, capsys)
 
-    class Bar:
-        calls = 0
+    calls = []
+    report = inverse_commands.FitProgress.__call__
 
-        def __init__(self, *a, **k):
-            pass
+    def ctrl_c(self, channel, rec):
+        calls.append(rec)
+        if len(calls) == 6:
+            raise KeyboardInterrupt
+        report(self, channel, rec)
 
-        def update(self, n):
-            Bar.calls += 1
-            if Bar.calls == 6:
-                raise KeyboardInterrupt
-
-        def set_postfix(self, **k):
-            pass
-
-        def write(self, s):
-            pass
-
-        def close(self):
-            pass
-
-    monkeypatch.setattr(inverse_commands, "tqdm", Bar)
+    monkeypatch.setattr(inverse_commands.FitProgress, "__call__", ctrl_c)
     out = tmp_path / "mat.npz"
     assert main(["fit", str(meas), "-o", str(out), "--max-evals", "40"]) == 130
     text = capsys.readouterr().out
@@ -375,3 +364,47 @@ def test_a_malformed_mesh_file_is_one_error_line(tmp_path, capsys):
     scene.write_text('[mesh]\nsource = "empty.stl"\n[[lights]]\ntype = "directional"\ndirection = [0, 0, 1]\n'
                      'irradiance = [1, 1, 1]\n')
     _one_error_line(capsys, main(["render", str(scene), "-o", str(tmp_path / "o.exr")]), "could not be read")
+
+
+def test_a_fit_resumed_after_ctrl_c_reaches_the_uninterrupted_result(tmp_path, capsys):
+    """Ctrl-C in the last channel, then resume from the checkpoint: the finished channels are the
+    uninterrupted fit's bit for bit; the resumed one continues its saved records, spends the same
+    budget and ends within 10 % of the uninterrupted objective (measured: 4.6 %), its BSSRDF
+    within E < 1e-3 of the uninterrupted one's (4e-5; the L-BFGS memory is lost at the restart,
+    so the path differs); the checkpoint refuses other options."""
+    from glsldiff.inverse.checkpoint import Checkpoint, load_checkpoint
+    from glsldiff.inverse.synthetic import bssrdf_error
+    from glsldiff.core.errors import InputError
+
+    assert main(["synth", str(tmp_path / "m.npz"), "--size", "14", "14", "6", "--n", "3", "--volume", "mixed"]) == 0
+    capsys.readouterr()
+    meas = load_measurements(tmp_path / "m.npz")
+    options = FitOptions(max_evals=25)   # the budget ends every channel (f falls until then)
+    whole = fit_measurements(meas, options)
+    calls = []
+
+    def ctrl_c(channel, record):
+        calls.append(channel)
+        if channel == 2 and calls.count(2) == 8:
+            raise KeyboardInterrupt
+
+    path = tmp_path / "m_checkpoint.npz"
+    cut = fit_measurements(meas, options, ctrl_c, Checkpoint(path, meas, options, every_s=1e9))
+    assert cut.interrupted and path.is_file()
+    saved = load_checkpoint(path, meas, options)
+    assert [saved[c].done for c in range(3)] == [True, True, False] and len(saved[2].trace.records) == 8
+    resumed = fit_measurements(meas, options, resume=saved)
+    assert not resumed.interrupted and [f.trace.status for f in resumed.channels] == ["budget spent"] * 3
+    for c in (0, 1):
+        assert np.array_equal(resumed.kappa[..., c], whole.kappa[..., c])
+        assert np.array_equal(resumed.mu[..., c], whole.mu[..., c])
+    assert resumed.channels[2].trace.records[:8] == saved[2].trace.records      # continued, not restarted
+    assert resumed.channels[2].homogeneous_trace.records == saved[2].homogeneous_trace.records
+    assert sum("taken from the checkpoint" in n for n in resumed.notes) == 2
+    assert len(resumed.channels[2].trace.records) == 25
+    f_whole, f_resumed = whole.channels[2].trace.best.value, resumed.channels[2].trace.best.value
+    assert abs(f_resumed / f_whole - 1.0) < 0.1, (f_resumed, f_whole)
+    E = bssrdf_error(meas.grid, (whole.kappa, whole.mu), (resumed.kappa, resumed.mu), channels=(2,))
+    assert 0 < E < 1e-3, E
+    with pytest.raises(InputError, match="other measurements or fit options"):
+        load_checkpoint(path, meas, FitOptions(max_evals=25, lam=1e-3))

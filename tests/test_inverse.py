@@ -204,6 +204,11 @@ def _meas_args(M: int = 2) -> dict:
     (dict(shape=(4, 5)), r"\(nz, ny, nx\)"),
     (dict(h=-1.0), "spacing"),
     (dict(radiance=np.zeros((2, 3, 4, 3))), "every used radiance value"),
+    (dict(reflected=np.full((2, 3, 4, 3), 0.1), observed_face="z-"), "lights and observes z-: put it in radiance"),
+    (dict(reflected=np.full((3, 3, 4, 3), 0.1)), "M = 2 .* reflected has 3"),
+    (dict(reflected=-0.1 * np.ones((2, 3, 4, 3)), incoming=np.zeros((2, 3, 4, 3)) + np.eye(1, 12).reshape(3, 4)[..., None]),
+     "reflected has .* negative"),
+    (dict(reflected_mask=np.ones((2, 3, 4), dtype=bool)), "without reflected radiance"),
 ])
 def test_bad_measurements_raise_clear_errors(change: dict, match: str) -> None:
     args = _meas_args()
@@ -241,6 +246,31 @@ def test_measurements_roundtrip_and_file_errors(tmp_path) -> None:
     (tmp_path / "junk.npz").write_bytes(b"not a zip")
     with pytest.raises(InputError, match="is not an .npz archive"):
         load_measurements(tmp_path / "junk.npz")
+
+
+def test_both_faces_observed_fit_together(tmp_path) -> None:
+    """``both``: the back-lit capture's transmission (z+) and the lit face's reflection at the
+    nodes not lit (z-) are one channel's data (other boundary rows than the transmission's);
+    noise-free, they equal the model's radiance there; the file round-trips; back-lit data
+    alone are bitwise those of the "back" setup."""
+    k, m = synthetic_volume((5, 10, 10), "layers")
+    both = synthetic_measurements(k, m, 0.5, 2, "both", noise=0.0, read_noise=0.0)
+    back = synthetic_measurements(k, m, 0.5, 2, "back", noise=0.0, read_noise=0.0)
+    assert both.observed_faces == ("z+", "z-") and back.observed_faces == ("z+",)
+    np.testing.assert_array_equal(both.radiance, back.radiance)
+    assert not np.any(both.reflected_mask & (both.incoming > 0)) and np.all(both.reflected[both.reflected_mask] > 0)
+    Q, Y, W = both.channel(1)
+    _, Yb, Wb = back.channel(1)
+    model = ForwardModel(both.grid)
+    L = model.factorize(model.active_values(k[..., 1]), model.active_values(m[..., 1])).solve(Q)
+    L = model.factorize(model.active_values(k[..., 1]), model.active_values(m[..., 1])).radiance(L, Q)
+    lit = both.grid.face_to_boundary("z-", np.ones(both.grid.face_shape("z-"))) > 0
+    np.testing.assert_allclose((W * Y)[lit], (W * L)[lit], rtol=1e-12)
+    np.testing.assert_array_equal(Y[~lit], Yb[~lit])
+    assert W[lit].sum() == both.reflected_mask[..., 1].sum() and W[~lit].sum() == Wb.sum()
+    again = load_measurements(save_measurements(tmp_path / "b.npz", both))
+    np.testing.assert_array_equal(again.reflected, both.reflected)
+    np.testing.assert_array_equal(again.reflected_mask, both.reflected_mask)
 
 
 def test_region_patterns_tile_the_face() -> None:

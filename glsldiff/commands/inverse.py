@@ -6,19 +6,20 @@ import math
 import os
 
 import numpy as np
-from tqdm import tqdm
 
 from glsldiff.core.tables import print_table
+from glsldiff.commands.fit_output import FitProgress, verdict
 from glsldiff.core import arguments as A
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import check_output, read_npz
 from glsldiff.bench import fit as fit_bench
 from glsldiff.core.io import write_csv, write_exr, write_npz
 from glsldiff.inverse.figures import depth_slices
+from glsldiff.inverse.checkpoint import CHECKPOINT_EVERY_S, Checkpoint, checkpoint_path, load_checkpoint
 from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
 from glsldiff.inverse.measurements import Measurements, load_measurements, save_measurements
 from glsldiff.inverse.reflectance import diffuse_reflectance
-from glsldiff.inverse.synthetic import bssrdf_error, coefficient_errors, synthetic_measurements
+from glsldiff.inverse.synthetic import SYNTH_SETUPS, bssrdf_error, coefficient_errors, synthetic_measurements
 from glsldiff.physics.procedural import synthetic_volume
 from glsldiff.physics.exitance import EXITANT
 
@@ -30,8 +31,9 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                    help="nodes per axis of the block")
     p.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
     p.add_argument("--n", type=A.integer(1, 64), default=4, help="n x n projector regions")
-    p.add_argument("--setup", choices=("back", "front"), default="back",
-                   help="back-lit thin block (transmission) or front-lit thick block (reflection)")
+    p.add_argument("--setup", choices=SYNTH_SETUPS, default="back",
+                   help="back-lit thin block (transmission), front-lit thick block (reflection), or both: back-lit "
+                        "and observed on both faces (transmission plus reflection, fitted together)")
     p.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed",
                    help="the synthetic material")
     p.add_argument("--noise", type=A.nonnegative, default=None,
@@ -68,6 +70,11 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("--mu0", type=A.nonnegative, default=0.01, help="initial mu of the homogeneous fit, 1/mm")
     p.add_argument("--truth", default=None, help="true material (.npz) to report the figure-11 error E")
     p.add_argument("--no-png", action="store_true", help="skip the depth-slice pictures")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the fit saved in OUT_checkpoint.npz (written every --checkpoint-every seconds "
+                        "and on Ctrl-C; deleted when the fit ends)")
+    p.add_argument("--checkpoint-every", type=A.positive, default=CHECKPOINT_EVERY_S, metavar="SECONDS",
+                   help="seconds between checkpoints")
     p.set_defaults(func=cmd_fit)
 
     p = sub.add_parser("reflectance", help="measured diffuse surface reflectance (paper sec. 6.1): a uniformly "
@@ -117,7 +124,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
                                       saturation=args.saturation, seed=args.seed + 1)
     save_measurements(out, meas)
     write_npz(truth, kappa=kappa, mu=mu, h=args.h)
-    print(f"wrote {meas.M} {args.setup}-lit measurements of a {nx}x{ny}x{nz} {args.volume} block "
+    setup = "back-lit, both faces observed," if args.setup == "both" else f"{args.setup}-lit"
+    print(f"wrote {meas.M} {setup} measurements of a {nx}x{ny}x{nz} {args.volume} block "
           f"(h = {args.h} mm, {args.renderer}) to {out} and the true material to {truth}")
     return 0
 
@@ -164,21 +172,28 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.truth:
         d = _load_truth(args.truth, meas.shape)
         truth = (d["kappa"], d["mu"])
-    rows: list[dict[str, object]] = []
-    channels = 1 if meas.grey() else 3
-    bar = tqdm(total=channels * args.max_evals, desc="fit", unit="eval", dynamic_ncols=True)
-
-    def progress(c: int, rec: object) -> None:
-        bar.update(1)
-        bar.set_postfix(channel=c, f=f"{rec.value:.3e}", data=f"{rec.data:.3e}")
-        if not math.isnan(rec.grad_norm):  # an iteration (gradient evaluation), not a line-search point
-            bar.write(f"channel {c} eval {rec.evaluation:4d}  {rec.seconds:7.1f} s  f {rec.value:.4e}  "
-                      f"data {rec.data:.4e}  |grad| {rec.grad_norm:.3e}")
-            rows.append(dict(channel=c, evaluation=rec.evaluation, seconds=rec.seconds, f=rec.value,
-                             data=rec.data, grad_norm=rec.grad_norm))
-
-    result = fit_measurements(meas, options, progress)
-    bar.close()
+    saved = checkpoint_path(out)
+    resume = None
+    if args.resume:
+        if not saved.is_file():
+            raise InputError(f"--resume: there is no checkpoint {str(saved)!r} to continue (it is written beside "
+                             "-o OUT); drop --resume to start the fit")
+        resume = load_checkpoint(saved, meas, options, options.method)
+    elif saved.exists():
+        raise InputError(f"{str(saved)!r} holds an unfinished fit: continue it with --resume, or delete it to "
+                         "start again")
+    checkpoint = Checkpoint(saved, meas, options, args.checkpoint_every, options.method)
+    progress = FitProgress(options.max_evals)
+    print(f"fit: {meas.M} conditions lit on {meas.lit_face}, observed on {' and '.join(meas.observed_faces)}, "
+          f"{meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} nodes; {options.method}, at most {options.max_evals} "
+          f"evaluations per channel; stop when the data term < 1e-4 of the measured power", flush=True)
+    try:
+        result = fit_measurements(meas, options, progress, checkpoint, resume)
+    finally:
+        progress.flush()
+    fits = result.channels[:1] if result.shared else result.channels
+    rows = [dict(channel=c, evaluation=r.evaluation, seconds=r.seconds, f=r.value, data=r.data, grad_norm=r.grad_norm)
+            for c, f in enumerate(fits) for r in f.trace.records if not math.isnan(r.grad_norm)]
     save_material(out, result)
     trace = out.with_name(out.stem + "_trace.csv")
     if rows:
@@ -186,8 +201,10 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if result.interrupted:
         for note in result.notes:
             print(note)
-        print(f"interrupted: wrote the best material so far to {out}" + (f" and {trace}" if rows else ""))
+        print(f"interrupted: wrote the best material so far to {out}" + (f" and {trace}" if rows else "")
+              + f"; continue with --resume (from {saved})")
         return 130
+    checkpoint.remove()
     table = []
     for c, f in enumerate(result.channels):
         table.append(dict(channel="RGB"[c], kappa_h=f.homogeneous[0], mu_h=f.homogeneous[1],
@@ -196,7 +213,7 @@ def cmd_fit(args: argparse.Namespace) -> int:
     E = None
     if truth is not None:
         E = bssrdf_error(meas.grid, truth, (result.kappa, result.mu), sources=(meas.lit_face,),
-                         receivers=(meas.observed_face,), stencil=options.stencil, eta=meas.eta)
+                         receivers=meas.observed_faces, stencil=options.stencil, eta=meas.eta)
     print_table(f"inverse diffusion, {meas.M} measurements, {meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} "
                 f"nodes, method {options.method}, lambda {options.lam:g}, {options.backend} solves", table)
     for note in result.notes:
@@ -204,12 +221,17 @@ def cmd_fit(args: argparse.Namespace) -> int:
     for c, f in enumerate(result.channels[:1] if result.shared else result.channels):
         if f.ranges is not None:
             print(("" if result.shared else f"channel {'RGB'[c]}: ") + f.ranges.describe())
+    coefficients = None
     if E is not None:
-        print(f"figure-11 error E vs the true material ({meas.lit_face} -> {meas.observed_face} pairs): {E:.5f}")
-        print_table("recovered coefficients against the truth (interior nodes, mm^-1)",
-                    coefficient_errors(meas.grid, truth, (result.kappa, result.mu)))
-    if not all(f.converged for f in result.channels):
-        print("NOT converged (f >= 1e-4 of sum L^2 when the budget ran out); the best material found is saved")
+        print(f"figure-11 error E vs the true material ({meas.lit_face} -> {' and '.join(meas.observed_faces)} "
+              f"pairs): {E:.5f}")
+        coefficients = coefficient_errors(meas.grid, truth, (result.kappa, result.mu))
+        print_table("against the truth: means over the interior nodes (mm^-1) and median relative error per node "
+                    "(sa = sigma_a, ss = sigma_s')",
+                    [{"channel": r["channel"], "sa_true": r["sigma_a_true"], "sa_fit": r["sigma_a_fit"],
+                      "sa_err": r["sigma_a_median_rel_err"], "ss_true": r["sigma_s_true"], "ss_fit": r["sigma_s_fit"],
+                      "ss_err": r["sigma_s_median_rel_err"]} for r in coefficients])
+    print(verdict(result, E, coefficients))
     if not args.no_png:
         png = out.with_name(out.stem + "_slices.png")
         depth_slices(png, result.kappa, result.mu, meas.h, truth=truth)

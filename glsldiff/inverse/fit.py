@@ -27,6 +27,7 @@ from glsldiff.core.checks import choice, integer, real
 from glsldiff.core.errors import SolverError
 from glsldiff.core.io import write_npz
 from glsldiff.grids.graph import INTERIOR
+from glsldiff.inverse.checkpoint import ChannelProgress, Checkpoint
 from glsldiff.inverse.glsl import GlslForwardModel
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
@@ -154,18 +155,48 @@ def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: 
 
 
 def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitOptions,
-                callback: Callable[[Record], None] | None = None, snapshot_every: int = 0) -> ChannelFit:
+                callback: Callable[[Record], None] | None = None, snapshot_every: int = 0,
+                channel: int = 0, checkpoint: Checkpoint | None = None,
+                start: ChannelProgress | None = None) -> ChannelFit:
     """Homogeneous, then heterogeneous fit of one channel (sources/measurements/weights
     ``(n_boundary, M)``); ``snapshot_every`` keeps the material every that many iterations
-    in ``ChannelFit.snapshots`` as ``(record, kappa, mu)``."""
+    in ``ChannelFit.snapshots`` as ``(record, kappa, mu)``. ``checkpoint`` saves where the
+    fit stands (as channel ``channel``) when due and at the end; ``start`` continues a saved
+    one (:mod:`glsldiff.inverse.checkpoint`)."""
     objective = Objective(model, Q, Y, W, lam=options.lam)
-    k_h, m_h, h_trace, ranges = fit_homogeneous(objective, options.kappa0, options.mu0, options.homogeneous_evals)
+    if start is None:
+        k_h, m_h, h_trace, ranges = fit_homogeneous(objective, options.kappa0, options.mu0,
+                                                    options.homogeneous_evals)
+    else:
+        (k_h, m_h), h_trace, ranges = start.homogeneous, start.homogeneous_trace, start.ranges
     mu_scale = max(m_h, 1e-2 / (3.0 * k_h))  # keep the mu variable O(1) even for mu_h -> 0 (1 % of sigma_t')
     problem = ScaledProblem(objective, k_h, mu_scale, options.method, options.max_evals,
                             options.max_seconds, callback, snapshot_every, options.parameterization)
     n = model.n
     z0 = problem.variables(np.full(n, k_h), np.full(n, m_h))
-    z = minimize(problem, z0, stopval=STOP_FRACTION)
+    if start is not None and start.kappa is not None:
+        z0 = problem.variables(start.kappa, start.mu)
+        problem.resume(start.trace, z0)
+
+    def progress(done: bool) -> ChannelProgress:
+        best = (None, None) if problem.best_z is None else problem.material(problem.best_z)
+        return ChannelProgress(channel, (k_h, m_h), h_trace, ranges, problem.trace, *best, done)
+
+    if checkpoint is not None:
+        report = problem.callback
+
+        def save_when_due(rec: Record) -> None:
+            if report is not None:
+                report(rec)
+            if checkpoint.due():
+                checkpoint.save(progress(False))
+
+        problem.callback = save_when_due
+    try:
+        z = minimize(problem, z0, stopval=STOP_FRACTION)
+    finally:   # also on an error or a Ctrl-C before the first evaluation: keep what is known
+        if checkpoint is not None:
+            checkpoint.save(progress(problem.trace.status not in ("interrupted", "running")))
     kappa, mu = problem.material(z)
     fit = ChannelFit(kappa, mu, (k_h, m_h), h_trace, problem.trace, problem.trace.best.data, ranges=ranges)
     fit.snapshots = [(rec, *problem.material(zs)) for rec, zs in problem.snapshots]
@@ -181,8 +212,11 @@ def fill_unseen(volume: Array, known: NDArray[np.bool_]) -> Array:
 
 
 def fit_measurements(meas: Measurements, options: FitOptions | None = None,
-                     callback: Callable[[int, Record], None] | None = None) -> FitResult:
-    """Fit every channel of ``meas``; ``callback(channel, record)`` after each evaluation."""
+                     callback: Callable[[int, Record], None] | None = None, checkpoint: Checkpoint | None = None,
+                     resume: dict[int, ChannelProgress] | None = None) -> FitResult:
+    """Fit every channel of ``meas``; ``callback(channel, record)`` after each evaluation.
+    ``checkpoint`` saves the progress every few minutes and on Ctrl-C; ``resume`` (loaded from
+    one) takes its finished channels as they are and continues the unfinished one."""
     options = options or FitOptions()
     t0 = time.perf_counter()
     if options.backend == "glsl":
@@ -196,8 +230,20 @@ def fit_measurements(meas: Measurements, options: FitOptions | None = None,
     interrupted = False
     try:
         for c in range(1 if shared else 3):
+            saved = (resume or {}).get(c)
+            if saved is not None and saved.done:
+                fits.append(ChannelFit(saved.kappa, saved.mu, saved.homogeneous, saved.homogeneous_trace, saved.trace,
+                                       saved.trace.best.data, ranges=saved.ranges))
+                if checkpoint is not None:
+                    checkpoint.channels[c] = saved
+                notes.append(f"channel {'RGB'[c]} taken from the checkpoint ({len(saved.trace.records)} evaluations)")
+                continue
+            if saved is not None:
+                notes.append(f"channel {'RGB'[c]} resumed from the checkpoint after {len(saved.trace.records)} "
+                             "evaluations")
             cb = (lambda rec, c=c: callback(c, rec)) if callback else None
-            fits.append(fit_channel(model, *meas.channel(c), options, cb))
+            fits.append(fit_channel(model, *meas.channel(c), options, cb, channel=c, checkpoint=checkpoint,
+                                    start=saved))
             if fits[-1].trace.status == "interrupted":
                 interrupted = True
                 notes.append(f"interrupted in channel {'RGB'[c]} after {len(fits[-1].trace.records)} evaluations: "

@@ -7,7 +7,11 @@ For each of ``M`` illumination conditions a measurement holds
 * ``radiance`` -- the measured multiple-scattering radiance ``L_o`` at every boundary node
   of the observed face, per RGB channel;
 * ``mask`` -- which observed values to use: thick front-lit samples use only nodes that are
-  not directly lit, and saturated pixels are dropped.
+  not directly lit, and saturated pixels are dropped;
+* optionally ``reflected`` -- the radiance a second camera sees on the *lit* face of a back-lit
+  sample in the same condition (front-lit reflection and back-lit transmission of one capture,
+  fitted together), with ``reflected_mask`` (default: the nodes the condition does not light
+  directly; saturated ones dropped).
 
 Face arrays follow :mod:`glsldiff.grids.regular` (``z-`` face: ``(ny-2, nx-2)``, indexed ``[y, x]``).
 Back-lit thin samples: ``lit_face="z-"``, ``observed_face="z+"``; front-lit thick samples:
@@ -25,6 +29,8 @@ face split into ``n x n`` regions (:func:`face_regions`; paper: 4 x 4).
     radiance       (M, c, d, 3)  measured L_o on the observed face (same units)
     mask           (M, c, d) or (M, c, d, 3) bool, optional (default: all observed)
     saturation     float, optional: radiance >= saturation is masked out
+    reflected      (M, a, b, 3)  optional: L_o on the lit face (observed_face must differ)
+    reflected_mask (M, a, b) or (M, a, b, 3) bool, optional (default: nodes with q = 0)
     C              float, optional: boundary constant (default from eta)
 """
 from __future__ import annotations
@@ -69,6 +75,8 @@ class Measurements:
     eta: float = 1.3
     saturation: float | None = None
     C: float | None = None
+    reflected: NDArray[np.float64] | None = None
+    reflected_mask: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         shape = tuple(int(s) for s in np.asarray(self.shape).ravel())
@@ -96,11 +104,22 @@ class Measurements:
                              "incoming light q must be >= 0")
         if not np.any(self.incoming > 0):
             raise InputError("incoming is zero everywhere: no illumination condition lights the sample")
-        self.mask = self._mask()
-        if np.any(self.radiance[self.mask] < 0):
-            raise InputError(f"radiance has {int((self.radiance[self.mask] < 0).sum())} negative values "
-                             "among the used (masked-in) nodes; radiance must be >= 0 (subtract the "
-                             "black level and clip, or mask those pixels out)")
+        self.mask = self._mask("mask", self.mask, self.radiance)
+        self._nonnegative("radiance", self.radiance, self.mask)
+        if self.reflected is not None:
+            if self.observed_face == self.lit_face:
+                raise InputError(f"reflected radiance is for samples observed on another face than the lit one; "
+                                 f"this one lights and observes {self.lit_face}: put it in radiance")
+            self.reflected = self._face_stack("reflected", self.reflected, self.lit_face)
+            if self.reflected.shape[0] != M:
+                raise InputError(f"incoming has M = {M} illumination conditions but reflected has "
+                                 f"{self.reflected.shape[0]}")
+            unlit = np.all(self.incoming == 0, axis=-1)   # the nodes a condition does not light directly
+            self.reflected_mask = self._mask("reflected_mask", unlit if self.reflected_mask is None
+                                             else self.reflected_mask, self.reflected)
+            self._nonnegative("reflected", self.reflected, self.reflected_mask)
+        elif self.reflected_mask is not None:
+            raise InputError("reflected_mask is given without reflected radiance")
         if not self.mask.any():
             raise InputError("the mask observes nothing: no radiance value is used")
         for c in range(3):
@@ -126,23 +145,30 @@ class Measurements:
                              f"(e.g. condition {m}, node [{a}, {b}], channel {c})")
         return arr
 
-    def _mask(self) -> NDArray[np.bool_]:
-        shape = self.radiance.shape
-        if self.mask is None:
+    def _mask(self, name: str, given: ArrayLike | None, radiance: NDArray[np.float64]) -> NDArray[np.bool_]:
+        shape = radiance.shape
+        if given is None:
             mask = np.ones(shape, dtype=bool)
         else:
-            mask = np.asarray(self.mask)
+            mask = np.asarray(given)
             if mask.dtype != bool:
-                raise InputError(f"mask must be boolean, got dtype {mask.dtype}")
+                raise InputError(f"{name} must be boolean, got dtype {mask.dtype}")
             if mask.shape == shape[:3]:
                 mask = np.repeat(mask[..., None], 3, axis=-1)
             if mask.shape != shape:
-                raise InputError(f"mask has shape {mask.shape}; expected {shape[:3]} or {shape}")
+                raise InputError(f"{name} has shape {mask.shape}; expected {shape[:3]} or {shape}")
             mask = mask.copy()
         if self.saturation is not None:
             real(self.saturation, "saturation", 0.0, lo_open=True)
-            mask &= self.radiance < self.saturation
+            mask &= radiance < self.saturation
         return mask
+
+    @staticmethod
+    def _nonnegative(name: str, radiance: NDArray[np.float64], mask: NDArray[np.bool_]) -> None:
+        if np.any(radiance[mask] < 0):
+            raise InputError(f"{name} has {int((radiance[mask] < 0).sum())} negative values among the used "
+                             "(masked-in) nodes; radiance must be >= 0 (subtract the black level and clip, or "
+                             "mask those pixels out)")
 
     # ---- derived --------------------------------------------------------------
     @property
@@ -154,7 +180,12 @@ class Measurements:
         """Number of (condition, node, channel) values dropped as saturated."""
         if self.saturation is None:
             return 0
-        return int(np.sum(self.radiance >= self.saturation))
+        return sum(int(np.sum(r >= self.saturation)) for r in (self.radiance, self.reflected) if r is not None)
+
+    @property
+    def observed_faces(self) -> tuple[str, ...]:
+        """The faces whose radiance is measured (the lit one too when ``reflected`` is given)."""
+        return (self.observed_face,) + ((self.lit_face,) if self.reflected is not None else ())
 
     def channel(self, c: int) -> tuple[NDArray, NDArray, NDArray]:
         """Sources ``Q``, measurements ``Y`` and weights ``W``, each ``(n_boundary, M)`` in the
@@ -162,13 +193,17 @@ class Measurements:
         def stack(face: str, a: NDArray) -> NDArray:  # (M, a, b) -> (n_boundary, M)
             return self.grid.face_to_boundary(face, np.moveaxis(a[..., c], 0, -1))
 
-        return (stack(self.lit_face, self.incoming), stack(self.observed_face, self.radiance),
-                stack(self.observed_face, self.mask.astype(np.float64)))
+        Y, W = stack(self.observed_face, self.radiance), stack(self.observed_face, self.mask.astype(np.float64))
+        if self.reflected is not None:   # another face: its boundary nodes are other rows
+            Y = Y + stack(self.lit_face, self.reflected)
+            W = W + stack(self.lit_face, self.reflected_mask.astype(np.float64))
+        return stack(self.lit_face, self.incoming), Y, W
 
     def grey(self) -> bool:
         """True when the three channels hold identical data (one fit serves all three)."""
-        return all(np.array_equal(a[..., 0], a[..., c]) for a in (self.incoming, self.radiance, self.mask)
-                   for c in (1, 2))
+        arrays = [a for a in (self.incoming, self.radiance, self.mask, self.reflected, self.reflected_mask)
+                  if a is not None]
+        return all(np.array_equal(a[..., 0], a[..., c]) for a in arrays for c in (1, 2))
 
 
 def save_measurements(path: str | os.PathLike, m: Measurements) -> Path:
@@ -180,6 +215,8 @@ def save_measurements(path: str | os.PathLike, m: Measurements) -> Path:
         arrays["saturation"] = m.saturation
     if m.C is not None:
         arrays["C"] = m.C
+    if m.reflected is not None:
+        arrays.update(reflected=m.reflected, reflected_mask=m.reflected_mask)
     return write_npz(path, **arrays)
 
 
@@ -201,4 +238,5 @@ def load_measurements(path: str | os.PathLike) -> Measurements:
                         incoming=data["incoming"], radiance=data["radiance"],
                         mask=data.get("mask"),
                         eta=scalar("eta", 1.3), saturation=scalar("saturation", None),
-                        C=scalar("C", None))
+                        C=scalar("C", None), reflected=data.get("reflected"),
+                        reflected_mask=data.get("reflected_mask"))

@@ -98,6 +98,14 @@ class ScaledProblem:
         self.interrupt_pending = False  # a Ctrl-C held back until the objective's Python runs
         self._evaluating = False
 
+    def resume(self, trace: Trace, best_z: Array) -> None:
+        """Continue a run saved earlier (:mod:`glsldiff.inverse.checkpoint`): its records count
+        against the budgets and its best point is kept until a better one is found."""
+        self.trace.records = list(trace.records)
+        self.gradients = sum(not math.isnan(r.grad_norm) for r in trace.records)
+        self._t0 -= trace.records[-1].seconds if trace.records else 0.0
+        self.best_z = np.array(best_z, dtype=np.float64)
+
     def material(self, z: Array) -> tuple[Array, Array]:
         """``(kappa, mu)`` over the active nodes for variables ``z``."""
         v = np.exp(z) if self.parameterization == "log" else np.asarray(z)
@@ -158,7 +166,7 @@ class ScaledProblem:
         self.gradients += int(want)
         if want and self.snapshot_every and (self.gradients - 1) % self.snapshot_every == 0:
             self.snapshots.append((rec, np.array(z, dtype=np.float64)))
-        if not tr.records or ev.value < tr.best.value:
+        if self.best_z is None or not tr.records or ev.value < tr.best.value:
             self.best_z = np.array(z, dtype=np.float64)
         tr.records.append(rec)
         if self.callback is not None:

@@ -16,6 +16,8 @@ from glsldiff.inverse.measurements import SETUPS, Measurements, face_regions
 from glsldiff.inverse.model import ForwardModel
 
 Array = NDArray[np.float64]
+#: ``synthetic_measurements`` setups: the two of :data:`SETUPS` and ``both`` (back-lit, both faces observed).
+SYNTH_SETUPS = (*SETUPS, "both")
 
 
 def region_patterns(grid: RegularGrid, face: str, n: int, intensity: float = 1.0) -> list[Array]:
@@ -52,9 +54,12 @@ def synthetic_measurements(kappa: Array, mu: Array, h: float, n: int, setup: str
                            noise: float = 0.01, read_noise: float = 1e-3, saturation: float | None = None,
                            seed: int = 0, stencil: str = "conservative", eta: float = 1.3) -> Measurements:
     """Render ``n x n`` region illuminations of the volume ``(kappa, mu)`` (``(nz, ny, nx, 3)``)
-    in the ``back`` (thin: lit z-, observed z+) or ``front`` setup (thick: observed z-, only
-    nodes not lit), add camera noise, and pack it as :class:`Measurements`."""
-    choice(setup, "setup", tuple(SETUPS))
+    in the ``back`` (thin: lit z-, observed z+), ``front`` (thick: observed z-, only nodes not
+    lit) or ``both`` setup (back-lit, observed on both faces: transmission plus the lit face's
+    reflection at the nodes not lit), add camera noise, and pack it as :class:`Measurements`."""
+    choice(setup, "setup", SYNTH_SETUPS)
+    both = setup == "both"
+    setup = "back" if both else setup
     kappa, mu = np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64)
     nz, ny, nx = kappa.shape[:3]
     grid = RegularGrid(nx, ny, nz, h=h)
@@ -63,20 +68,29 @@ def synthetic_measurements(kappa: Array, mu: Array, h: float, n: int, setup: str
     model = ForwardModel(grid, stencil=stencil, eta=eta)
     Q = grid.face_to_boundary(lit, np.stack(patterns, axis=-1))
     radiance = np.zeros((len(patterns),) + grid.face_shape(observed) + (3,))
+    reflected = np.zeros((len(patterns),) + grid.face_shape(lit) + (3,)) if both else None
     for c in range(3):
         L = render(model, kappa[..., c], mu[..., c], Q)
         radiance[..., c] = np.moveaxis(grid.boundary_to_face(observed, L), -1, 0)
+        if both:
+            reflected[..., c] = np.moveaxis(grid.boundary_to_face(lit, L), -1, 0)
     incoming = np.repeat(np.stack(patterns)[..., None], 3, axis=-1)
-    mask = None
-    if setup == "front":
-        mask = np.stack(patterns) == 0  # thick samples: only nodes that are not directly lit
+    unlit = np.stack(patterns) == 0  # reflection: only nodes that are not directly lit
+    mask = unlit if setup == "front" else None
+    if mask is not None:
         radiance = np.where(mask[..., None], radiance, 0.0)
+    if both:
+        reflected = np.where(unlit[..., None], reflected, 0.0)
+    gen = np.random.default_rng(seed)
     if noise > 0 or read_noise > 0:
-        radiance = camera_noise(radiance, seed, noise, read_noise)
+        radiance = camera_noise(radiance, gen, noise, read_noise)
+        if both:
+            reflected = camera_noise(reflected, gen, noise, read_noise)
     if saturation is not None:
         radiance = np.minimum(radiance, saturation)
+        reflected = None if reflected is None else np.minimum(reflected, saturation)
     return Measurements((nz, ny, nx), h, lit, observed, incoming, radiance, mask, eta=eta,
-                        saturation=saturation)
+                        saturation=saturation, reflected=reflected, reflected_mask=unlit if both else None)
 
 
 def bssrdf_error(grid: RegularGrid, true: tuple[Array, Array], fitted: tuple[Array, Array],

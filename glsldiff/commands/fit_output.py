@@ -1,0 +1,73 @@
+"""What ``glsldiff fit`` prints: one progress line per N evaluations (no redrawn bars, so a
+log stays readable) and a one-line verdict on the result."""
+from __future__ import annotations
+
+import math
+from typing import Callable
+
+from glsldiff.inverse.fit import STOP_FRACTION, FitResult
+from glsldiff.inverse.optimize import Record
+
+#: The paper's figure-11 level of a good fit (E of the diffuse BSSRDF against the truth).
+GOOD_E = 0.01
+#: Median relative error per node of sigma_a and sigma_s' that counts as recovered.
+GOOD_COEFFICIENT = 0.15
+
+
+class FitProgress:
+    """``callback(channel, record)`` of :func:`glsldiff.inverse.fit.fit_measurements`: prints
+    the first evaluation of each channel, every ``every``-th, and the channel's last."""
+
+    def __init__(self, max_evals: int, every: int | None = None, out: Callable[[str], None] = print) -> None:
+        self.max_evals = max_evals
+        self.every = every or max(1, math.ceil(max_evals / 5))
+        self.out = out
+        self._channel = -1
+        self._pending: Record | None = None   # the channel's latest record, not yet printed
+
+    def __call__(self, channel: int, rec: Record) -> None:
+        if channel != self._channel:
+            self.flush()
+            self._channel = channel
+        self._pending = rec
+        if rec.evaluation == 1 or rec.evaluation % self.every == 0:
+            self.flush()
+
+    def flush(self) -> None:
+        """Print the latest record if it was not printed yet (a channel's last evaluation)."""
+        rec, self._pending = self._pending, None
+        if rec is None:
+            return
+        grad = "" if math.isnan(rec.grad_norm) else f"  |grad| {rec.grad_norm:.2e}"
+        self.out(f"fit {'RGB'[self._channel]}: evaluation {rec.evaluation:>{len(str(self.max_evals))}}/"
+                 f"{self.max_evals}  {rec.seconds:7.1f} s  f {rec.value:.3e}  data {rec.data:.3e}{grad}")
+
+
+def verdict(result: FitResult, E: float | None = None, coefficients: list[dict[str, float]] | None = None
+            ) -> str:
+    """One line: converged or not, E against the paper's level, the coefficients against the
+    truth, and what the measurements do not determine."""
+    fits = result.channels[:1] if result.shared else result.channels
+    names = "RGB" if not result.shared else "grey"
+    stalled = [names[c] if not result.shared else names for c, f in enumerate(fits) if not f.converged]
+    if result.interrupted:
+        parts = ["interrupted: the best material so far is saved (resume with --resume)"]
+    elif stalled:
+        parts = [f"NOT converged in {', '.join(stalled)} (data term >= {STOP_FRACTION:g} of the measured power "
+                 f"when {result.options.max_evals} evaluations were spent): raise --max-evals"]
+    else:
+        parts = [f"converged (data term < {STOP_FRACTION:g} of the measured power)"]
+    if E is not None:
+        parts.append(f"E = {E:.4f} {'<=' if E <= GOOD_E else '>'} {GOOD_E:g} (the paper's figure-11 level)")
+    if coefficients:
+        worst = max(max(r["sigma_a_median_rel_err"], r["sigma_s_median_rel_err"]) for r in coefficients)
+        parts.append(f"coefficients {'recovered' if worst <= GOOD_COEFFICIENT else 'NOT recovered'}: worst median "
+                     f"error per node {100 * worst:.0f} % (target {100 * GOOD_COEFFICIENT:.0f} %)")
+    loose = []
+    for c, f in enumerate(fits):
+        if f.ranges is not None:
+            loose += [f"{name} ({names if result.shared else names[c]})" for name, ok
+                      in zip(("sigma_a", "sigma_s'"), f.ranges.determined) if not ok]
+    if loose:
+        parts.append(f"the measurements do not determine {', '.join(loose)}")
+    return "verdict: " + "; ".join(parts)
