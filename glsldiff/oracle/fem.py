@@ -29,9 +29,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core import cache
 from glsldiff.core.interrupt import interruptible
+from glsldiff.core.jit import kernel
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
-from glsldiff.grids.tetrahedral.pillow import TET_EDGES, unique_tet_edges
+from glsldiff.grids.tetrahedral.pillow import six_volumes, unique_tet_edges
 from glsldiff.mesh import vertex_areas
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.system.report import REFERENCE_TOL, SolveReport
@@ -47,11 +48,13 @@ logger = logging.getLogger(__name__)
 DIRECT_MAX_NODES = 20_000
 
 #: Part of every cached geometry's key: bump it when a factor of :data:`CACHED_FACTORS` changes.
-GEOMETRY_CACHE_VERSION = 1
+GEOMETRY_CACHE_VERSION = 2      # 2: no local_stiffness (the assembly recomputes it per tetrahedron); int32 edges
 #: The :class:`TetGeometry` factors :func:`cached_tet_geometry` keeps on disk: what assembling
-#: a system needs (170 MB at 800k tetrahedra, read in 0.1 s; computed: 1.2 s). Not the
-#: ``gradients`` (77 MB more): only :meth:`TetGeometry.recovered_gradient` needs them.
-CACHED_FACTORS = ("volumes", "degenerate", "local_stiffness", "_edges", "node_volumes", "node_areas", "surface_mass")
+#: a system needs (40 MB at 800k tetrahedra; computed: 0.4-1 s, nearly all of it the edges).
+#: Not the ``local_stiffness`` (103 MB) nor the ``gradients`` (77 MB): the assembly's kernel
+#: (:func:`_stiffness_sums`) recomputes each tetrahedron's entries from its corners in less time
+#: than reading them back.
+CACHED_FACTORS = ("volumes", "degenerate", "_edges", "node_volumes", "node_areas", "surface_mass")
 
 
 @dataclass(frozen=True, eq=False)
@@ -68,9 +71,9 @@ class TetGeometry:
 
     @cached_property
     def volumes(self) -> NDArray[np.float64]:
-        """``(T,)`` signed volumes, mm^3."""
-        P = self.positions[self.tets]
-        return np.einsum("ij,ij->i", np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), P[:, 3] - P[:, 0]) / 6.0
+        """``(T,)`` signed volumes, mm^3 (:func:`~glsldiff.grids.tetrahedral.pillow.six_volumes`:
+        the bits of ``np.einsum`` over ``np.cross``, without its ``(T, 4, 3)`` temporaries)."""
+        return six_volumes(self.positions, self.tets) / 6.0
 
     @cached_property
     def degenerate(self) -> NDArray[np.bool_]:
@@ -86,24 +89,29 @@ class TetGeometry:
     def gradients(self) -> NDArray[np.float64]:
         """``(T, 4, 3)`` gradients of the barycentric coordinates ``grad(l_i)`` (mm^-1; 0 for
         :attr:`degenerate` tetrahedra). With edges ``e_k = x_k - x_0``, ``grad l_1 = (e_2 x e_3) /
-        6V`` and cyclically, ``grad l_0 = -(sum of the others)``."""
-        P = self.positions[self.tets]
-        e1, e2, e3 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
-        det = 6.0 * self.volumes
-        ok = ~self.degenerate
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        G = np.empty((len(P), 4, 3))
-        G[:, 1], G[:, 2], G[:, 3] = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
-        G[:, 1:] *= inv[:, None, None]
-        G[:, 0] = -G[:, 1:].sum(axis=1)
-        return G
+        6V`` and cyclically, ``grad l_0 = -(sum of the others)`` (:func:`_gradients`; the
+        bits of :func:`gradients_numpy`)."""
+        return _gradients(self.positions, self.tets, self.volumes, self.degenerate)
 
     @cached_property
     def local_stiffness(self) -> NDArray[np.float64]:
         """``(T, 4, 4)`` ``V_t grad(l_i).grad(l_j)`` (mm) of each tetrahedron (0 for
-        :attr:`degenerate` ones)."""
-        G = self.gradients
-        return np.where(~self.degenerate, np.abs(self.volumes), 0.0)[:, None, None] * np.einsum("tik,tjk->tij", G, G)
+        :attr:`degenerate` ones; :func:`_local_stiffness`, the bits of :func:`local_stiffness_numpy`).
+        Not what the assembly reads (:meth:`stiffness_sums` recomputes the entries)."""
+        return self.local_stiffness_of(np.arange(len(self.tets)))
+
+    def local_stiffness_of(self, tets: NDArray[np.int64]) -> NDArray[np.float64]:
+        """``(t, 4, 4)`` :attr:`local_stiffness` of the tetrahedra ``tets`` (indices) alone."""
+        tets = np.asarray(tets, dtype=np.int64)
+        return _local_stiffness(self.positions, self.tets[tets], self.volumes[tets], self.degenerate[tets])
+
+    def stiffness_sums(self, kappa: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``(off, diag)``: ``(E, C)`` the stiffness entry of each unique edge (:attr:`_edges`)
+        and ``(n, C)`` the diagonal, for node ``kappa`` ``(n, C)`` mm: ``sum_t kappa_t K^t``
+        over the tetrahedra in order (:func:`_stiffness_sums`, no per-tetrahedron arrays)."""
+        edges, tet_edges = self._edges
+        return _stiffness_sums(self.positions, self.tets, self.volumes, self.degenerate, tet_edges,
+                               np.ascontiguousarray(kappa, dtype=np.float64), len(edges))
 
     def recovered_gradient(self, phi: NDArray[np.float64]) -> NDArray[np.float64]:
         """``(n, 3, C)`` gradient of the P1 field ``phi`` ``(n, C)`` at the nodes: the mean of
@@ -138,29 +146,135 @@ class TetGeometry:
                                                                    np.tile(f, (1, 3)).ravel())), shape=(n, n))
 
     @cached_property
-    def _edges(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """The mesh's unique edges ``(E, 2)`` (``i < j``) and each tetrahedron's six edges
-        ``(T, 6)`` as indices into them, in the order of :data:`glsldiff.grids.tetrahedral.pillow.TET_EDGES`.
-        (Sorting the ``6 T`` edge keys once is 2-3x cheaper than summing the ``16 T`` local
-        entries into a CSR pattern: 1.2 s against 5 s at 790k tetrahedra, measured.)"""
-        return unique_tet_edges(self.tets, len(self.positions))
+    def _edges(self) -> tuple[NDArray[np.integer], NDArray[np.integer]]:
+        """The mesh's unique edges ``(E, 2)`` (``i < j``, lexicographic) and each tetrahedron's
+        six edges ``(T, 6)`` as indices into them, in the order of
+        :data:`glsldiff.grids.tetrahedral.pillow.TET_EDGES`; int32 where the counts allow (half the
+        memory: 27 MB less on the bunny). (Sorting the ``6 T`` edge keys once is 2-3x cheaper
+        than summing the ``16 T`` local entries into a CSR pattern: 1.2 s against 5 s at 790k
+        tetrahedra, measured.)"""
+        edges, tet_edges = unique_tet_edges(self.tets, len(self.positions))
+        if max(len(self.positions), len(edges)) < np.iinfo(np.int32).max:
+            edges, tet_edges = edges.astype(np.int32), tet_edges.astype(np.int32)
+        return edges, tet_edges
 
     def stiffness(self, kappa: ArrayLike) -> sp.csr_matrix:
         """``K`` for node ``kappa`` (n,) mm (a scalar: homogeneous): the local entries summed
         per edge and per node, then one linear-time COO-to-CSR conversion."""
         n = len(self.positions)
         k = np.broadcast_to(np.asarray(kappa, dtype=np.float64), (n,))
-        kt = k[self.tets].mean(axis=1)
-        Kl = self.local_stiffness
-        edges, tet_edges = self._edges
-        off = np.bincount(tet_edges.ravel(), (kt[:, None] * Kl[:, TET_EDGES[:, 0], TET_EDGES[:, 1]]).ravel(),
-                          minlength=len(edges))
-        diag = np.bincount(self.tets.ravel(), (kt[:, None] * np.diagonal(Kl, axis1=1, axis2=2)).ravel(), minlength=n)
+        off, diag = (x[:, 0] for x in self.stiffness_sums(k[:, None]))
+        edges = self._edges[0]
         i, j, d = edges[:, 0], edges[:, 1], np.arange(n)
         K = sp.coo_matrix((np.concatenate([off, off, diag]), (np.concatenate([i, j, d]), np.concatenate([j, i, d]))),
                           shape=(n, n)).tocsr()
         K.sort_indices()
         return K
+
+
+def gradients_numpy(positions: NDArray[np.float64], tets: NDArray[np.int64], volumes: NDArray[np.float64],
+                    degenerate: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """:attr:`TetGeometry.gradients` in numpy (the reference of :func:`_gradients`; ``(T, 4, 3)``
+    temporaries)."""
+    P = positions[tets]
+    e1, e2, e3 = P[:, 1] - P[:, 0], P[:, 2] - P[:, 0], P[:, 3] - P[:, 0]
+    det = 6.0 * volumes
+    ok = ~degenerate
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    G = np.empty((len(P), 4, 3))
+    G[:, 1], G[:, 2], G[:, 3] = np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)
+    G[:, 1:] *= inv[:, None, None]
+    G[:, 0] = -G[:, 1:].sum(axis=1)
+    return G
+
+
+def local_stiffness_numpy(positions: NDArray[np.float64], tets: NDArray[np.int64], volumes: NDArray[np.float64],
+                          degenerate: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """:attr:`TetGeometry.local_stiffness` in numpy (the reference of :func:`_local_stiffness`)."""
+    G = gradients_numpy(positions, tets, volumes, degenerate)
+    return np.where(~degenerate, np.abs(volumes), 0.0)[:, None, None] * np.einsum("tik,tjk->tij", G, G)
+
+
+@kernel(inline=True)
+def _tet_gradients(X: NDArray[np.float64], tets: NDArray[np.int64], t: int, volume: float, dead: bool
+                   ) -> tuple[float, ...]:
+    """The 12 components of ``grad l_0 .. grad l_3`` of tetrahedron ``t`` (mm^-1): the
+    floating-point operations of :func:`gradients_numpy` (``np.cross``'s products, the
+    reciprocal of ``6 V`` times each cross product, ``grad l_0`` minus the others summed in order)."""
+    i, j, k, m = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+    a0, a1, a2 = X[j, 0] - X[i, 0], X[j, 1] - X[i, 1], X[j, 2] - X[i, 2]
+    b0, b1, b2 = X[k, 0] - X[i, 0], X[k, 1] - X[i, 1], X[k, 2] - X[i, 2]
+    c0, c1, c2 = X[m, 0] - X[i, 0], X[m, 1] - X[i, 1], X[m, 2] - X[i, 2]
+    inv = 0.0 if dead else 1.0 / (6.0 * volume)
+    p0, p1, p2 = (b1 * c2 - b2 * c1) * inv, (b2 * c0 - b0 * c2) * inv, (b0 * c1 - b1 * c0) * inv   # e2 x e3
+    q0, q1, q2 = (c1 * a2 - c2 * a1) * inv, (c2 * a0 - c0 * a2) * inv, (c0 * a1 - c1 * a0) * inv   # e3 x e1
+    r0, r1, r2 = (a1 * b2 - a2 * b1) * inv, (a2 * b0 - a0 * b2) * inv, (a0 * b1 - a1 * b0) * inv   # e1 x e2
+    return (-((p0 + q0) + r0), -((p1 + q1) + r1), -((p2 + q2) + r2), p0, p1, p2, q0, q1, q2, r0, r1, r2)
+
+
+@kernel(inline=True)
+def _dot3(g: tuple[float, ...], a: int, b: int) -> float:
+    """``grad l_a . grad l_b`` of :func:`_tet_gradients`' tuple, summed as ``np.einsum`` sums
+    three products (the first and third first)."""
+    return (g[3 * a] * g[3 * b] + g[3 * a + 2] * g[3 * b + 2]) + g[3 * a + 1] * g[3 * b + 1]
+
+
+@kernel
+def _gradients(X: NDArray[np.float64], tets: NDArray[np.int64], volumes: NDArray[np.float64],
+               degenerate: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """:func:`gradients_numpy`, bit for bit, without its temporaries."""
+    G = np.empty((len(tets), 4, 3))
+    for t in range(len(tets)):
+        g = _tet_gradients(X, tets, t, volumes[t], degenerate[t])
+        for a in range(4):
+            for k in range(3):
+                G[t, a, k] = g[3 * a + k]
+    return G
+
+
+@kernel
+def _local_stiffness(X: NDArray[np.float64], tets: NDArray[np.int64], volumes: NDArray[np.float64],
+                     degenerate: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """:func:`local_stiffness_numpy` (``(T, 4, 4)`` ``|V| grad l_a . grad l_b``), bit for bit."""
+    K = np.empty((len(tets), 4, 4))
+    for t in range(len(tets)):
+        dead = degenerate[t]
+        g = _tet_gradients(X, tets, t, volumes[t], dead)
+        v = 0.0 if dead else abs(volumes[t])
+        for a in range(4):
+            for b in range(4):
+                K[t, a, b] = v * _dot3(g, a, b)
+    return K
+
+
+@kernel
+def _stiffness_sums(X: NDArray[np.float64], tets: NDArray[np.int64], volumes: NDArray[np.float64],
+                    degenerate: NDArray[np.bool_], tet_edges: NDArray[np.int64], kappa: NDArray[np.float64],
+                    n_edges: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(off, diag)`` of :meth:`TetGeometry.stiffness_sums`: per tetrahedron in order, its
+    ``kappa_t`` (the corners' mean: ``0.25 k`` summed, the bits of ``mean(axis=1)``) times its
+    :func:`_local_stiffness` entries (the bits of :func:`local_stiffness_numpy`), added onto
+    its six edges (:data:`~glsldiff.grids.tetrahedral.pillow.TET_EDGES` order) and four nodes:
+    the sums of a ``bincount`` or a sparse scatter in tetrahedron order, bit for bit."""
+    n, C = kappa.shape
+    off = np.zeros((n_edges, C))
+    diag = np.zeros((n, C))
+    for t in range(len(tets)):
+        dead = degenerate[t]
+        g = _tet_gradients(X, tets, t, volumes[t], dead)
+        v = 0.0 if dead else abs(volumes[t])
+        ko = (v * _dot3(g, 0, 1), v * _dot3(g, 0, 2), v * _dot3(g, 0, 3), v * _dot3(g, 1, 2), v * _dot3(g, 1, 3),
+              v * _dot3(g, 2, 3))
+        kd = (v * _dot3(g, 0, 0), v * _dot3(g, 1, 1), v * _dot3(g, 2, 2), v * _dot3(g, 3, 3))
+        for c in range(C):
+            kt = 0.0
+            for a in range(4):
+                kt += 0.25 * kappa[tets[t, a], c]
+            for e in range(6):
+                off[tet_edges[t, e], c] += ko[e] * kt
+            for a in range(4):
+                diag[tets[t, a], c] += kd[a] * kt
+    return off, diag
 
 
 def assemble_p1(geo: TetGeometry, kappa: ArrayLike, mu: ArrayLike, q: ArrayLike, C: float,

@@ -23,6 +23,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff.core import cache
 from glsldiff.core.errors import InputError
+from glsldiff.core.jit import kernel
 from glsldiff.grids.tetrahedral.pillow import TET_EDGES
 from glsldiff.oracle.assembly import LinearSystem, row_entries
 from glsldiff.oracle.fem import TetGeometry
@@ -30,7 +31,7 @@ from glsldiff.oracle.fem import TetGeometry
 __all__ = ["P1Pattern", "P1System", "P1Update", "cached_p1_pattern"]
 
 #: Part of every cached pattern's key: bump it when :class:`P1Pattern` changes.
-PATTERN_CACHE_VERSION = 1
+PATTERN_CACHE_VERSION = 2   # 2: the surface mass at its positions only; no node -> tetrahedra lists
 
 
 @dataclass(frozen=True)
@@ -56,8 +57,9 @@ class P1Pattern:
     on disk with the grid). ``index`` grid node -> active index (-1: inactive); ``indptr``,
     ``indices`` the CSR pattern (every edge between active nodes both ways, and the diagonal);
     ``pos_ij``, ``pos_ji`` each unique edge's two positions (-1: an edge to an inactive node),
-    ``pos_ii`` each node's diagonal position; ``surface_mass`` the consistent surface mass on the
-    pattern (mm^2); ``node_tets``, ``node_ptr`` the tetrahedra of each node (CSR)."""
+    ``pos_ii`` each node's diagonal position; ``surface_pos``, ``surface_mass`` the consistent
+    surface mass (mm^2) at the pattern positions it fills (ascending; the surface's few percent
+    of the entries)."""
 
     index: NDArray[np.int64]
     indptr: NDArray[np.int32]
@@ -65,9 +67,8 @@ class P1Pattern:
     pos_ij: NDArray[np.int64]
     pos_ji: NDArray[np.int64]
     pos_ii: NDArray[np.int64]
+    surface_pos: NDArray[np.int64]
     surface_mass: NDArray[np.float64]
-    node_tets: NDArray[np.int64]
-    node_ptr: NDArray[np.int64]
 
     @classmethod
     def build(cls, geo: TetGeometry, active: NDArray[np.bool_]) -> "P1Pattern":
@@ -76,23 +77,10 @@ class P1Pattern:
         n = act.size
         index = np.full(n_all, -1, dtype=np.int64)
         index[act] = np.arange(n)
-        edges = geo._edges[0]
-        ai, aj = index[edges[:, 0]], index[edges[:, 1]]
-        live = (ai >= 0) & (aj >= 0)
-        d = np.arange(n)
-        rows = np.concatenate([ai[live], aj[live], d])
-        cols = np.concatenate([aj[live], ai[live], d])
-        order = np.lexsort((cols, rows))
-        inv = np.empty_like(order)
-        inv[order] = np.arange(order.size)
-        ne = int(live.sum())
-        pos_ij = np.full(len(edges), -1, dtype=np.int64)
-        pos_ji = np.full(len(edges), -1, dtype=np.int64)
-        pos_ij[live], pos_ji[live] = inv[:ne], inv[ne:2 * ne]
+        indptr64, indices, pos_ij, pos_ji, diag = _csr_pattern(geo._edges[0], index, n)
+        indptr = indptr64.astype(np.int32)
         pos_ii = np.full(n_all, -1, dtype=np.int64)
-        pos_ii[act] = inv[2 * ne:]
-        indices = cols[order].astype(np.int32)
-        indptr = np.concatenate([[0], np.cumsum(np.bincount(rows, minlength=n))]).astype(np.int32)
+        pos_ii[act] = diag
         sm = geo.surface_mass.tocoo()
         r, c = index[sm.row], index[sm.col]
         ok = (r >= 0) & (c >= 0)
@@ -102,11 +90,97 @@ class P1Pattern:
         if at.size and (np.any(at >= keys.size) or np.any(keys[np.minimum(at, keys.size - 1)] != want)):
             raise InputError("a surface triangle's edge is not an edge of a tetrahedron: the grid's surface does not "
                              "match its tetrahedra")
-        flat = geo.tets.ravel()
-        return cls(index, indptr, indices, pos_ij, pos_ji, pos_ii,
-                   np.bincount(at, sm.data[ok], minlength=indices.size),
-                   np.argsort(flat, kind="stable") // 4,
-                   np.concatenate([[0], np.cumsum(np.bincount(flat, minlength=n_all))]))
+        surface_pos, where = np.unique(at, return_inverse=True)
+        return cls(index, indptr, indices, pos_ij, pos_ji, pos_ii, surface_pos,
+                   np.bincount(where.ravel(), sm.data[ok], minlength=surface_pos.size))
+
+
+@kernel
+def _csr_pattern(edges: NDArray[np.int64], index: NDArray[np.int64], n: int
+                 ) -> tuple[NDArray[np.int64], NDArray[np.int32], NDArray[np.int64], NDArray[np.int64],
+                            NDArray[np.int64]]:
+    """The CSR pattern over the ``n`` active nodes of the unique ``edges`` (``i < j``, in
+    lexicographic order, as :func:`~glsldiff.grids.tetrahedral.pillow.unique_tet_edges` gives
+    them) and the diagonal: ``(indptr, indices, pos_ij, pos_ji, pos_ii)`` with each row's
+    columns ascending (the pattern of a ``lexsort`` by row and column, built without one): a
+    row's lower entries first (its edges as the larger node, met in edge order: ascending),
+    then its diagonal, then its upper entries (its own edges, contiguous and ascending).
+    ``index`` grid node -> active index (-1: inactive); an edge to an inactive node gets -1."""
+    E = len(edges)
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    for r in range(n):
+        indptr[r + 1] = 1
+    for e in range(E):
+        a, b = index[edges[e, 0]], index[edges[e, 1]]
+        if a >= 0 and b >= 0:
+            indptr[a + 1] += 1
+            indptr[b + 1] += 1
+    for r in range(n):
+        indptr[r + 1] += indptr[r]
+    fill = indptr[:-1].copy()
+    indices = np.empty(indptr[n], dtype=np.int32)
+    pos_ij = np.full(E, -1, dtype=np.int64)
+    pos_ji = np.full(E, -1, dtype=np.int64)
+    pos_ii = np.empty(n, dtype=np.int64)
+    for e in range(E):                      # lower entries: row b, column a
+        a, b = index[edges[e, 0]], index[edges[e, 1]]
+        if a >= 0 and b >= 0:
+            indices[fill[b]] = a
+            pos_ji[e] = fill[b]
+            fill[b] += 1
+    for r in range(n):
+        indices[fill[r]] = r
+        pos_ii[r] = fill[r]
+        fill[r] += 1
+    for e in range(E):                      # upper entries: row a, column b
+        a, b = index[edges[e, 0]], index[edges[e, 1]]
+        if a >= 0 and b >= 0:
+            indices[fill[a]] = b
+            pos_ij[e] = fill[a]
+            fill[a] += 1
+    return indptr, indices, pos_ij, pos_ji, pos_ii
+
+
+@kernel
+def _node_tets(tets: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """The tetrahedra of each of ``n`` nodes, ascending, as CSR ``(node_tets, node_ptr)``: a
+    counting sort (``argsort(tets.ravel(), kind="stable") // 4``, linear)."""
+    ptr = np.zeros(n + 1, dtype=np.int64)
+    for t in range(len(tets)):
+        for a in range(4):
+            ptr[tets[t, a] + 1] += 1
+    for i in range(n):
+        ptr[i + 1] += ptr[i]
+    fill = ptr[:-1].copy()
+    out = np.empty(4 * len(tets), dtype=np.int64)
+    for t in range(len(tets)):
+        for a in range(4):
+            v = tets[t, a]
+            out[fill[v]] = t
+            fill[v] += 1
+    return out, ptr
+
+
+@kernel
+def _fill_values(values: NDArray[np.float64], robin_pos: NDArray[np.int64], robin: NDArray[np.float64],
+                 off: NDArray[np.float64], diag: NDArray[np.float64], mu: NDArray[np.float64],
+                 node_volumes: NDArray[np.float64], pos_ij: NDArray[np.int64], pos_ji: NDArray[np.int64],
+                 pos_ii: NDArray[np.int64], active: NDArray[np.int64]) -> None:
+    """``values`` ``(C, nnz)``: the Robin term (``robin`` at the distinct ``robin_pos``, 0
+    elsewhere), plus each live edge's ``off`` at its two positions, plus ``diag + mu m`` on
+    each active node's diagonal (the sums of :meth:`P1System._assemble`'s numpy form, in its order)."""
+    for c in range(values.shape[0]):
+        for p in range(values.shape[1]):
+            values[c, p] = 0.0
+        for k in range(len(robin_pos)):
+            values[c, robin_pos[k]] = robin[k]
+        for e in range(len(pos_ij)):
+            if pos_ij[e] >= 0:
+                values[c, pos_ij[e]] += off[e, c]
+                values[c, pos_ji[e]] += off[e, c]
+        for a in range(len(active)):
+            i = active[a]
+            values[c, pos_ii[i]] += diag[i, c] + mu[i, c] * node_volumes[i]
 
 
 def cached_p1_pattern(geo: TetGeometry, active: ArrayLike) -> P1Pattern:
@@ -158,14 +232,13 @@ class P1System:
         self._pos_ij, self._pos_ji, self._pos_ii = pat.pos_ij, pat.pos_ji, pat.pos_ii
         self.indices, self.indptr = pat.indices, pat.indptr
         n = self.active.size
-        # the material-independent part: the Robin term on the pattern
+        # the material-independent part: the Robin term at the pattern positions it fills
         if boundary_mass == "lumped":
-            self._robin = np.zeros(self.indices.size)
-            self._robin[self._pos_ii[self.active]] = geo.node_areas[self.active] / (2.0 * self.C)
+            self._robin_pos = self._pos_ii[self.active]
+            self._robin = geo.node_areas[self.active] / (2.0 * self.C)
         else:
-            self._robin = pat.surface_mass / (2.0 * self.C)
-        self._node_tets, self._node_ptr = pat.node_tets, pat.node_ptr
-        self._Kl = geo.local_stiffness
+            self._robin_pos, self._robin = pat.surface_pos, pat.surface_mass / (2.0 * self.C)
+        self._node_tets: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None   # made at the first kappa edit
         self.values = np.zeros((3, self.indices.size))
         self._matrices: list[sp.csr_matrix] | None = None
         self.kappa = np.zeros((n_all, 3))
@@ -182,12 +255,20 @@ class P1System:
         """Unknowns per channel."""
         return int(self.active.size)
 
-    def _block_indices(self) -> NDArray[np.int64]:
-        return np.concatenate([self.indices.astype(np.int64) + c * self.n for c in range(3)])
+    def _block_dtype(self) -> type:
+        """int32 where the block-diagonal system's indices fit (scipy would narrow int64 ones to it)."""
+        return np.int32 if 3 * max(self.n, self.indices.size) < np.iinfo(np.int32).max else np.int64
 
-    def _block_indptr(self) -> NDArray[np.int64]:
-        nnz = self.indices.size
-        return np.concatenate([self.indptr[:-1].astype(np.int64) + c * nnz for c in range(3)] + [[3 * nnz]])
+    def _block_indices(self) -> NDArray[np.integer]:
+        nnz, out = self.indices.size, np.empty(3 * self.indices.size, dtype=self._block_dtype())
+        for c in range(3):
+            np.add(self.indices, c * self.n, out=out[c * nnz:(c + 1) * nnz], casting="unsafe")
+        return out
+
+    def _block_indptr(self) -> NDArray[np.integer]:
+        nnz, dt = self.indices.size, self._block_dtype()
+        return np.concatenate([self.indptr[:-1].astype(dt) + dt(c * nnz) for c in range(3)]
+                              + [np.array([3 * nnz], dtype=dt)])
 
     def matrices(self) -> list[sp.csr_matrix]:
         """The three channel matrices ``(n, n)``, whose ``data`` are the rows of :attr:`values`
@@ -210,7 +291,7 @@ class P1System:
                          ) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
         """Pattern positions and ``(3, m)`` values of ``tets``' stiffness with tetrahedron
         diffusion ``kt`` ``(len(tets), 3)`` (both triangles of every edge, and the diagonal)."""
-        Kl = self._Kl[tets]
+        Kl = self.geo.local_stiffness_of(tets)
         e = self._tet_edges[tets]                                         # (t, 6)
         off = Kl[:, TET_EDGES[:, 0], TET_EDGES[:, 1]]                     # (t, 6)
         dia = np.diagonal(Kl, axis1=1, axis2=2)                           # (t, 4)
@@ -224,37 +305,14 @@ class P1System:
         n_all = len(self.geo.positions)
         self.kappa[:] = np.broadcast_to(kappa, (n_all, 3))
         self.mu[:] = np.broadcast_to(mu, (n_all, 3))
-        # per unique edge and per node first (edge-length arrays), then onto the pattern: no
-        # (16 T, 3) temporaries (a fresh bunny grid's 790k tetrahedra made ~1 GB of them)
-        mean, to_edges, to_nodes = self._tet_operators()
-        kt = mean @ self.kappa                                              # (T, 3) tetrahedron kappa
-        e = to_edges.T @ kt                                                 # (n_edges, 3) off-diagonal sums
-        d = to_nodes.T @ kt                                                 # (n_all, 3) diagonal sums
-        live = np.flatnonzero(self._pos_ij >= 0)
-        pij, pji, da = self._pos_ij[live], self._pos_ji[live], self._pos_ii[self.active]
-        e_live = e[live]
-        d_act = d[self.active] + self.mu[self.active] * self.geo.node_volumes[self.active, None]
-        for c, v in enumerate(self.values):       # row by row: 2x faster than 2-D fancy indexing
-            v[:] = self._robin
-            v[pij] += e_live[:, c]
-            v[pji] += e_live[:, c]
-            v[da] += d_act[:, c]
+        # per unique edge and per node first (edge-length arrays: each tetrahedron's entries
+        # recomputed from its corners in the kernel, no per-tetrahedron arrays), then onto the pattern
+        off, diag = self.geo.stiffness_sums(self.kappa)                    # (n_edges, 3), (n_all, 3)
+        _fill_values(self.values, self._robin_pos, self._robin, off, diag, self.mu, self.geo.node_volumes,
+                     self._pos_ij, self._pos_ji, self._pos_ii, self.active)
+        del off, diag
         self._check_diagonal(self.active)
         self._sync_diag(np.arange(self.n))
-
-    def _tet_operators(self) -> tuple[sp.csr_matrix, sp.csr_matrix, sp.csr_matrix]:
-        """Sparse ``(T, n_nodes)`` mean over each tetrahedron's nodes, ``(T, n_edges)`` its six
-        off-diagonal and ``(T, n_nodes)`` four diagonal stiffness entries (per unit kappa): the
-        assembly is then three products (their transposes scatter-add in compiled code: 4x
-        faster than ``bincount`` and the ``(T, 4, 3)`` gather on a 790k-tetrahedron bunny)."""
-        tets, Kl = self.geo.tets, self._Kl
-        T, n_all = len(tets), len(self.geo.positions)
-        rows4, rows6 = np.arange(0, 4 * T + 1, 4), np.arange(0, 6 * T + 1, 6)
-        off = Kl[:, TET_EDGES[:, 0], TET_EDGES[:, 1]]
-        dia = np.diagonal(Kl, axis1=1, axis2=2)
-        return (sp.csr_matrix((np.full(4 * T, 0.25), tets.ravel(), rows4), shape=(T, n_all)),
-                sp.csr_matrix((off.ravel(), self._tet_edges.ravel(), rows6), shape=(T, len(self._pos_ij))),
-                sp.csr_matrix((dia.ravel(), tets.ravel(), rows4), shape=(T, n_all)))
 
     def _check_diagonal(self, nodes: NDArray[np.int64]) -> None:
         d = self.values[:, self._pos_ii[nodes]]
@@ -278,7 +336,10 @@ class P1System:
         tets = np.zeros(0, dtype=np.int64)
         if dk.any():
             kn = np.flatnonzero(dk)
-            tets = np.unique(self._node_tets[row_entries(self._node_ptr, kn)])
+            if self._node_tets is None:     # the tetrahedra of each node (CSR): 26 MB on the bunny, for edits only
+                self._node_tets = _node_tets(self.geo.tets, len(self.geo.positions))
+            node_tets, node_ptr = self._node_tets
+            tets = np.unique(node_tets[row_entries(node_ptr, kn)])
             kt_old = self.kappa[self.geo.tets[tets]].mean(axis=1)
             self.kappa[kn] = kappa[kn]
             kt_new = self.kappa[self.geo.tets[tets]].mean(axis=1)
