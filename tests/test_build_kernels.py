@@ -1,14 +1,21 @@
 """The compiled loops of the tetrahedral grid's build against the numpy code they replace,
-bit for bit (the grid a mesh gets must not change): the shape quality, the unique edges, the
-closest faces (glsldiff.grids, glsldiff.mesh.closest); the untangling's in test_untangle_kernels.py."""
+bit for bit (the grid a mesh gets must not change): the shape quality, the unique edges (and their
+update by an edge split), the outer faces, the shape step's Nelder-Mead, the closest faces
+(glsldiff.grids, glsldiff.mesh.closest), the inside test on a grid (glsldiff.mesh.inside); the
+untangling's in test_untangle_kernels.py."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from glsldiff.grids.tetrahedral.pillow import TET_EDGES, unique_tet_edges
+import scipy.optimize as so
+
+from glsldiff.grids.lattice import Lattice
+from glsldiff.grids.tetrahedral.pillow import FACE_BITS, TET_EDGES, PillowComplex, unique_tet_edges
 from glsldiff.grids.tetrahedral.shapes import shape_quality
-from glsldiff.mesh import sphere_mesh
+from glsldiff.grids.tetrahedral.split import _split_round
+from glsldiff.mesh import box_mesh, sphere_mesh
+from glsldiff.mesh.inside import contains, contains_grid
 from glsldiff.mesh.closest import (SERIAL_POINTS, _closest_faces, closest_on_triangle, closest_on_triangles,
                                    closest_points)
 
@@ -31,9 +38,9 @@ def test_shape_quality_equals_numpy():
     assert np.array_equal(shape_quality(X, T), det * np.sqrt(2.0) / np.maximum(mean, 1e-300) ** 3)
 
 
-def test_unique_tet_edges_equals_numpy_unique():
-    X, T = _random_tets(3, n=50)
-    n = len(X)
+@pytest.mark.parametrize("n, t", [(50, 3000), (300, 20000)])   # the second: > 64 neighbours per node
+def test_unique_tet_edges_equals_numpy_unique(n, t):
+    X, T = _random_tets(3, n=n, t=t)
     a, b = T[:, TET_EDGES[:, 0]], T[:, TET_EDGES[:, 1]]
     keys, inverse = np.unique(np.minimum(a, b) * n + np.maximum(a, b), return_inverse=True)
     edges, te = unique_tet_edges(T, n)
@@ -92,3 +99,49 @@ def test_a_parallel_kernels_serial_twin_is_compiled_apart():
     if hasattr(serial, "targetoptions"):             # compiled (not GLSLDIFF_JIT=0)
         assert serial.py_func.__qualname__ == threaded.py_func.__qualname__ + "_serial"
         assert not serial.targetoptions.get("parallel") and threaded.targetoptions.get("parallel")
+
+
+def test_split_round_updates_the_unique_edges():
+    """Each round of an edge split passes on the new grid's unique edges without sorting them
+    again: equal to unique_tet_edges of its tetrahedra, over rounds that split edges next to
+    earlier midpoints."""
+    X, T = _random_tets(6, n=120, t=1500)
+    F = np.zeros((0, 3), dtype=np.int64)
+    edges, te = unique_tet_edges(T, len(X))
+    for _ in range(4):
+        free = np.ones(len(T), dtype=bool)
+        chosen = []
+        for e in np.random.default_rng(len(X)).permutation(len(edges)):   # no two in one tetrahedron
+            ts = np.flatnonzero((te == e).any(axis=1))
+            if free[ts].all():
+                free[ts] = False
+                chosen.append(e)
+        X, T, F, edges, te = _split_round(X, T, F, edges, te, np.array(chosen[:60], dtype=np.int64))
+        want_edges, want_te = unique_tet_edges(T, len(X))
+        assert np.array_equal(edges, want_edges) and np.array_equal(te, want_te)
+
+
+def test_outer_faces_equal_the_sorted_quad_count():
+    """The outer faces (faces of one cell), found by their axis and lowest corner, are those a
+    count of the sorted corner quadruples finds."""
+    rng = np.random.default_rng(8)
+    cubes = np.argwhere(rng.random((5, 4, 3)) < 0.6)
+    cx = PillowComplex(Lattice(cubes, 3, 2.0, np.zeros(3)))
+    quads = np.concatenate([cx.cells[:, bits] for bits in FACE_BITS.values()])
+    _, inv, cnt = np.unique(np.sort(quads, axis=1), axis=0, return_inverse=True, return_counts=True)
+    assert np.array_equal(cx.outer_quads, quads[cnt[inv.ravel()] == 1])
+
+
+def test_contains_grid_equals_contains_on_vertices_and_faces():
+    """The grid's inside test (crossings above each point, per column) equals the per-point one
+    where grid points lie on mesh vertices, edges and faces (crossings at their own height)."""
+    s = sphere_mesh(2.0, 3)
+    v = np.asarray(s.vertices)
+    for xs, ys, zs in [(np.unique(v[:40, 0]), np.unique(v[:40, 1]), np.unique(v[:, 2])),
+                       (np.linspace(-2.5, 2.5, 21), np.linspace(-2.5, 2.5, 11), np.linspace(-2, 2, 17))]:
+        pts = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), -1).reshape(-1, 3)
+        assert np.array_equal(contains_grid(s, xs, ys, zs).ravel(), contains(s, pts))
+    box = box_mesh([3, 2, 1])
+    xs, ys, zs = np.arange(0, 3.01, 0.5), np.arange(0, 2.01, 0.5), np.arange(0, 1.01, 0.25)
+    pts = np.stack(np.meshgrid(xs, ys, zs, indexing="ij"), -1).reshape(-1, 3)
+    assert np.array_equal(contains_grid(box, xs, ys, zs).ravel(), contains(box, pts))

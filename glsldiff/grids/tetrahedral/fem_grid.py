@@ -130,7 +130,8 @@ from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.lattice import Lattice
 from glsldiff.grids.graph import edge_adjacency, mean_operator
-from glsldiff.grids.tetrahedral.pillow import PillowComplex, signed_volumes, six_volumes, triangle_edges
+from glsldiff.grids.tetrahedral.pillow import (PillowComplex, signed_volumes, six_volumes, triangle_edges,
+                                               unique_tet_edges)
 from glsldiff.grids.polycube import Polycube, outside_distance, polycube_from_mesh
 from glsldiff.grids.tetrahedral.shapes import improve_shapes, shape_quality
 from glsldiff.grids.tetrahedral.split import EdgeSplit, split_long_edges
@@ -639,9 +640,10 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     gap, owner = cKDTree(X[N:]).query(mesh.vertices)   # nodes that cover far vertices stay:
     slide[N + owner[gap > SHAPE_COVER * cx.lattice.h]] = False   # coverage stays <= max(before, 1.25 h)
     before = X[N:].copy()
+    edges = unique_tet_edges(cx.tets, len(X))   # the shape step's neighbours, the split's first edges
     shapes = improve_shapes(X, cx.tets, movable, slide, cx.surface,
                             lambda p, nodes: _project(mesh, p, features, crease[nodes])[0],
-                            max_slide=SHAPE_SLIDE * cx.lattice.h)
+                            max_slide=SHAPE_SLIDE * cx.lattice.h, edges=edges[0])
     changed = np.flatnonzero(np.any(X[N:] != before, axis=1))
     if changed.size:
         nrm[changed] = closest_points(mesh, X[N:][changed])[3]
@@ -651,7 +653,7 @@ def map_pillow(cx: PillowComplex, mesh: Mesh, relax_iterations: int = 10, relax_
     split, tets, surface_nodes = None, cx.tets, np.arange(N, cx.n_nodes)
     if split_length is not None:
         t3 = time.perf_counter()
-        s = split_long_edges(X, cx.tets, cx.surface, split_length * cx.lattice.h)
+        s = split_long_edges(X, cx.tets, cx.surface, split_length * cx.lattice.h, edges=edges)
         if len(s.parents):
             split, X, tets, new = s, s.positions, s.tets, s.surface_midpoints
             surface_nodes = np.concatenate([surface_nodes, new])

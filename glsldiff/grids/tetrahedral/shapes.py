@@ -22,12 +22,14 @@ nodes (dark specks on the back-lit bunny's ear rim, see :mod:`glsldiff.grids.tet
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
 import scipy.optimize as so
+import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from glsldiff.core.jit import kernel
@@ -93,15 +95,16 @@ class ShapeReport:
 
 def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArray[np.bool_],
                    sliding: NDArray[np.bool_], surface: NDArray[np.int64], project: Project,
-                   max_slide: float = np.inf, target: float = SHAPE_TARGET, sweeps: int = SHAPE_SWEEPS
-                   ) -> ShapeReport:
+                   max_slide: float = np.inf, target: float = SHAPE_TARGET, sweeps: int = SHAPE_SWEEPS,
+                   edges: NDArray[np.int64] | None = None) -> ShapeReport:
     """Move nodes (in place) to raise the tetrahedra below ``target`` (module docstring).
 
     ``free``: nodes that move in space; ``sliding``: surface nodes that move along the
     surface, ``project(points, nodes)`` putting them back on it, at most ``max_slide`` (mm)
     from where they started (so they keep covering what they covered); ``surface`` ``(F, 3)``
     the surface triangles (their edges are a sliding node's neighbours and give its tangent
-    plane).
+    plane). ``edges``: the unique edges of ``tets``
+    (:func:`~glsldiff.grids.tetrahedral.pillow.unique_tet_edges`), if known.
     """
     t0 = time.perf_counter()
     n = len(X)
@@ -110,17 +113,24 @@ def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArra
     movable = free | sliding
     start = X.copy()
     incident = node_tets(tets, n)
-    volume_nb = edge_adjacency(unique_tet_edges(tets, n)[0], n)   # as of every copy of each edge, faster
+    # the unique edges: faster than every copy of each edge
+    volume_nb = edge_adjacency(unique_tet_edges(tets, n)[0] if edges is None else edges, n)
     surface_nb = edge_adjacency(triangle_edges(surface), n)
+    on_surface = sp.csr_matrix((np.ones(surface.size), (surface.ravel(), np.repeat(np.arange(len(surface)), 3))),
+                               shape=(n, len(surface)))   # node -> its surface triangles
 
     def place(v: int, p: NDArray[np.float64]) -> NDArray[np.float64]:
         return project(p[None], np.array([v]))[0] if sliding[v] else p
 
-    def worst(v: int, tt: NDArray[np.int64], p: NDArray[np.float64]) -> tuple[float, NDArray[np.float64]]:
-        if sliding[v] and np.linalg.norm(p - start[v]) > max_slide:
-            return -np.inf, np.empty(0)
+    def worst(v: int, tt: NDArray[np.int64], p: NDArray[np.float64], own: NDArray[np.int64] | None = None
+              ) -> tuple[float, NDArray[np.float64]]:
+        """The worst shape of ``v``'s tetrahedra ``tt`` (``own``: ``tets[tt]``) with ``v`` at ``p``."""
+        if sliding[v]:
+            d = p - start[v]
+            if math.sqrt(d.dot(d)) > max_slide:   # np.linalg.norm's operations
+                return -np.inf, np.empty(0)
         X[v] = p
-        qn = shape_quality(X, tets[tt])
+        qn = shape_quality(X, tets[tt] if own is None else own)
         return float(qn.min()), qn
 
     def targets(nodes: NDArray[np.int64]) -> NDArray[np.float64]:
@@ -155,7 +165,7 @@ def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArra
                ) -> NDArray[np.float64] | None:
         old = X[v].copy()
         if sliding[v]:
-            P = X[surface[(surface == v).any(axis=1)]]
+            P = X[surface[on_surface.indices[on_surface.indptr[v]:on_surface.indptr[v + 1]]]]   # in index order
             nrm = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]).sum(axis=0)   # area-weighted, outward
             nrm /= max(float(np.linalg.norm(nrm)), 1e-300)
             a = np.cross(nrm, np.eye(3)[int(np.argmin(np.abs(nrm)))])
@@ -168,7 +178,8 @@ def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArra
         d = len(basis)
         simplex = np.vstack([np.zeros(d), SEARCH_SIMPLEX * edge * np.eye(d)])
         # in the tangent plane (projection onto the mesh costs ~1 ms a point): projected once at the end
-        res = so.minimize(lambda u: -worst(v, tt, old + u @ basis)[0], np.zeros(d), method="Nelder-Mead",
+        own = tets[tt]
+        res = so.minimize(lambda u: -worst(v, tt, old + u @ basis, own)[0], np.zeros(d), method="Nelder-Mead",
                           options={"initial_simplex": simplex, "maxfev": SEARCH_EVALUATIONS,
                                    "xatol": 1e-3 * edge, "fatol": 1e-6})
         m, qn = worst(v, tt, place(v, old + res.x @ basis))
