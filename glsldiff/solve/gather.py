@@ -81,6 +81,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
+from glsldiff.core.jit import kernel
 from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.oracle.solvers import Callback, Relaxation, relax
@@ -252,22 +253,67 @@ class EllPack:
     row_slots: NDArray[np.int64]
 
 
-def _aligned(mats: Sequence[sp.csr_matrix]) -> tuple[NDArray, NDArray, NDArray]:
-    """``(rows, cols, vals (nnz, 3))`` of three matrices on one pattern: channel 0's when all
-    share it (the checked systems), else the union of the stored entries (Galerkin products,
-    whose pattern scipy trims of exact cancellations per channel)."""
+def _aligned(mats: Sequence[sp.csr_matrix]) -> tuple[NDArray, NDArray, list[NDArray]]:
+    """``(indptr, cols, [vals_c])`` (int64, int64, float64 per channel) of three CSR matrices on
+    one pattern: channel 0's when all share it (the checked systems), else the union of the
+    stored entries, zero where a channel has none (Galerkin products, whose pattern scipy trims
+    of exact cancellations per channel)."""
     M0 = mats[0]
     if all(np.array_equal(M.indptr, M0.indptr) and np.array_equal(M.indices, M0.indices) for M in mats[1:]):
-        rows = np.repeat(np.arange(M0.shape[0]), np.diff(M0.indptr))
-        return rows, M0.indices.astype(np.int64), np.stack([M.data for M in mats], axis=1)
-    n_cols = M0.shape[1]
+        return (M0.indptr.astype(np.int64, copy=False), M0.indices.astype(np.int64, copy=False),
+                [np.ascontiguousarray(M.data) for M in mats])
+    n_rows, n_cols = M0.shape
     keys = [np.repeat(np.arange(M.shape[0], dtype=np.int64), np.diff(M.indptr)) * n_cols + M.indices
             for M in mats]       # row-major entry keys, ascending (sorted indices)
     union = np.unique(np.concatenate(keys))
-    vals = np.zeros((union.size, len(mats)))
-    for c, (k, M) in enumerate(zip(keys, mats)):
-        vals[np.searchsorted(union, k), c] = M.data
-    return union // n_cols, union % n_cols, vals
+    vals = [np.zeros(union.size) for _ in mats]
+    for v, k, M in zip(vals, keys, mats):
+        v[np.searchsorted(union, k)] = M.data
+    indptr = np.concatenate([[0], np.cumsum(np.bincount(union // n_cols, minlength=n_rows))])
+    return indptr, union % n_cols, vals
+
+
+@kernel
+def _ell_counts(indptr: NDArray[np.int64], cols: NDArray[np.int64], v0: NDArray[np.float64],
+                v1: NDArray[np.float64], v2: NDArray[np.float64], keep_zeros: bool, drop_diagonal: bool,
+                row_offset: int, counts: NDArray[np.int64]) -> None:
+    """``counts[i]``: the slots row ``i`` needs (its entries, less the diagonal when
+    ``drop_diagonal``, less those zero in all channels unless ``keep_zeros``)."""
+    for i in range(indptr.size - 1):
+        c = 0
+        for jj in range(indptr[i], indptr[i + 1]):
+            if drop_diagonal and cols[jj] == i + row_offset:
+                continue
+            if keep_zeros or v0[jj] != 0.0 or v1[jj] != 0.0 or v2[jj] != 0.0:
+                c += 1
+        counts[i] = c
+
+
+@kernel
+def _ell_fill(indptr: NDArray[np.int64], cols: NDArray[np.int64], v0: NDArray[np.float64],
+              v1: NDArray[np.float64], v2: NDArray[np.float64], keep_zeros: bool, drop_diagonal: bool,
+              row_offset: int, coef: NDArray[np.float32]) -> None:
+    """Every texel of ``coef`` ``(K, texels, 4)``: row ``i``'s kept entries (as
+    :func:`_ell_counts` counts them) in its first slots, ``(a0, a1, a2, j)``, then empty slots
+    ``(0, 0, 0, -1)``; texels past the last row all empty."""
+    K, n = coef.shape[0], indptr.size - 1
+    for i in range(coef.shape[1]):
+        s = 0
+        if i < n:
+            for jj in range(indptr[i], indptr[i + 1]):
+                if drop_diagonal and cols[jj] == i + row_offset:
+                    continue
+                if keep_zeros or v0[jj] != 0.0 or v1[jj] != 0.0 or v2[jj] != 0.0:
+                    coef[s, i, 0] = v0[jj]
+                    coef[s, i, 1] = v1[jj]
+                    coef[s, i, 2] = v2[jj]
+                    coef[s, i, 3] = cols[jj]
+                    s += 1
+        for k in range(s, K):
+            coef[k, i, 0] = 0.0
+            coef[k, i, 1] = 0.0
+            coef[k, i, 2] = 0.0
+            coef[k, i, 3] = -1.0
 
 
 def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
@@ -278,7 +324,10 @@ def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
     prolongation, a dense inverse). Entries zero in all channels get no slot unless
     ``keep_zeros`` (a pattern whose values change in place keeps its slots); ``cols`` must be
     at most 2^24 (exact float indices). ``row_offset``: ``mats`` are the rows from that one on
-    of a larger matrix (a band re-packed after an update, ``slots`` its ``K``)."""
+    of a larger matrix (a band re-packed after an update, ``slots`` its ``K``). Compiled loops
+    (:func:`_ell_counts`, :func:`_ell_fill`: one pass over the entries and one write of every
+    texel: 0.35 -> 0.12 s CPU for the bunny's multigrid levels against the numpy scatter they
+    replaced, the same bits)."""
     W, H = size
     mats = [sp.csr_matrix(M, dtype=np.float64) for M in mats]
     for M in mats:
@@ -287,23 +336,17 @@ def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
     n_rows, n_cols = mats[0].shape
     if n_rows > W * H or n_cols > MAX_NODES:
         raise InputError(f"a {n_rows} x {n_cols} matrix does not fit {W} x {H} texels / float indices")
-    rows, cols, vals = _aligned(mats)
-    keep = np.ones(len(rows), dtype=bool) if keep_zeros else np.any(vals != 0.0, axis=1)
-    if not diagonal:
-        keep &= cols != rows + row_offset
-    rows, cols, vals = rows[keep], cols[keep], vals[keep]
-    counts = np.bincount(rows, minlength=n_rows)
+    indptr, cols, vals = _aligned(mats)
+    flags = (bool(keep_zeros), not diagonal, int(row_offset))
+    counts = np.zeros(n_rows, dtype=np.int64)
+    _ell_counts(indptr, cols, *vals, *flags, counts)
     K = int(counts.max()) if counts.size else 0
     if slots is not None:
         if K > slots:
             raise InputError(f"a row has {K} entries; the packed matrix has {slots} slots")
         K = slots
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    slot = np.arange(rows.size) - start[rows]
-    coef = np.zeros((max(K, 1), H * W, 4), dtype=np.float32)
-    coef[..., 3] = -1.0
-    coef[slot, rows, :3] = vals
-    coef[slot, rows, 3] = cols
+    coef = np.empty((max(K, 1), H * W, 4), dtype=np.float32)
+    _ell_fill(indptr, cols, *vals, *flags, coef)
     return EllPack(coef.reshape(max(K, 1), H, W, 4), K, counts)
 
 

@@ -17,7 +17,8 @@ Hierarchy (CPU, once per matrix)
     grid; operator complexity 1.1 against 1.5-1.6) for 6, 8, 10 PCG iterations on the spheres
     and 24 against 17 on the bunny, at about the same solve time: the choice where the
     hierarchy is rebuilt often.
-    The coarsening stops at ``max_coarse`` unknowns (default 300).
+    The coarsening stops at ``max_coarse`` unknowns (default 300). pyamg and the damping estimates
+    run on one BLAS thread (OpenBLAS's threads on 2 busy cores made them 2-4x slower).
 Coarsest level
     Solved exactly, on the GPU, by one pass: ``x_c = A_c^-1 b_c`` with the dense inverse of
     each channel's ``A_c`` (float64 LAPACK, stored in fp32) as an ``n_c``-slot gather (``n_c^2``
@@ -58,8 +59,11 @@ Acceleration (``accel``)
     contract by 0.93 per cycle (pyamg's own Gauss-Seidel V-cycles by 0.92) and need 42 cycles
     to 1e-4, PCG 17; on the sphere 12 and 6.
 Smoothing damping
-    ``omega="auto"`` takes, per level, ``omega_l = 1.6 / lambda_max(D_l^-1 A_l)`` (Lanczos,
-    :func:`~glsldiff.oracle.amg.jacobi_lambda_max`, the largest over the channels). A smoother
+    ``omega="auto"`` takes, per level, ``omega_l = 1.6 / lambda_max(D_l^-1 A_l)``, the largest
+    over the channels, ``lambda_max`` from above: a Lanczos Ritz value plus its residual, to 0.2 %
+    (:func:`~glsldiff.oracle.amg.jacobi_lambda_bound`; +0.15 to +0.2 % on the bunny's levels:
+    0.4 s CPU for its 9 matrices against 1.5 s for ARPACK to 1e-3 on one BLAS thread, 5-6 s on
+    OpenBLAS's threads; the same PCG iterations, errors within 0.5 %). A smoother
     must damp the upper part of the spectrum (what the coarse grid cannot represent); the
     classic ``4/3 / lambda_max`` balances ``|1 - omega lambda|`` over ``[lambda_max / 2,
     lambda_max]``; 1.6 trades some of that for the middle of the spectrum, which these
@@ -92,7 +96,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
-from glsldiff.oracle.amg import build_prolongations, galerkin, jacobi_lambda_max
+from glsldiff.oracle.amg import build_prolongations, galerkin, jacobi_lambda_bound
 from glsldiff.oracle.assembly import LinearSystem, row_entries
 from glsldiff.oracle.solvers import Callback
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
@@ -111,7 +115,7 @@ ACCELERATIONS = ("cg", None)   # conjugate gradients preconditioned by one V-cyc
 def smoother_omega(mats: Sequence[sp.csr_matrix], target: float = SMOOTH_TARGET) -> tuple[float, float]:
     """``(omega, lambda_max)``: ``target / lambda_max(D^-1 A)``, the largest over the distinct
     channel matrices (the ``omega="auto"`` smoothing damping, module docstring)."""
-    lam = max(jacobi_lambda_max(M) for M in distinct(list(mats)))
+    lam = max(jacobi_lambda_bound(M) for M in distinct(list(mats)))
     return target / lam, lam
 
 
@@ -129,7 +133,7 @@ class MultigridLevel:
         Prolongation to this level from the next coarser one (``n x n_next``, shared by the
         channels); ``None`` at the coarsest.
     omega, lambda_max
-        Smoothing damping and the ``lambda_max(D^-1 A)`` estimate behind it (``None`` for a
+        Smoothing damping and the ``lambda_max(D^-1 A)`` upper estimate behind it (``None`` for a
         given omega; both ``nan`` at the coarsest, which is solved exactly).
     slots
         ``K`` of the level's gather: off-diagonals of ``A`` per row; at the coarsest, ``n``
@@ -381,7 +385,8 @@ class GlslSparseMultigrid(GatherSolver):
         t0 = time.perf_counter()
         As = [mats]
         for P in Ps:
-            As.append([galerkin(A, P) for A in As[-1]])
+            R = sp.csr_matrix(P.T)
+            As.append([galerkin(A, P, R) for A in As[-1]])
         self.setup_seconds["galerkin"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if level_omegas is not None and (prolongations is None or len(level_omegas) != len(Ps)

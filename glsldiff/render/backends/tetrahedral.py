@@ -73,7 +73,7 @@ FRAME_ITERATIONS = 1
 STALL_FRAMES = 6
 STALL_RATIO = 0.3
 #: Part of the cached aggregation's key: bump it when the hierarchy's construction changes.
-HIERARCHY_CACHE_VERSION = 1
+HIERARCHY_CACHE_VERSION = 2   # 2: smoothing damping from a Lanczos upper bound (oracle.amg.jacobi_lambda_bound)
 #: An edit changing more than this share of the nodes rebuilds the multigrid (the kept one
 #: would precondition a different material).
 REBUILD_SHARE = 0.25
@@ -175,8 +175,9 @@ class TetPass2:
 
     def _build(self, x0: NDArray | None, hierarchy: dict[str, list] | None = None) -> None:
         """The GPU multigrid of the current system (its aggregation and smoothing damping read
-        from the disk cache with the grid's other entries: 3.1 of the 5.1 s set-up on the bunny;
-        or ``hierarchy``'s, :func:`_hierarchy` of an earlier solver)."""
+        from the disk cache with the grid's other entries: pyamg and the damping bounds are about
+        2 of the 3.7 s set-up on the bunny, quiet cores; or ``hierarchy``'s, :func:`_hierarchy`
+        of an earlier solver)."""
         assert self.p1 is not None
         s = self.p1.system
         if self.solver is None:
