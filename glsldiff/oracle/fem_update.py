@@ -31,7 +31,8 @@ from glsldiff.oracle.fem import TetGeometry
 __all__ = ["P1Pattern", "P1System", "P1Update", "cached_p1_pattern"]
 
 #: Part of every cached pattern's key: bump it when :class:`P1Pattern` changes.
-PATTERN_CACHE_VERSION = 2   # 2: the surface mass at its positions only; no node -> tetrahedra lists
+PATTERN_CACHE_VERSION = 3   # 2: the surface mass at its positions only; no node -> tetrahedra lists;
+#                               3: the surface mass is lumped at crease nodes
 
 
 @dataclass(frozen=True)
