@@ -305,6 +305,14 @@ def test_cli_synth_and_fit(tmp_path, capsys) -> None:
     capsys.readouterr()
     with np.load(tmp_path / "mat_gl.npz") as d:
         assert str(d["backend"]) == "glsl" and np.all(d["kappa"] > 0)
+    # ... and with pyamg (multigrid-preconditioned CG) in place of SuperLU
+    assert main(["fit", str(meas), "-o", str(tmp_path / "mat_amg.npz"), "--max-evals", "3", "--solver", "pyamg",
+                 "--no-png"]) == 0
+    assert "(pyamg)" in capsys.readouterr().out
+    with np.load(tmp_path / "mat_amg.npz") as d:
+        assert str(d["solver"]) == "pyamg" and np.all(d["kappa"] > 0)
+    assert main(["fit", str(meas), "-o", str(tmp_path / "x.npz"), "--backend", "glsl", "--solver", "pyamg"]) == 2
+    assert "--solver chooses the CPU backend's solver" in capsys.readouterr().err
 
 
 def test_cli_fit_fails_before_work_on_unwritable_output(tmp_path, capsys) -> None:
@@ -320,9 +328,26 @@ def test_cli_bench_fit_tiny(tmp_path, capsys) -> None:
     """`glsldiff bench fit` runs end to end (a tiny volume, 3 evaluations) and writes its files."""
     out = tmp_path / "bf"
     assert main(["bench", "fit", "--size", "12", "12", "4", "--n", "1", "--methods", "lbfgs",
-                 "--max-evals", "3", "--skip", "lambda", "backends", "--out", str(out)]) == 0
+                 "--max-evals", "3", "--skip", "lambda", "backends", "scale", "--out", str(out)]) == 0
     assert "figure 11" in capsys.readouterr().out
     assert (out / "fit.png").exists()
+
+
+def test_cli_bench_fit_scale_tiny(tmp_path, capsys) -> None:
+    """The scale part: SuperLU and pyamg per grid, time, memory and their agreement, Table II beside."""
+    out = tmp_path / "bf"
+    assert main(["bench", "fit", "--skip", "measurements", "lambda", "backends", "--scale-sizes", "12x12x6",
+                 "24x24x6", "--scale-repeats", "1", "--superlu-max-gib", "1e-6", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "time per objective evaluation" in text and "Marble 256x256x20 back-lit 11 h" in text
+    import csv
+    rows = list(csv.DictReader(open(out / "fit_scale.csv")))
+    assert [(r["grid"], r["solver"]) for r in rows] == [("12x12x6", "superlu"), ("12x12x6", "pyamg"),
+                                                        ("24x24x6", "superlu"), ("24x24x6", "pyamg")]
+    # a 1e-6 GiB limit skips SuperLU, and says so; pyamg then has no reference
+    assert all(r["note"].startswith("skipped: extrapolated") for r in rows if r["solver"] == "superlu")
+    assert all(float(r["t_eval_s"]) > 0 and r["note"] == "no SuperLU reference" for r in rows if r["solver"] == "pyamg")
+    assert (out / "fit_scale.png").stat().st_size > 0
 
 
 def test_the_calibrated_model_recovers_the_physical_material() -> None:
@@ -399,3 +424,148 @@ def test_ctrl_c_during_an_nlopt_run_keeps_the_best_point(where: str) -> None:
     z = minimize(prob, np.full(40, np.log(3.0)), stopval=-1.0)
     assert prob.trace.status == "interrupted" and len(prob.trace.records) in (3, 4)
     assert np.array_equal(z, prob.best_z) and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+# ---- iterative (pyamg) solves ------------------------------------------------------------
+def _pair(stencil: str = "conservative", face_mean: str = "arithmetic", size=(16, 16, 6), **amg):
+    """A SuperLU and a pyamg model of the same grid (several multigrid levels: > 500 nodes)."""
+    grid = RegularGrid(*size, h=0.5)
+    return (ForwardModel(grid, stencil=stencil, face_mean=face_mean, solver="superlu"),
+            ForwardModel(grid, stencil=stencil, face_mean=face_mean, solver="pyamg", **amg))
+
+
+@pytest.mark.parametrize("stencil,face_mean,amg", [("conservative", "arithmetic", "rs"),
+                                                   ("conservative", "harmonic", "rs"),
+                                                   ("paper", "arithmetic", "rs"), ("conservative", "arithmetic", "sa")])
+def test_pyamg_solves_equal_superlu(stencil: str, face_mean: str, amg: str) -> None:
+    """Forward and adjoint (transposed) solves of the symmetrised system equal SuperLU's to the
+    tolerance; so do the nonsymmetric fallback's (one hierarchy for A, one for A^T)."""
+    from glsldiff.inverse.model import AmgFactorized
+
+    lu, it = _pair(stencil, face_mean, amg=amg)
+    Q, _, _, kappa, mu = _random_problem(lu, 4, 1)
+    f1, f2 = lu.factorize(kappa, mu), it.factorize(kappa, mu)
+    assert isinstance(f2, AmgFactorized) and f2.symmetric and f2.hierarchy.levels >= 2
+    G = np.random.default_rng(2).standard_normal((lu.n, 4))
+    err = lambda a, b: np.linalg.norm(a - b) / np.linalg.norm(b)  # noqa: E731
+    assert err(f2.solve(Q), f1.solve(Q)) < 1e-8
+    assert err(f2.adjoint(G), f1.adjoint(G)) < 1e-8
+    assert it.stats.iterations > 0 and it.stats.worst_residual <= it.amg_rtol
+    f3 = AmgFactorized.prepare(it, kappa, mu, it.matrix(kappa, mu), symmetric=False)
+    assert err(f3.solve(Q), f1.solve(Q)) < 1e-8 and err(f3.adjoint(G), f1.adjoint(G)) < 1e-8
+
+
+@pytest.mark.parametrize("stencil,face_mean", [("conservative", "arithmetic"), ("conservative", "harmonic"),
+                                               ("paper", "arithmetic")])
+def test_pyamg_gradient_matches_finite_differences(stencil: str, face_mean: str) -> None:
+    """The adjoint gradient with iterative solves: equal to SuperLU's, and to central
+    differences of the objective along random directions (every evaluation warm-started from
+    the last, the hierarchy reused: the value is still exact to the tolerance)."""
+    lu, it = _pair(stencil, face_mean)
+    Q, Y, W, kappa, mu = _random_problem(lu, 3, 0)
+    e1 = Objective(lu, Q, Y, W, lam=1e-2).evaluate(kappa, mu)
+    obj = Objective(it, Q, Y, W, lam=1e-2)
+    e2 = obj.evaluate(kappa, mu)
+    g1, g2 = (np.concatenate([e.grad_kappa, e.grad_mu]) for e in (e1, e2))
+    assert abs(e2.value - e1.value) <= 1e-10 * e1.value
+    assert np.linalg.norm(g2 - g1) <= 1e-8 * np.linalg.norm(g1)
+    rng = np.random.default_rng(4)
+    n, eps = it.n, 1e-6
+    for _ in range(3):
+        d = rng.standard_normal(2 * n)
+        fp = obj.evaluate(kappa + eps * d[:n], mu + eps * d[n:], gradient=False).value
+        fm = obj.evaluate(kappa - eps * d[:n], mu - eps * d[n:], gradient=False).value
+        assert abs((fp - fm) / (2 * eps) - g2 @ d) <= 1e-4 * abs(g2 @ d)
+    assert it.stats.galerkin > 0 and it.stats.solves >= 2 * 3
+
+
+def test_pyamg_warm_start_reduces_iterations() -> None:
+    """The next material's solves start from the last ones: fewer iterations than from zero."""
+    counts = []
+    for warm in (False, True):
+        _, it = _pair(size=(24, 24, 8), warm=warm)
+        Q, Y, W, kappa, mu = _random_problem(it, 4, 0)
+        obj = Objective(it, Q, Y, W)
+        obj.evaluate(kappa, mu)
+        before = it.stats.iterations
+        rng = np.random.default_rng(1)
+        obj.evaluate(kappa * (1 + 1e-3 * rng.standard_normal(it.n)), mu * (1 + 1e-3 * rng.standard_normal(it.n)))
+        counts.append(it.stats.iterations - before)
+    assert counts[1] < 0.8 * counts[0], counts
+
+
+def test_auto_solver_picks_by_size(monkeypatch) -> None:
+    """"auto": SuperLU up to AUTO_MAX_DIRECT active nodes, pyamg above; FitOptions passes it on."""
+    import glsldiff.inverse.model as model_mod
+    from glsldiff.inverse.amg import AUTO_MAX_DIRECT
+    from glsldiff.inverse.model import AmgFactorized, resolve_solver
+
+    assert resolve_solver("auto", AUTO_MAX_DIRECT) == "superlu"
+    assert resolve_solver("auto", AUTO_MAX_DIRECT + 1) == "pyamg"
+    assert resolve_solver("superlu", 10**9) == "superlu" and resolve_solver("pyamg", 10) == "pyamg"
+    m = ForwardModel(RegularGrid(10, 10, 5, h=0.5))
+    assert m.method == "superlu"
+    monkeypatch.setattr(model_mod, "AUTO_MAX_DIRECT", m.n - 1)
+    assert m.method == "pyamg"
+    Q, _, _, kappa, mu = _random_problem(m, 2, 0)
+    assert isinstance(m.factorize(kappa, mu), AmgFactorized)
+    with pytest.raises(InputError, match="solver"):
+        FitOptions(solver="cholmod")
+
+
+def test_pyamg_non_converged_solve_raises() -> None:
+    """An iterative solve that misses its tolerance is a SolverError naming the residual
+    reached; strict=False accepts it and counts it."""
+    from glsldiff.core.errors import SolverError
+
+    _, it = _pair(amg_maxiter=1, amg_rtol=1e-14)
+    Q, Y, W, kappa, mu = _random_problem(it, 2, 0)
+    with pytest.raises(SolverError, match=r"did not converge: 2 of 2 columns above the relative residual 1e-14 "
+                                          r"after 1 iterations \(worst [0-9.e-]+\)"):
+        it.factorize(kappa, mu).solve(Q)
+    _, loose = _pair(amg_maxiter=1, amg_rtol=1e-14, strict=False)
+    loose.factorize(kappa, mu).solve(Q)
+    assert loose.stats.unconverged == 2 and 1e-14 < loose.stats.worst_residual < 1
+
+
+def test_pyamg_solve_is_interruptible() -> None:
+    """Ctrl-C during the Krylov loop (Python) raises KeyboardInterrupt promptly."""
+    import _thread
+    import threading
+    import time
+
+    _, it = _pair(size=(48, 48, 12))
+    Q, _, _, kappa, mu = _random_problem(it, 16, 0)
+    fac = it.factorize(kappa, mu)
+    timer = threading.Timer(0.2, _thread.interrupt_main)
+    t0 = time.perf_counter()
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            for _ in range(100):
+                fac.solve(Q)
+                it._amg.warm.clear()
+    finally:
+        timer.cancel()
+    assert time.perf_counter() - t0 < 2.0
+
+
+def test_fit_reaches_the_same_objective_with_both_solvers() -> None:
+    """A small fit with SuperLU and with pyamg reaches the same objective. Cold-started pyamg
+    solves follow SuperLU's trace to the tolerance's reach; warm-started ones leave it after a
+    few steps (their errors, uncorrelated between evaluations, move L-BFGS's curvature estimate
+    along the data's flat directions) and end at the same objective."""
+    k, m = synthetic_volume((6, 16, 16), "mixed", seed=3)
+    meas = synthetic_measurements(np.repeat(k[..., 1:2], 3, -1), np.repeat(m[..., 1:2], 3, -1), 0.5, 3, "back",
+                                  noise=0.01, seed=1)
+    fits = {}
+    for name, solver, warm in (("superlu", "superlu", True), ("cold", "pyamg", False), ("warm", "pyamg", True)):
+        model = ForwardModel(meas.grid, solver=solver, warm=warm)
+        fits[name] = fit_channel(model, *meas.channel(1), FitOptions(max_evals=30, solver=solver))
+        assert model.method == solver and fits[name].trace.status == "budget spent"
+    a = fits["superlu"]
+    assert a.homogeneous == pytest.approx(fits["warm"].homogeneous, rel=1e-3)   # the stage's own tolerance
+    va, vc = [r.value for r in a.trace.records], [r.value for r in fits["cold"].trace.records]
+    assert np.allclose(va[:6], vc[:6], rtol=1e-5, atol=0)
+    for name in ("cold", "warm"):
+        assert fits[name].trace.best.value == pytest.approx(a.trace.best.value, rel=0.02)

@@ -16,7 +16,9 @@ from glsldiff.bench import fit as fit_bench
 from glsldiff.core.io import write_csv, write_exr, write_npz
 from glsldiff.inverse.figures import depth_slices
 from glsldiff.inverse.checkpoint import CHECKPOINT_EVERY_S, Checkpoint, checkpoint_path, load_checkpoint
+from glsldiff.inverse.amg import AUTO_MAX_DIRECT
 from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
+from glsldiff.inverse.model import SOLVERS, resolve_solver
 from glsldiff.inverse.measurements import Measurements, load_measurements, save_measurements
 from glsldiff.inverse.reflectance import diffuse_reflectance
 from glsldiff.inverse.synthetic import SYNTH_SETUPS, bssrdf_error, coefficient_errors, synthetic_measurements
@@ -63,6 +65,9 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                         "physical kappa and mu) or the paper's net flux")
     p.add_argument("--backend", choices=("cpu", "glsl"), default="cpu",
                    help="forward/adjoint solves: one SuperLU factor (cpu) or GLSL Jacobi (glsl)")
+    p.add_argument("--solver", choices=SOLVERS, default="auto",
+                   help="--backend cpu: one SuperLU factor per material, pyamg multigrid + CG (warm-started, for "
+                        f"large grids), or auto: SuperLU up to {AUTO_MAX_DIRECT} active nodes, pyamg above")
     p.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for --backend glsl")
     p.add_argument("--max-evals", type=A.integer(1), default=200, help="evaluations per channel")
     p.add_argument("--max-seconds", type=A.number(0.0, lo_open=True, allow_inf=True), default=math.inf, help="time budget per channel")
@@ -89,7 +94,8 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.set_defaults(func=cmd_reflectance)
 
     b = bsub.add_parser("fit", help="inverse diffusion: figure 11 (E vs measurements, vs iterations), "
-                                    "figure 13 (lambda), CPU vs GLSL forward solves")
+                                    "figure 13 (lambda), CPU vs GLSL forward solves, SuperLU vs pyamg against the "
+                                    "grid size (scale)")
     b.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 8), metavar=("NX", "NY", "NZ"),
                    help="nodes per axis of the synthetic block")
     b.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
@@ -102,8 +108,19 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     b.add_argument("--noise", type=A.nonnegative, default=0.01, help="relative shot noise of the measurements")
     b.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed",
                    help="the synthetic material")
-    b.add_argument("--skip", nargs="*", default=[], choices=("measurements", "lambda", "backends"),
+    b.add_argument("--skip", nargs="*", default=[], choices=("measurements", "lambda", "backends", "scale"),
                    help="parts of the benchmark to leave out")
+    b.add_argument("--scale-sizes", type=fit_bench.parse_size, nargs="+", default=None, metavar="NXxNYxNZ",
+                   help="grids of the scale part (time and memory per evaluation, SuperLU vs pyamg); default "
+                        + " ".join(f"{x}x{y}x{z}" for x, y, z in fit_bench.SCALE_SIZES))
+    b.add_argument("--scale-repeats", type=A.integer(1, 100), default=2,
+                   help="timed evaluations per solver and grid in the scale part, after a first (cold) one")
+    b.add_argument("--superlu-max-gib", type=A.positive, default=12.0,
+                   help="scale part: skip SuperLU where one evaluation would take more than this many GiB (peak, "
+                        "extrapolated from the last grid measured)")
+    b.add_argument("--superlu-max-s", type=A.positive, default=900.0,
+                   help="scale part: skip SuperLU where one factorisation would exceed this many seconds "
+                        "(extrapolated)")
     b.add_argument("--out", default="bench-out", help="output folder (CSV + PNG)")
     b.add_argument("--gl", choices=("egl", "osmesa", "auto"), help="GL backend for the GLSL path")
     b.set_defaults(func=cmd_bench_fit)
@@ -166,7 +183,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     out = check_output(args.out)
     options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,
                          mu0=args.mu0, max_evals=args.max_evals, max_seconds=args.max_seconds,
-                         backend=args.backend, exitant=args.exitant)
+                         backend=args.backend, exitant=args.exitant, solver=args.solver)
+    if args.backend == "glsl" and args.solver != "auto":
+        raise InputError("--solver chooses the CPU backend's solver; --backend glsl solves by Jacobi on the GPU")
     meas = load_measurements(args.measurements)
     truth = None
     if args.truth:
@@ -214,8 +233,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if truth is not None:
         E = bssrdf_error(meas.grid, truth, (result.kappa, result.mu), sources=(meas.lit_face,),
                          receivers=meas.observed_faces, stencil=options.stencil, eta=meas.eta)
+    solver = f" ({resolve_solver(options.solver, meas.grid.graph.active.size)})" if options.backend == "cpu" else ""
     print_table(f"inverse diffusion, {meas.M} measurements, {meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} "
-                f"nodes, method {options.method}, lambda {options.lam:g}, {options.backend} solves", table)
+                f"nodes, method {options.method}, lambda {options.lam:g}, {options.backend} solves{solver}", table)
     for note in result.notes:
         print(note)
     for c, f in enumerate(result.channels[:1] if result.shared else result.channels):

@@ -30,7 +30,7 @@ from glsldiff.grids.graph import INTERIOR
 from glsldiff.inverse.checkpoint import ChannelProgress, Checkpoint
 from glsldiff.inverse.glsl import GlslForwardModel
 from glsldiff.inverse.measurements import Measurements
-from glsldiff.inverse.model import ForwardModel
+from glsldiff.inverse.model import SOLVERS, ForwardModel
 from glsldiff.inverse.objective import Objective
 from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, minimize
 from glsldiff.inverse.ranges import PROFILE_TOLERANCE, CoefficientRanges, profile_ranges
@@ -56,11 +56,13 @@ class FitOptions:
     max_seconds: float = math.inf  # heterogeneous stage, per channel
     homogeneous_evals: int = 40
     parameterization: str = "log"
-    backend: str = "cpu"          # "cpu": one SuperLU factor per material; "glsl": GPU Jacobi
+    backend: str = "cpu"          # "cpu": one SuperLU factor or pyamg hierarchy per material; "glsl": GPU Jacobi
     exitant: str = "p1"           # source and exitance convention of the forward model
+    solver: str = "auto"          # cpu backend: "superlu", "pyamg", or "auto" (by node count, ForwardModel.method)
 
     def __post_init__(self) -> None:
         choice(self.backend, "backend", BACKENDS)
+        choice(self.solver, "solver", SOLVERS)
         choice(self.exitant, "exitant", EXITANT)
         choice(self.method, "method", METHODS)
         real(self.kappa0, "kappa0 (mm)", 0.0, lo_open=True)
@@ -114,7 +116,8 @@ def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: 
     o = objective
     model = o.model
     if type(model) is not ForwardModel:  # e.g. the GLSL path: the two-unknown fit runs on the CPU
-        model = ForwardModel(model.grid, model.stencil, model.face_mean, model.eta, model.C, model.exitant)
+        model = ForwardModel(model.grid, model.stencil, model.face_mean, model.eta, model.C, model.exitant,
+                             solver=model.solver)
     ones = np.ones(model.n)
     w = np.sqrt(o.W / o.norm)
     trace = Trace("homogeneous-trf")
@@ -137,8 +140,8 @@ def fit_homogeneous(objective: Objective, kappa0: float, mu0: float, max_evals: 
     def jac(z: Array) -> Array:
         fac, X, _ = state(z)
         cols = []
-        for dk, dm in ((fac.kappa, 0.0 * ones), (0.0 * ones, fac.mu)):  # d/dlog = value * d/dvalue
-            dX = fac.tangent(X, o.Q, dk, dm)
+        for i, (dk, dm) in enumerate(((fac.kappa, 0.0 * ones), (0.0 * ones, fac.mu))):  # d/dlog = value * d/dvalue
+            dX = fac.tangent(X, o.Q, dk, dm, key=f"tangent{i}")
             cols.append((w * fac.radiance_tangent(X, dX, dk)).ravel())
         return np.stack(cols, axis=1)
 
@@ -223,7 +226,8 @@ def fit_measurements(meas: Measurements, options: FitOptions | None = None,
         model: ForwardModel = GlslForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C,
                                                options.exitant)
     else:
-        model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C, options.exitant)
+        model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C, options.exitant,
+                             solver=options.solver)
     shared = meas.grey()
     fits: list[ChannelFit] = []
     notes: list[str] = ["grey data: one fit served all three channels"] if shared else []
@@ -274,6 +278,7 @@ def save_material(path: str | os.PathLike, result: FitResult) -> Path:
     to ``.npz`` atomically."""
     o = result.options
     arrays = dict(kappa=result.kappa, mu=result.mu, h=result.h, method=o.method, lam=o.lam, backend=o.backend,
+                  solver=o.solver,
                   stencil=o.stencil, face_mean=o.face_mean, exitant=o.exitant, seconds=result.seconds,
                   data_error=np.array([f.data for f in result.channels]),
                   converged=np.array([f.converged for f in result.channels]),

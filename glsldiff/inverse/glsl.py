@@ -61,7 +61,7 @@ class GlslForwardModel(ForwardModel):
 class GlslFactorized(Factorized):
     """Solves of one material on the GPU (see the module docstring)."""
 
-    def _solve(self, B: Array, trans: str) -> Array:
+    def _solve(self, B: Array, trans: str, key: str | None = None) -> Array:
         m: GlslForwardModel = self.model  # type: ignore[assignment]
         t0 = time.perf_counter()
         bnd, prt = m.boundary, m.partner

@@ -13,8 +13,9 @@ unnormalised, in unstated units). The regulariser is the paper's sum over nodes 
 normalised data term the paper's lambda = 1e-4 ... 1e-6 spans too smooth ... too noisy
 (see the regularisation study in docs/guide/inverse.md).
 
-The gradient costs one factorisation, M forward and M adjoint solves (all with the same
-factor) and is exact for this discrete objective.
+The gradient costs one factorisation (or, with the pyamg solver, one multigrid hierarchy), M
+forward and M adjoint solves (all with the same factor or hierarchy) and is exact for this
+discrete objective (with pyamg: to its solve tolerance).
 """
 from __future__ import annotations
 
