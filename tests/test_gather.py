@@ -17,9 +17,12 @@ import pytest
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.amg import jacobi_lambda_max
-from glsldiff.solve.gather import GlslSparse, pack_ell, pack_nodes, sweep_rate
+from glsldiff.oracle.assembly import ChannelSystem, LinearSystem, channel_values
+from glsldiff.solve.gather import (GlslSparse, channel_matrices, pack_ell, pack_nodes, sweep_rate,
+                                   upload_packed)
 from glsldiff.system.report import CURRENT
 
 from gather_systems import lit_laplacians, rel, spsolve3   # tests/gather_systems.py
@@ -160,11 +163,10 @@ def numpy_pack_ell(mats, size, *, diagonal, keep_zeros=False, row_offset=0, slot
     return coef.reshape(max(K, 1), H, W, 4), K, counts
 
 
-def test_pack_ell_equals_numpy():
-    """The compiled packing (:func:`pack_ell`'s loops) equals the numpy scatter it replaced, bit
-    for bit: a system matrix with stored zeros (kept or not, diagonal dropped), a rectangular
-    one, channels on different patterns (the union), a band of rows (``row_offset``, ``slots``)
-    and an all-diagonal one (no slots)."""
+def pack_cases() -> list[tuple[list[sp.csr_matrix], tuple[int, int], dict]]:
+    """``(mats, size, pack_ell keywords)``: a system matrix with stored zeros (kept or not,
+    diagonal dropped), a rectangular one, channels on different patterns (the union), a band of
+    rows (``row_offset``, ``slots``) and an all-diagonal one (no slots)."""
     rng = np.random.default_rng(7)
     A = sp.random(300, 300, density=0.03, random_state=1, format="csr")
     A = (A + A.T + sp.eye(300)).tocsr()
@@ -173,16 +175,69 @@ def test_pack_ell_equals_numpy():
     three[2].data[::5] = 0.0
     R = sp.random(60, 300, density=0.05, random_state=2, format="csr")
     B = sp.random(300, 300, density=0.02, random_state=3, format="csr")
-    cases = [(three, (32, 10), {"diagonal": False}), (three, (32, 10), {"diagonal": False, "keep_zeros": True}),
-             (three, (16, 19), {"diagonal": True}), ([R, 2 * R, R], (8, 8), {"diagonal": True}),
-             ([A, B, 3 * A], (32, 10), {"diagonal": False}),
-             ([M[40:90] for M in three], (32, 2), {"diagonal": False, "keep_zeros": True, "row_offset": 40,
-                                                   "slots": 40}),
-             ([sp.diags(rng.uniform(1, 2, 300)).tocsr()] * 3, (32, 10), {"diagonal": False})]
-    for mats, size, kw in cases:
+    return [(three, (32, 10), {"diagonal": False}), (three, (32, 10), {"diagonal": False, "keep_zeros": True}),
+            (three, (16, 19), {"diagonal": True}), ([R, 2 * R, R], (8, 8), {"diagonal": True}),
+            ([A, B, 3 * A], (32, 10), {"diagonal": False}),
+            ([M[40:90] for M in three], (32, 2), {"diagonal": False, "keep_zeros": True, "row_offset": 40,
+                                                  "slots": 40}),
+            ([sp.diags(rng.uniform(1, 2, 300)).tocsr()] * 3, (32, 10), {"diagonal": False})]
+
+
+def test_pack_ell_equals_numpy():
+    """The compiled packing (:func:`pack_ell`'s loops) equals the numpy scatter it replaced, bit
+    for bit, on every :func:`pack_cases` case."""
+    for mats, size, kw in pack_cases():
         got, (coef, K, counts) = pack_ell(mats, size, **kw), numpy_pack_ell(mats, size, **kw)
         assert got.slots == K and np.array_equal(got.row_slots, counts), kw
         assert got.coef.dtype == np.float32 and np.array_equal(got.coef, coef), kw
+
+
+def test_upload_packed_equals_pack_ell(ctx):
+    """upload_packed (the slots packed and written a band of texel rows at a time, never the
+    whole pack) gives the texture of pack_ell, bit for bit, and its slots per row: bands of one
+    texel row, of three, and one band for all."""
+    res = gl.Resources()
+    try:
+        for mats, size, kw in pack_cases():
+            if "row_offset" in kw:
+                continue                    # a band re-packed in place: pack_ell alone
+            want = pack_ell(mats, size, **kw)
+            row_bytes = want.coef.shape[0] * size[0] * 16
+            for band in (1, 3 * row_bytes, 1 << 30):
+                m, rows = upload_packed(ctx, mats, size, res, band_bytes=band, **kw)
+                got = np.frombuffer(m.texture.read(alignment=1), dtype=np.float32).reshape(want.coef.shape)
+                assert m.slots == want.slots and np.array_equal(rows, want.row_slots), (kw, band)
+                assert np.array_equal(got, want.coef), (kw, band)
+    finally:
+        res.release()
+
+
+def test_channel_matrices_compact_form():
+    """channel_matrices gives the three channels one pattern and one (3, nnz) values array:
+    separate matrices (or one for all channels) are copied into that form, matrices already in
+    it (a P1 system's) come back as they are, not copied. The ChannelSystem of them computes the
+    Jacobi step of the block-diagonal system bit for bit, and its ``A``, made on demand, views
+    their values."""
+    mats = random_spd(60, seed=4, density=0.08)
+    out = channel_matrices(mats)
+    values = channel_values(out)
+    assert values is not None and values.shape == (3, mats[0].nnz)
+    assert not any(np.shares_memory(values, M.data) for M in mats)
+    assert all(abs(M - O).max() == 0.0 for M, O in zip(mats, out))
+    again = channel_matrices(out)
+    assert all(a is o for a, o in zip(again, out))
+    assert channel_values(channel_matrices(mats[0])) is not None
+    assert channel_values(mats) is None
+    rng = np.random.default_rng(3)
+    b, x = rng.uniform(0, 1, 180), rng.uniform(-1, 1, 180)
+    diag = np.concatenate([M.diagonal() for M in out])
+    s = ChannelSystem(out, b, diag, np.arange(60))
+    ref = LinearSystem(sp.block_diag(out, format="csr"), b, diag, np.arange(60))
+    assert np.array_equal(s.jacobi_step(x), ref.jacobi_step(x)) and s.residual(x) == ref.residual(x)
+    assert abs(s.A - ref.A).max() == 0.0 and np.shares_memory(s.A.data, values)
+    assert s.block(1)[0] is out[1] and np.array_equal(s.block(1)[1], b[60:120])
+    s.set_blocks(mats)
+    assert s.A.nnz == ref.A.nnz and not np.shares_memory(s.A.data, values)
 
 
 # ---- 2. converged solves --------------------------------------------------------------------

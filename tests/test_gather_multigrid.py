@@ -18,7 +18,7 @@ import scipy.sparse as sp
 
 from glsldiff.core.errors import InputError
 from glsldiff.oracle.amg import jacobi_lambda_max
-from glsldiff.solve.gather import GlslSparse, auto_omega
+from glsldiff.solve.gather import GlslSparse, auto_omega, pack_ell
 from glsldiff.solve.gather_multigrid import GlslSparseMultigrid
 from glsldiff.system.report import CURRENT
 
@@ -340,6 +340,35 @@ def editable():
     k2[near] *= 0.4
     m2[near] *= 3.0
     return P, k2, m2
+
+
+def test_textures_are_the_level_packs_and_the_finest_is_not_copied(ctx, editable):
+    """Every gather texture, packed and written level by level, matrix by matrix, a band of texel
+    rows at a time, is pack_ell's pack of that level's matrices, bit for bit (the textures of the
+    whole packs uploaded at once). A P1 system's matrices (one pattern, one values array) are
+    the finest level and the CPU system as they are, not copied."""
+    P, _, _ = editable
+    mats = P.matrices()
+    with GlslSparseMultigrid(mats, P.system.b.reshape(3, -1).T, ctx=ctx) as s:
+        assert len(s.levels) >= 2
+        assert all(A is M for A, M in zip(s.levels[0].A, mats))
+        assert all(A is M for A, M in zip(s.system.blocks, mats))
+        for l, (lv, g) in enumerate(zip(s.levels, s._levels)):
+            diag = np.stack([A.diagonal() for A in lv.A], axis=1)
+            want = {"A": (lv.A, lv.size, {"diagonal": False, "keep_zeros": l == 0})}
+            if lv.coarsest:
+                want["inverse"] = ([sp.csr_matrix(M) for M in lv.inverse], lv.size, {"diagonal": True})
+                if l > 0:
+                    del want["A"]
+            else:
+                want["P"] = ([lv.P] * 3, lv.size, {"diagonal": True})
+                want["R"] = ([sp.csr_matrix(lv.P.T)] * 3, s.levels[l + 1].size, {"diagonal": True})
+                want["first"] = ([sp.diags(lv.omega / diag[:, c]).tocsr() for c in range(3)], lv.size,
+                                 {"diagonal": True})
+            for name, (ms, size, kw) in want.items():
+                pack, m = pack_ell(ms, size, **kw), getattr(g, name)
+                got = np.frombuffer(m.texture.read(alignment=1), dtype=np.float32).reshape(pack.coef.shape)
+                assert m.slots == pack.slots and np.array_equal(got, pack.coef), (l, name)
 
 
 def _assert_stale_vcycle(s, P, Ps, stale, omegas, b, seed):

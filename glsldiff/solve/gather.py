@@ -28,7 +28,8 @@ with texel fetches per node and sweep: ``x_i``, ``a_ii``, ``b_i`` and two per us
 (coefficient texel, ``x_j``), plus one for the first empty slot of a row shorter than ``K``:
 ``3 + 2 k_i (+1)``, ``k_i`` the row's off-diagonal count.
 
-The packing (:func:`pack_nodes`, :func:`pack_ell`), the upload (:func:`upload_ell`) and the pass
+The packing (:func:`pack_nodes`, :func:`pack_ell`), the upload (:func:`upload_ell`; both at once,
+a band of texel rows at a time, :func:`upload_packed`) and the pass
 (:class:`GatherProgram`: one program, the operation chosen by the uniform ``u_mode``) are shared
 with the multigrid V-cycle of :mod:`glsldiff.solve.gather_multigrid`, whose restriction ``P^T``,
 prolongation ``P`` and dense coarsest-level inverse are rectangular "matrices" in the same
@@ -83,14 +84,14 @@ from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.core.jit import kernel
 from glsldiff.oracle.amg import jacobi_lambda_max
-from glsldiff.oracle.assembly import LinearSystem
+from glsldiff.oracle.assembly import ChannelSystem, LinearSystem, block_diagonal, channel_values
 from glsldiff.oracle.solvers import Callback, Relaxation, relax
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparse", "GatherSolver", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
-           "node_rhs", "check_symmetric", "block_diagonal", "distinct", "texture_width", "pack_nodes", "EllPack",
-           "pack_ell", "GatherMatrix", "upload_ell", "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY",
-           "ADD", "MATVEC"]
+           "channel_values", "compact_channels", "node_rhs", "check_symmetric", "block_diagonal", "distinct",
+           "texture_width", "pack_nodes", "EllPack", "pack_ell", "GatherMatrix", "upload_ell", "upload_packed",
+           "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY", "ADD", "MATVEC"]
 
 PRECISIONS = ("fp32",)
 MAX_NODES = 1 << 24       # neighbour indices are stored as floats (exact integers below 2^24)
@@ -99,6 +100,7 @@ _S = TypeVar("_S", bound="GatherSolver")
 Matrices = sp.spmatrix | sp.sparray | NDArray | Sequence[sp.spmatrix | sp.sparray | NDArray]
 Start = ArrayLike | str | None  # x0: (n, 3) array, CURRENT, or None (zero)
 JACOBI, RESIDUAL, APPLY, ADD, MATVEC = 0, 1, 2, 3, 4   # gather.frag u_mode
+BAND_BYTES = 1 << 23      # upload_packed: slots packed and written about this many bytes at a time
 
 
 # ---- the damping ----------------------------------------------------------------------------
@@ -123,39 +125,58 @@ def parse_omega(omega: float | str) -> float | None:
 
 
 # ---- input checks ---------------------------------------------------------------------------
-def channel_matrices(matrices: Matrices, who: str = "GlslSparse") -> list[sp.csr_matrix]:
-    """The three channel matrices of ``matrices`` (one for all channels, or three), checked
-    (square, real, finite, one stored pattern, positive diagonal, ``1 <= n <= MAX_NODES``) and
-    converted to float64 CSR with sorted indices; ``who`` names the solver in messages."""
+def _channel_items(matrices: Matrices) -> list:
+    """The three per-channel items of ``matrices`` (one matrix for all channels, or three)."""
     if sp.issparse(matrices) or (isinstance(matrices, np.ndarray) and matrices.ndim == 2):
-        items = [matrices] * 3
-    elif isinstance(matrices, (list, tuple)) and len(matrices) == 3:
-        items = list(matrices)
-    else:
-        raise InputError("matrices: give one n x n sparse matrix (used for all three channels) or a "
-                         f"list of three (R, G, B), not {type(matrices).__name__}"
-                         + (f" of length {len(matrices)}" if isinstance(matrices, (list, tuple)) else ""))
+        return [matrices] * 3
+    if isinstance(matrices, (list, tuple)) and len(matrices) == 3:
+        return list(matrices)
+    raise InputError("matrices: give one n x n sparse matrix (used for all three channels) or a "
+                     f"list of three (R, G, B), not {type(matrices).__name__}"
+                     + (f" of length {len(matrices)}" if isinstance(matrices, (list, tuple)) else ""))
+
+
+def compact_channels(values: NDArray[np.float64], indices: NDArray[np.integer], indptr: NDArray[np.integer],
+                     shape: tuple[int, int]) -> list[sp.csr_matrix]:
+    """Three CSR matrices of ``shape`` on one pattern (``indices``, ``indptr``, shared), their
+    data the rows of ``values`` ``(3, nnz)`` (views: they follow changes of ``values``)."""
     out = []
-    for c, m in enumerate(items):
-        try:
-            M = sp.csr_matrix(m if sp.issparse(m) else np.asarray(m), copy=True)
-        except (TypeError, ValueError) as exc:
-            raise InputError(f"matrix of channel {c} is not a 2-D matrix ({exc})") from exc
-        if M.ndim != 2 or M.shape[0] != M.shape[1]:
-            raise InputError(f"matrix of channel {c} has shape {M.shape}; it must be square (n x n)")
-        if np.iscomplexobj(M.data) or M.data.dtype.kind not in "biuf":
-            raise InputError(f"matrix of channel {c} has dtype {M.data.dtype}; it must be real")
-        M = M.astype(np.float64)
-        M.sum_duplicates()
-        M.sort_indices()
-        bad = ~np.isfinite(M.data)
-        if bad.any():
-            k = int(np.argmax(bad))
-            row = int(np.searchsorted(M.indptr, k, side="right") - 1)
-            raise InputError(f"matrix of channel {c} has {int(bad.sum())} non-finite (NaN/inf) entries, "
-                             f"the first at row {row}, column {int(M.indices[k])}")
+    for c in range(3):
+        M = sp.csr_matrix((values[c], indices, indptr), shape=shape)
+        M.data, M.indices, M.indptr = values[c], indices, indptr     # scipy may have made new views or copies
         out.append(M)
-    n = out[0].shape[0]
+    return out
+
+
+def _canonical(m: object, c: int) -> sp.csr_matrix:
+    """Channel ``c``'s matrix as a float64 CSR copy with summed duplicates and sorted indices."""
+    try:
+        M = sp.csr_matrix(m if sp.issparse(m) else np.asarray(m), copy=True)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"matrix of channel {c} is not a 2-D matrix ({exc})") from exc
+    if M.ndim != 2 or M.shape[0] != M.shape[1]:
+        raise InputError(f"matrix of channel {c} has shape {M.shape}; it must be square (n x n)")
+    if np.iscomplexobj(M.data) or M.data.dtype.kind not in "biuf":
+        raise InputError(f"matrix of channel {c} has dtype {M.data.dtype}; it must be real")
+    M = M.astype(np.float64)
+    M.sum_duplicates()
+    M.sort_indices()
+    _check_finite(M, c)
+    return M
+
+
+def _check_finite(M: sp.csr_matrix, c: int) -> None:
+    """InputError naming the first non-finite entry of channel ``c``'s matrix ``M``."""
+    bad = ~np.isfinite(M.data)
+    if bad.any():
+        k = int(np.argmax(bad))
+        row = int(np.searchsorted(M.indptr, k, side="right") - 1)
+        raise InputError(f"matrix of channel {c} has {int(bad.sum())} non-finite (NaN/inf) entries, "
+                         f"the first at row {row}, column {int(M.indices[k])}")
+
+
+def _check_pattern(out: list[sp.csr_matrix]) -> None:
+    """InputError unless the three matrices are ``n x n`` with one stored pattern."""
     for c, M in enumerate(out[1:], start=1):
         if M.shape != out[0].shape:
             raise InputError(f"matrix of channel {c} is {M.shape}, channel 0's {out[0].shape}; all three "
@@ -171,6 +192,11 @@ def channel_matrices(matrices: Matrices, who: str = "GlslSparse") -> list[sp.csr
             raise InputError(f"the channel matrices must share one sparsity pattern (stored entries): "
                              f"channel {c} differs from channel 0 first in row {i} (columns "
                              f"{cols[0].tolist()} vs {cols[1].tolist()}); store explicit zeros to align them")
+
+
+def _check_size_diagonal(out: list[sp.csr_matrix], who: str) -> None:
+    """InputError for a size outside ``1 .. MAX_NODES`` or a diagonal entry that is not positive."""
+    n = out[0].shape[0]
     if n < 1 or n > MAX_NODES:
         raise InputError(f"the system has n = {n} unknowns; {who} takes 1 .. {MAX_NODES} "
                          "(neighbour indices are stored as exact float integers)")
@@ -182,7 +208,28 @@ def channel_matrices(matrices: Matrices, who: str = "GlslSparse") -> list[sp.csr
             raise InputError(f"matrix of channel {c} has {int(bad.sum())} zero or negative diagonal entries "
                              f"(first: row {i}, a_ii = {d[i]:g}); Jacobi divides by the diagonal, and a "
                              "symmetric positive definite matrix has a positive one")
-    return out
+
+
+def channel_matrices(matrices: Matrices, who: str = "GlslSparse") -> list[sp.csr_matrix]:
+    """The three channel matrices of ``matrices`` (one for all channels, or three), checked
+    (square, real, finite, one stored pattern, positive diagonal, ``1 <= n <= MAX_NODES``), in
+    the compact form of :func:`channel_values` (float64 CSR with sorted indices, one pattern
+    array for the three, their values one ``(3, nnz)`` array); ``who`` names the solver in
+    messages. Matrices already in that form with sorted indices (a P1 system's
+    :meth:`~glsldiff.oracle.fem_update.P1System.matrices`) are used as they are, not copied
+    (0.15 s and 80 MB on the bunny's 147k-node grid): a solver of them follows their later
+    changes only through its ``update_fine``. Others are copied."""
+    items = _channel_items(matrices)
+    if channel_values(items) is not None and items[0].shape[0] == items[0].shape[1] and items[0].has_canonical_format:
+        for c, M in enumerate(items):
+            _check_finite(M, c)
+        _check_size_diagonal(items, who)
+        return items
+    out = [_canonical(m, c) for c, m in enumerate(items)]
+    _check_pattern(out)
+    _check_size_diagonal(out, who)
+    values = np.stack([M.data for M in out])
+    return compact_channels(values, out[0].indices, out[0].indptr, out[0].shape)
 
 
 def node_rhs(b: ArrayLike, n: int) -> NDArray[np.float64]:
@@ -204,18 +251,6 @@ def texture_width(n: int, max_size: int) -> tuple[int, int]:
     if w > max_size or h > max_size:
         raise InputError(f"n = {n} unknowns need a {w} x {h} texture; this context allows {max_size}")
     return w, h
-
-
-def block_diagonal(mats: Sequence[sp.csr_matrix]) -> sp.csr_matrix:
-    """The block-diagonal CSR matrix of the square CSR ``mats`` (channel-major, the
-    :class:`LinearSystem` layout), assembled from their arrays (``scipy.sparse.block_diag`` goes
-    through COO: 1.5 s for three 125k-row P1 matrices)."""
-    offs = np.cumsum([0] + [M.shape[0] for M in mats])
-    nnz = np.cumsum([0] + [M.nnz for M in mats])
-    indptr = np.concatenate([M.indptr[:-1] + nnz[c] for c, M in enumerate(mats)] + [[nnz[-1]]])
-    indices = np.concatenate([M.indices.astype(np.int64) + offs[c] for c, M in enumerate(mats)])
-    data = np.concatenate([M.data for M in mats])
-    return sp.csr_matrix((data, indices, indptr), shape=(offs[-1], offs[-1]))
 
 
 def check_symmetric(mats: list[sp.csr_matrix], need: str, hint: str) -> None:
@@ -316,6 +351,58 @@ def _ell_fill(indptr: NDArray[np.int64], cols: NDArray[np.int64], v0: NDArray[np
             coef[k, i, 3] = -1.0
 
 
+@dataclass
+class _EllLayout:
+    """Three matrices' entries on one pattern (:func:`_aligned`) and the slots of their rows:
+    what :func:`_ell_fill` packs, all at once or a band of rows at a time."""
+
+    indptr: NDArray[np.int64]
+    cols: NDArray[np.int64]
+    vals: list[NDArray[np.float64]]
+    keep_zeros: bool
+    drop_diagonal: bool
+    row_offset: int
+    counts: NDArray[np.int64]
+    slots: int
+
+    @property
+    def layers(self) -> int:
+        """Texture-array layers: ``max(K, 1)``."""
+        return max(self.slots, 1)
+
+    def fill(self, first: int, texels: int) -> NDArray[np.float32]:
+        """``(layers, texels, 4)``: the slots of the rows from ``first`` on in ``texels`` texels
+        (texels past the last row empty)."""
+        n = self.indptr.size - 1
+        r0, r1 = min(first, n), min(first + texels, n)
+        coef = np.empty((self.layers, texels, 4), dtype=np.float32)
+        _ell_fill(self.indptr[r0:r1 + 1], self.cols, *self.vals, self.keep_zeros, self.drop_diagonal,
+                  self.row_offset + r0, coef)
+        return coef
+
+
+def _ell_layout(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *, diagonal: bool,
+                keep_zeros: bool = False, row_offset: int = 0, slots: int | None = None) -> _EllLayout:
+    """The :class:`_EllLayout` of ``mats`` in ``size`` texels (the arguments as :func:`pack_ell`'s)."""
+    W, H = size
+    mats = [sp.csr_matrix(M, dtype=np.float64) for M in mats]
+    for M in mats:
+        M.sum_duplicates()
+        M.sort_indices()
+    n_rows, n_cols = mats[0].shape
+    if n_rows > W * H or n_cols > MAX_NODES:
+        raise InputError(f"a {n_rows} x {n_cols} matrix does not fit {W} x {H} texels / float indices")
+    indptr, cols, vals = _aligned(mats)
+    counts = np.zeros(n_rows, dtype=np.int64)
+    _ell_counts(indptr, cols, *vals, bool(keep_zeros), not diagonal, int(row_offset), counts)
+    K = int(counts.max()) if counts.size else 0
+    if slots is not None:
+        if K > slots:
+            raise InputError(f"a row has {K} entries; the packed matrix has {slots} slots")
+        K = slots
+    return _EllLayout(indptr, cols, vals, bool(keep_zeros), not diagonal, int(row_offset), counts, K)
+
+
 def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
              diagonal: bool, keep_zeros: bool = False, row_offset: int = 0, slots: int | None = None) -> EllPack:
     """The :class:`EllPack` of the ``rows x cols`` matrices ``mats`` (three channels; rows laid
@@ -329,25 +416,8 @@ def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
     texel: 0.35 -> 0.12 s CPU for the bunny's multigrid levels against the numpy scatter they
     replaced, the same bits)."""
     W, H = size
-    mats = [sp.csr_matrix(M, dtype=np.float64) for M in mats]
-    for M in mats:
-        M.sum_duplicates()
-        M.sort_indices()
-    n_rows, n_cols = mats[0].shape
-    if n_rows > W * H or n_cols > MAX_NODES:
-        raise InputError(f"a {n_rows} x {n_cols} matrix does not fit {W} x {H} texels / float indices")
-    indptr, cols, vals = _aligned(mats)
-    flags = (bool(keep_zeros), not diagonal, int(row_offset))
-    counts = np.zeros(n_rows, dtype=np.int64)
-    _ell_counts(indptr, cols, *vals, *flags, counts)
-    K = int(counts.max()) if counts.size else 0
-    if slots is not None:
-        if K > slots:
-            raise InputError(f"a row has {K} entries; the packed matrix has {slots} slots")
-        K = slots
-    coef = np.empty((max(K, 1), H * W, 4), dtype=np.float32)
-    _ell_fill(indptr, cols, *vals, *flags, coef)
-    return EllPack(coef.reshape(max(K, 1), H, W, 4), K, counts)
+    lay = _ell_layout(mats, size, diagonal=diagonal, keep_zeros=keep_zeros, row_offset=row_offset, slots=slots)
+    return EllPack(lay.fill(0, H * W).reshape(lay.layers, H, W, 4), lay.slots, lay.counts)
 
 
 # ---- GPU: uploaded slot layers and the gather pass -----------------------------------------
@@ -359,6 +429,26 @@ class GatherMatrix:
     slots: int
 
 
+def _slot_texture(ctx: moderngl.Context, size: tuple[int, int], slots: int, data: NDArray[np.float32] | None,
+                  resources: gl.Resources, hint: str = "") -> moderngl.TextureArray:
+    """An RGBA32F texture array of ``max(slots, 1)`` layers of ``size`` (nearest, clamped; ``data``
+    ``(layers, H, W, 4)`` or ``None``), owned by ``resources``.
+
+    Raises
+    ------
+    InputError
+        ``slots`` exceeds the context's ``GL_MAX_ARRAY_TEXTURE_LAYERS`` (``hint`` ends the message)."""
+    max_layers = int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
+    if slots > max_layers:
+        raise InputError(f"a row has {slots} entries in slots; this context's texture arrays "
+                         f"hold at most {max_layers} layers{hint}")
+    src = None if data is None else memoryview(np.ascontiguousarray(data))      # no bytes copy
+    tex = ctx.texture_array((*size, max(slots, 1)), 4, src, dtype="f4", alignment=1)
+    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
+    tex.repeat_x = tex.repeat_y = False
+    return resources.add(tex)
+
+
 def upload_ell(ctx: moderngl.Context, pack: EllPack, resources: gl.Resources) -> GatherMatrix:
     """Upload ``pack`` as an RGBA32F texture array (nearest, clamped), owned by ``resources``.
 
@@ -366,15 +456,31 @@ def upload_ell(ctx: moderngl.Context, pack: EllPack, resources: gl.Resources) ->
     ------
     InputError
         ``K`` exceeds the context's ``GL_MAX_ARRAY_TEXTURE_LAYERS``."""
-    max_layers = int(ctx.info.get("GL_MAX_ARRAY_TEXTURE_LAYERS", 256))
-    if pack.slots > max_layers:
-        raise InputError(f"a row has {pack.slots} entries in slots; this context's texture arrays "
-                         f"hold at most {max_layers} layers")
     L, H, W, _ = pack.coef.shape
-    tex = ctx.texture_array((W, H, L), 4, pack.coef.tobytes(), dtype="f4", alignment=1)
-    tex.filter = (moderngl.NEAREST, moderngl.NEAREST)
-    tex.repeat_x = tex.repeat_y = False
-    return GatherMatrix(resources.add(tex), pack.slots)
+    return GatherMatrix(_slot_texture(ctx, (W, H), pack.slots, pack.coef, resources), pack.slots)
+
+
+def upload_packed(ctx: moderngl.Context, mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int],
+                  resources: gl.Resources, *, diagonal: bool, keep_zeros: bool = False,
+                  band_bytes: int = BAND_BYTES, hint: str = "") -> tuple[GatherMatrix, NDArray[np.int64]]:
+    """:func:`pack_ell` and :func:`upload_ell` of ``mats`` band by band: the texture array made
+    empty, then each band of texel rows (about ``band_bytes``) packed and written, so that the
+    whole pack never exists in memory (the bunny's finest matrix alone is 73 MB of slots; the
+    texture's content is the same bits). Returns the matrix on the GPU and the used slots per
+    row (:attr:`EllPack.row_slots`).
+
+    Raises
+    ------
+    InputError
+        As :func:`pack_ell` and :func:`upload_ell` (``hint`` ends the message of too many slots)."""
+    W, H = size
+    lay = _ell_layout(mats, size, diagonal=diagonal, keep_zeros=keep_zeros)
+    tex = _slot_texture(ctx, size, lay.slots, None, resources, hint)
+    rows = max(1, band_bytes // (lay.layers * W * 16))       # texel rows per band
+    for y in range(0, H, rows):
+        h = min(rows, H - y)
+        tex.write(memoryview(lay.fill(y * W, h * W)), viewport=(0, y, 0, W, h, lay.layers), alignment=1)
+    return GatherMatrix(tex, lay.slots), lay.counts
 
 
 class GatherProgram:
@@ -561,8 +667,8 @@ class GlslSparse(GatherSolver):
         The estimate of ``lambda_max(D^-1 A)`` (largest over the channels) behind
         ``omega="auto"``; ``None`` for a given omega.
     system
-        The CPU :class:`LinearSystem` (block diagonal over channels, channel-major) whose
-        residual the solve checks.
+        The CPU :class:`~glsldiff.oracle.assembly.ChannelSystem` (block diagonal over channels,
+        channel-major, kept as the channel matrices) whose residual the solve checks.
     """
 
     method = "glsl-gather"
@@ -586,15 +692,13 @@ class GlslSparse(GatherSolver):
         self.ctx = ctx if ctx is not None else gl.get_context()
         gl.make_current(self.ctx)
         self.size = texture_width(n, int(self.ctx.info["GL_MAX_TEXTURE_SIZE"]))
-        pack = pack_ell(mats, self.size, diagonal=False)
-        self.slots, self._row_slots = pack.slots, pack.row_slots
-        self.fetches = 3 + 2 * self._row_slots.astype(np.float64) + (self._row_slots < self.slots)
         diag = np.stack([M.diagonal() for M in mats], axis=1)
-        self.system = LinearSystem(A=block_diagonal(mats), b=bb.T.reshape(-1),
-                                   diag=diag.T.reshape(-1), active=np.arange(n))
+        self.system = ChannelSystem(mats, b=bb.T.reshape(-1), diag=diag.T.reshape(-1), active=np.arange(n))
         self._gpu = gl.Resources()
         try:
-            self._coef = upload_ell(self.ctx, pack, self._gpu)
+            self._coef, self._row_slots = upload_packed(self.ctx, mats, self.size, self._gpu, diagonal=False)
+            self.slots = self._coef.slots
+            self.fetches = 3 + 2 * self._row_slots.astype(np.float64) + (self._row_slots < self.slots)
             self._diag = self._gpu.add(gl.float_texture(self.ctx, self.size, pack_nodes(diag, self.size, pad=1.0)))
             self._b = self._gpu.add(gl.float_texture(self.ctx, self.size, pack_nodes(bb, self.size)))
             self.state = self._gpu.add(gl.PingPong.create(self.ctx, self.size, "fp32"))

@@ -34,10 +34,15 @@ GPU storage, per level ``l`` (node ``i`` at texel ``(i % W_l, i // W_l)``, ``W_l
     ``l < L-1`` the slots of ``P_l`` (rows: level ``l``'s nodes), of ``R_l = P_l^T`` (rows:
     level ``l+1``'s nodes), both with the shared value in all three channels, and of
     ``omega_l D_l^-1`` (one slot: the first pre-smoothing sweep from ``x = 0``); at the
-    coarsest the dense inverse. All are :class:`~glsldiff.solve.gather.EllPack` layers packed
-    by :func:`~glsldiff.solve.gather.pack_ell` and drawn by
-    :class:`~glsldiff.solve.gather.GatherProgram` (``shaders/gather.frag``, the operation by
-    its ``u_mode``).
+    coarsest the dense inverse. All are :class:`~glsldiff.solve.gather.EllPack` layers, packed
+    and written level by level, matrix by matrix, a band of texel rows at a time
+    (:func:`~glsldiff.solve.gather.upload_packed`: the packs are never all in memory at once,
+    215 MB on the 147k-node bunny) and drawn by :class:`~glsldiff.solve.gather.GatherProgram`
+    (``shaders/gather.frag``, the operation by its ``u_mode``). On the CPU the finest level is
+    the caller's matrices where they are in the compact form of
+    :func:`~glsldiff.oracle.assembly.channel_values` (a P1 system's: not copied), and the CPU
+    system whose residual the solve checks is those matrices too
+    (:class:`~glsldiff.oracle.assembly.ChannelSystem`, no block-diagonal copy).
 V-cycle (``pre``/``post`` damped Jacobi sweeps, default 2/2), every step one full-screen pass
     down, ``l = 0 .. L-2``: ``pre`` sweeps on ``A_l x_l = b_l`` (from ``x_l = 0`` on the coarse
     levels, and on level 0 as a preconditioner: the first sweep is then ``x_l = omega_l D_l^-1
@@ -97,11 +102,12 @@ from numpy.typing import ArrayLike, NDArray
 from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.amg import build_prolongations, galerkin, jacobi_lambda_bound
-from glsldiff.oracle.assembly import LinearSystem, row_entries
+from glsldiff.oracle.assembly import ChannelSystem, row_entries
 from glsldiff.oracle.solvers import Callback
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
-                                   GatherSolver, Matrices, Start, block_diagonal, channel_matrices, check_symmetric,
-                                   distinct, node_rhs, pack_ell, pack_nodes, parse_omega, texture_width, upload_ell)
+                                   GatherSolver, Matrices, Start, channel_matrices, check_symmetric, compact_channels,
+                                   distinct, node_rhs, pack_ell, pack_nodes, parse_omega, texture_width,
+                                   upload_packed)
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparseMultigrid", "MultigridLevel", "smoother_omega", "SMOOTH_TARGET", "MAX_COARSE", "ACCELERATIONS"]
@@ -117,6 +123,17 @@ def smoother_omega(mats: Sequence[sp.csr_matrix], target: float = SMOOTH_TARGET)
     channel matrices (the ``omega="auto"`` smoothing damping, module docstring)."""
     lam = max(jacobi_lambda_bound(M) for M in distinct(list(mats)))
     return target / lam, lam
+
+
+def _one_pattern(mats: list[sp.csr_matrix]) -> list[sp.csr_matrix]:
+    """Galerkin channel matrices of a level on one ``indices``/``indptr`` pair with their values in
+    one ``(3, nnz)`` array (:func:`~glsldiff.solve.gather.compact_channels`) where their stored
+    patterns agree (every level of the bunny: 2 of 3 index arrays, 10 MB, not kept); else as
+    they are."""
+    M0 = mats[0]
+    if not all(np.array_equal(M.indptr, M0.indptr) and np.array_equal(M.indices, M0.indices) for M in mats[1:]):
+        return mats
+    return compact_channels(np.stack([M.data for M in mats]), M0.indices, M0.indptr, M0.shape)
 
 
 @dataclass
@@ -315,10 +332,12 @@ class GlslSparseMultigrid(GatherSolver):
     pre, post, accel
         The V-cycle's sweeps; the acceleration.
     system
-        The CPU :class:`LinearSystem` whose residual the solve checks.
+        The CPU :class:`~glsldiff.oracle.assembly.ChannelSystem` (the finest level's channel
+        matrices) whose residual the solve checks.
     setup_seconds
         CPU hierarchy time per stage (``"pyamg"``, ``"galerkin"``, ``"omega"``, ``"inverse"``,
-        ``"pack"``) and ``"upload"`` (GPU objects); :attr:`hierarchy_seconds` sums the CPU ones.
+        and ``"upload"`` (GPU objects, the slots packed band by band as they are written);
+        :attr:`hierarchy_seconds` sums the CPU ones.
     cycles_run, cycle_seconds
         V-cycles since creation and the wall time inside :meth:`cycle` (GPU finished).
     level_seconds
@@ -386,7 +405,7 @@ class GlslSparseMultigrid(GatherSolver):
         As = [mats]
         for P in Ps:
             R = sp.csr_matrix(P.T)
-            As.append([galerkin(A, P, R) for A in As[-1]])
+            As.append(_one_pattern([galerkin(A, P, R) for A in As[-1]]))
         self.setup_seconds["galerkin"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         if level_omegas is not None and (prolongations is None or len(level_omegas) != len(Ps)
@@ -415,39 +434,13 @@ class GlslSparseMultigrid(GatherSolver):
             raise SolverError(f"the coarsest operator ({last.n} unknowns) is singular: {exc}") from exc
         self.setup_seconds["inverse"] = time.perf_counter() - t0
 
-        # packing (CPU) and upload
-        t0 = time.perf_counter()
-        packs = []
-        for l, lv in enumerate(self.levels):
-            pk: dict[str, Any] = {"diag": np.stack([A.diagonal() for A in lv.A], axis=1)}
-            if l == 0 or not lv.coarsest:    # the finest keeps its zeros: update_fine re-packs it in place
-                pk["A"] = pack_ell(lv.A, lv.size, diagonal=False, keep_zeros=l == 0)
-            if lv.coarsest:
-                pk["inverse"] = pack_ell([sp.csr_matrix(M) for M in lv.inverse], lv.size, diagonal=True)
-                lv.slots = pk["inverse"].slots
-            else:
-                nxt = self.levels[l + 1]
-                pk["P"] = pack_ell([lv.P] * 3, lv.size, diagonal=True)
-                pk["R"] = pack_ell([sp.csr_matrix(lv.P.T)] * 3, nxt.size, diagonal=True)
-                lv.slots, lv.p_slots, lv.r_slots = pk["A"].slots, pk["P"].slots, pk["R"].slots
-                if self.pre > 0:
-                    inv_d = lv.omega / pk["diag"]
-                    pk["first"] = pack_ell([sp.diags(inv_d[:, c]).tocsr() for c in range(3)], lv.size, diagonal=True)
-            packs.append(pk)
-        self.setup_seconds["pack"] = time.perf_counter() - t0
-        for lv in self.levels:
-            if max(lv.slots, lv.p_slots, lv.r_slots) > max_layers:
-                raise InputError(f"a level of {lv.n} unknowns needs {max(lv.slots, lv.p_slots, lv.r_slots)} slots; "
-                                 "this context's "
-                                 f"texture arrays hold at most {max_layers} layers (lower max_coarse or change amg)")
-        diag0 = packs[0]["diag"]
-        self.system = LinearSystem(A=block_diagonal(mats), b=bb.T.reshape(-1),
-                                   diag=diag0.T.reshape(-1), active=np.arange(n))
+        self.system = ChannelSystem(mats, b=bb.T.reshape(-1), diag=self._diagonal(0).T.reshape(-1),
+                                    active=np.arange(n))
         t0 = time.perf_counter()
         self._gpu = gl.Resources()
         try:
             with gl.keep_framebuffer(self.ctx):
-                self._upload(packs, bb)
+                self._upload(bb)
             self.ctx.finish()
         except Exception:
             self._gpu.release()
@@ -458,37 +451,61 @@ class GlslSparseMultigrid(GatherSolver):
         self.profile = False
         self.level_seconds = np.zeros(len(self.levels))
 
-    def _upload(self, packs: list[dict[str, Any]], bb: NDArray[np.float64]) -> None:
-        """Create the GPU objects of every level (owned by ``self._gpu``)."""
+    def _diagonal(self, level: int) -> NDArray[np.float64]:
+        """``(n_l, 3)``: the diagonal of level ``level``'s channel matrices."""
+        return np.stack([A.diagonal() for A in self.levels[level].A], axis=1)
+
+    def _upload(self, bb: NDArray[np.float64]) -> None:
+        """Create the GPU objects of every level (owned by ``self._gpu``), level by level and
+        matrix by matrix, each packed in bands while it is written
+        (:func:`~glsldiff.solve.gather.upload_packed`: no level's packed slots are held, 215 MB
+        on the bunny)."""
         self._pass = GatherProgram(self.ctx, self._gpu)
         self._levels: list[_GpuLevel] = []
-        for l, (lv, pk) in enumerate(zip(self.levels, packs)):
-            ctx, res, size = self.ctx, self._gpu, lv.size
-            btex = res.add(gl.float_texture(ctx, size, pack_nodes(bb, size) if l == 0 else None))
-            g = _GpuLevel(size=size, x=res.add(gl.PingPong.create(ctx, size, "fp32")), b=btex,
-                          b_fbo=res.add(ctx.framebuffer(color_attachments=[btex])),
-                          diag=res.add(gl.float_texture(ctx, size, pack_nodes(pk["diag"], size, pad=1.0))),
-                          A=upload_ell(ctx, pk["A"], res) if "A" in pk else None)
-            if l > 0:
-                g.b_fbo.clear(0.0, 0.0, 0.0, 0.0)
-            if lv.coarsest:
-                g.inverse = upload_ell(ctx, pk["inverse"], res)
-            else:
-                g.r = res.add(gl.float_texture(ctx, size))
-                g.r_fbo = res.add(ctx.framebuffer(color_attachments=[g.r]))
-                g.P = upload_ell(ctx, pk["P"], res)
-                g.R = upload_ell(ctx, pk["R"], res)
-                if "first" in pk:
-                    g.first = upload_ell(ctx, pk["first"], res)
-            self._levels.append(g)
+        for l in range(len(self.levels)):
+            self._levels.append(self._upload_level(l, bb if l == 0 else None))
         self._cg = _ConjugateGradients(self.ctx, self._gpu, self.n, self.levels[0].size) if self.accel else None
         self._b_norm_stale = True
+
+    def _upload_level(self, l: int, bb: NDArray[np.float64] | None) -> _GpuLevel:
+        """Level ``l``'s textures, framebuffers and gathers (``bb`` its right-hand side, level 0's);
+        its :class:`MultigridLevel` gets the slot counts."""
+        lv, ctx, res = self.levels[l], self.ctx, self._gpu
+        size, diag = lv.size, self._diagonal(l)
+
+        def gather(mats: Sequence[sp.spmatrix], at: tuple[int, int], **kw: bool) -> GatherMatrix:
+            return upload_packed(ctx, mats, at, res, **kw,
+                                 hint=f" (a level of {lv.n} unknowns: lower max_coarse or change amg)")[0]
+
+        btex = res.add(gl.float_texture(ctx, size, None if bb is None else pack_nodes(bb, size)))
+        g = _GpuLevel(size=size, x=res.add(gl.PingPong.create(ctx, size, "fp32")), b=btex,
+                      b_fbo=res.add(ctx.framebuffer(color_attachments=[btex])),
+                      diag=res.add(gl.float_texture(ctx, size, pack_nodes(diag, size, pad=1.0))), A=None)
+        if l > 0:
+            g.b_fbo.clear(0.0, 0.0, 0.0, 0.0)
+        if l == 0 or not lv.coarsest:    # the finest keeps its zeros: update_fine re-packs it in place
+            g.A = gather(lv.A, size, diagonal=False, keep_zeros=l == 0)
+        if lv.coarsest:
+            g.inverse = gather([sp.csr_matrix(M) for M in lv.inverse], size, diagonal=True)
+            lv.slots = g.inverse.slots
+            return g
+        nxt = self.levels[l + 1]
+        g.r = res.add(gl.float_texture(ctx, size))
+        g.r_fbo = res.add(ctx.framebuffer(color_attachments=[g.r]))
+        g.P = gather([lv.P] * 3, size, diagonal=True)
+        g.R = gather([sp.csr_matrix(lv.P.T)] * 3, nxt.size, diagonal=True)
+        assert g.A is not None
+        lv.slots, lv.p_slots, lv.r_slots = g.A.slots, g.P.slots, g.R.slots
+        if self.pre > 0:
+            inv_d = lv.omega / diag
+            g.first = gather([sp.diags(inv_d[:, c]).tocsr() for c in range(3)], size, diagonal=True)
+        return g
 
     # ---- state ------------------------------------------------------------------------------
     @property
     def hierarchy_seconds(self) -> float:
-        """CPU time of the hierarchy: pyamg, Galerkin products, omega estimates, the dense
-        inverse and the packing (the upload not included)."""
+        """CPU time of the hierarchy: pyamg, Galerkin products, omega estimates and the dense
+        inverse (not the packing, done band by band with the upload)."""
         return sum(v for k, v in self.setup_seconds.items() if k != "upload")
 
     @property
@@ -555,12 +572,10 @@ class GlslSparseMultigrid(GatherSolver):
         if rows.size and (rows[0] < 0 or rows[-1] >= self.n):
             raise InputError(f"rows must be in 0 .. {self.n - 1}")
         lv.A = mats
-        n, nnz = self.n, mats[0].nnz
+        self.system.set_blocks(mats)
+        n = self.n
         pos = row_entries(mats[0].indptr, rows)
         counts = np.diff(mats[0].indptr)[rows]
-        data = self.system.A.data
-        for c, M in enumerate(mats):
-            data[c * nnz + pos] = M.data[pos]       # the block-diagonal system: channel after channel
         if fast and not all(np.isfinite(M.data[pos]).all() for M in mats):
             raise InputError("update_fine: the updated rows have non-finite (NaN/inf) entries")
         on_diag = mats[0].indices[pos] == np.repeat(rows, counts)
