@@ -53,6 +53,43 @@ def test_adjoint_gradient_matches_finite_differences(stencil: str, face_mean: st
     assert model.stats.solves >= 2 * 3
 
 
+def test_mu_regularizer_gradient_matches_finite_differences() -> None:
+    """The ln-mu smoothness term (anisotropic, depth edges weighted) in the adjoint gradient."""
+    model = ForwardModel(RegularGrid(5, 5, 5, h=0.5))
+    Q, Y, W, kappa, mu = _random_problem(model, 2, 4)
+    obj = Objective(model, Q, Y, W, lam=1e-2, lam_mu=1e-2, depth_weight=4.0)
+    ev = obj.evaluate(kappa, mu)
+    assert ev.reg_mu > 0
+    fd = _fd_gradient(obj, kappa, mu)
+    g = np.concatenate([ev.grad_kappa, ev.grad_mu])
+    assert np.linalg.norm(g - fd) / np.linalg.norm(fd) <= 1e-4
+    # the term alone: sum over interior edges, z-edges weighted; boundary nodes (no mu) excluded
+    grid = model.grid
+    z, y, x = np.meshgrid(*[np.arange(5) * 1.0] * 3, indexing="ij")
+    for axis, w in ((2, 1.0), (0, 4.0)):
+        ln_mu = [x, y, z][2 - axis] * 0.1
+        reg, grad = obj.mu_regularizer(np.exp(model.active_values(ln_mu)))
+        assert reg == pytest.approx(w * 3 * 3 * 2 * 0.1**2, rel=1e-12)  # 3 x 3 interior lines of 2 edges
+        assert np.all(grad[model.active_values(grid.kind) != 1] == 0)
+    assert Objective(model, Q, Y, W).mu_regularizer(mu)[0] == 0.0
+
+
+def test_mu_gain_scales_the_variables_not_the_objective() -> None:
+    """ScaledProblem with mu_gain: same material and value, gradient of the scaled variables."""
+    model = ForwardModel(RegularGrid(5, 4, 4, h=0.5))
+    Q, Y, W, kappa, mu = _random_problem(model, 2, 5)
+    obj = Objective(model, Q, Y, W)
+    p1, p3 = (ScaledProblem(obj, 0.3, 0.05, max_evals=10**6, mu_gain=g) for g in (1.0, 3.0))
+    z1, z3 = p1.variables(kappa, mu), p3.variables(kappa, mu)
+    assert np.allclose(z3[model.n:], z1[model.n:] / 3.0)
+    assert np.allclose(np.concatenate(p3.material(z3)), np.concatenate([kappa, mu]))
+    f3, g3 = p3.gradient(z3)
+    assert f3 == pytest.approx(p1(z1, None), rel=1e-12)
+    eps, idx = 1e-6, [1, model.n + 2, 2 * model.n - 1]
+    fd = [(p3(z3 + eps * np.eye(z3.size)[i], None) - p3(z3 - eps * np.eye(z3.size)[i], None)) / (2 * eps) for i in idx]
+    assert np.allclose(g3[idx], fd, rtol=1e-5, atol=1e-12)
+
+
 def test_tangent_matches_finite_differences() -> None:
     model = ForwardModel(RegularGrid(5, 5, 4, h=0.5), stencil="paper")
     Q, _, _, kappa, mu = _random_problem(model, 2, 1)

@@ -32,8 +32,8 @@ __all__ = ["ChannelProgress", "Checkpoint", "load_checkpoint", "checkpoint_path"
 #: Default seconds between checkpoints.
 CHECKPOINT_EVERY_S = 120.0
 #: FitOptions fields that change the objective or its start: a resume must use the same.
-_KEYED_OPTIONS = ("method", "lam", "stencil", "face_mean", "kappa0", "mu0", "homogeneous_evals",
-                  "parameterization", "exitant")
+_KEYED_OPTIONS = ("method", "lam", "lam_mu", "depth_weight", "stencil", "face_mean", "kappa0", "mu0", "homogeneous_evals",
+                  "parameterization", "mu_gain", "exitant")
 
 
 class ChannelProgress:

@@ -48,6 +48,8 @@ class FitOptions:
 
     method: str = "lbfgs"
     lam: float = 1e-5
+    lam_mu: float = 0.0           # ln-mu smoothness weight (glsldiff.inverse.objective)
+    depth_weight: float = 1.0     # its z-edges weigh this many times the in-plane ones
     stencil: str = "conservative"
     face_mean: str = "arithmetic"
     kappa0: float = 0.3           # mm, initial value of the homogeneous fit
@@ -56,6 +58,7 @@ class FitOptions:
     max_seconds: float = math.inf  # heterogeneous stage, per channel
     homogeneous_evals: int = 40
     parameterization: str = "log"
+    mu_gain: float = 1.0          # mu's (log) variables divided by this (glsldiff.inverse.optimize.ScaledProblem)
     backend: str = "cpu"          # "cpu": one SuperLU factor or pyamg hierarchy per material; "glsl": GPU Jacobi
     exitant: str = "p1"           # source and exitance convention of the forward model
     solver: str = "auto"          # cpu backend: "superlu", "pyamg", or "auto" (by node count, ForwardModel.method)
@@ -68,6 +71,9 @@ class FitOptions:
         real(self.kappa0, "kappa0 (mm)", 0.0, lo_open=True)
         real(self.mu0, "mu0 (mm^-1)", 0.0, lo_open=True)
         real(self.lam, "lambda", 0.0)
+        real(self.lam_mu, "lambda_mu", 0.0)
+        real(self.depth_weight, "depth_weight", 0.0)
+        real(self.mu_gain, "mu_gain", 0.0, lo_open=True)
         for name in ("max_evals", "homogeneous_evals"):
             integer(getattr(self, name), name, 1, 2**62)
 
@@ -166,7 +172,8 @@ def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitO
     in ``ChannelFit.snapshots`` as ``(record, kappa, mu)``. ``checkpoint`` saves where the
     fit stands (as channel ``channel``) when due and at the end; ``start`` continues a saved
     one (:mod:`glsldiff.inverse.checkpoint`)."""
-    objective = Objective(model, Q, Y, W, lam=options.lam)
+    objective = Objective(model, Q, Y, W, lam=options.lam, lam_mu=options.lam_mu,
+                          depth_weight=options.depth_weight)
     if start is None:
         k_h, m_h, h_trace, ranges = fit_homogeneous(objective, options.kappa0, options.mu0,
                                                     options.homogeneous_evals)
@@ -174,7 +181,7 @@ def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitO
         (k_h, m_h), h_trace, ranges = start.homogeneous, start.homogeneous_trace, start.ranges
     mu_scale = max(m_h, 1e-2 / (3.0 * k_h))  # keep the mu variable O(1) even for mu_h -> 0 (1 % of sigma_t')
     problem = ScaledProblem(objective, k_h, mu_scale, options.method, options.max_evals,
-                            options.max_seconds, callback, snapshot_every, options.parameterization)
+                            options.max_seconds, callback, snapshot_every, options.parameterization, options.mu_gain)
     n = model.n
     z0 = problem.variables(np.full(n, k_h), np.full(n, m_h))
     if start is not None and start.kappa is not None:

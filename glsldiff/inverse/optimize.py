@@ -77,6 +77,7 @@ class ScaledProblem:
     callback: Callable[[Record], None] | None = None
     snapshot_every: int = 0  # keep (record, z) every this many gradient evaluations (0: none)
     parameterization: str = "log"
+    mu_gain: float = 1.0  # mu's variables are its (log) value divided by this: > 1 lets mu move faster
 
     def __post_init__(self) -> None:
         self.snapshots: list[tuple[Record, Array]] = []
@@ -91,6 +92,8 @@ class ScaledProblem:
         else:
             lo[n:] = 0.0
             self.lower, self.upper = lo, hi
+        self.lower[n:] /= self.mu_gain
+        self.upper[n:] /= self.mu_gain
         self.trace = Trace(self.method)
         self._t0 = time.perf_counter()
         self.best_z: Array | None = None
@@ -108,14 +111,16 @@ class ScaledProblem:
 
     def material(self, z: Array) -> tuple[Array, Array]:
         """``(kappa, mu)`` over the active nodes for variables ``z``."""
-        v = np.exp(z) if self.parameterization == "log" else np.asarray(z)
+        z = np.concatenate([z[: self.n], self.mu_gain * np.asarray(z[self.n:])])
+        v = np.exp(z) if self.parameterization == "log" else z
         return v[: self.n] * self.kappa_scale, v[self.n:] * self.mu_scale
 
     def variables(self, kappa: Array, mu: Array) -> Array:
         """Inverse of :meth:`material`, clipped to the bounds."""
         v = np.concatenate([kappa / self.kappa_scale, mu / self.mu_scale])
         if self.parameterization == "log":
-            v = np.log(np.maximum(v, np.exp(self.lower)))
+            v = np.log(np.maximum(v, 1e-300))
+        v[self.n:] /= self.mu_gain
         return np.clip(v, self.lower, self.upper)
 
     def __call__(self, z: Array, grad: Array | None) -> float:
@@ -158,9 +163,9 @@ class ScaledProblem:
         if want:
             kappa, mu = self.objective.last_material
             if self.parameterization == "log":  # d/dlog v = v d/dv
-                grad[: self.n], grad[self.n:] = ev.grad_kappa * kappa, ev.grad_mu * mu
+                grad[: self.n], grad[self.n:] = ev.grad_kappa * kappa, ev.grad_mu * mu * self.mu_gain
             else:
-                grad[: self.n], grad[self.n:] = ev.grad_kappa * self.kappa_scale, ev.grad_mu * self.mu_scale
+                grad[: self.n], grad[self.n:] = ev.grad_kappa * self.kappa_scale, ev.grad_mu * self.mu_scale * self.mu_gain
             gnorm = float(np.linalg.norm(grad))
         rec = Record(len(tr.records) + 1, time.perf_counter() - self._t0, ev.value, ev.data, gnorm)
         self.gradients += int(want)
