@@ -22,7 +22,7 @@ from glsldiff.inverse.model import SOLVERS, resolve_solver
 from glsldiff.inverse.measurements import Measurements, load_measurements, save_measurements
 from glsldiff.inverse.reflectance import diffuse_reflectance
 from glsldiff.inverse.synthetic import SYNTH_SETUPS, bssrdf_error, coefficient_errors, synthetic_measurements
-from glsldiff.physics.procedural import synthetic_volume
+from glsldiff.physics.procedural import SYNTHETIC_KINDS, synthetic_volume
 from glsldiff.physics.exitance import EXITANT
 
 
@@ -31,13 +31,14 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("out", help="measurements file to write (.npz); the true material goes to OUT_truth.npz")
     p.add_argument("--size", type=A.integer(3, 1024), nargs=3, default=(32, 32, 10), metavar=("NX", "NY", "NZ"),
                    help="nodes per axis of the block")
-    p.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
+    p.add_argument("--h", type=A.positive, default=1.0,
+                   help="node spacing, mm (default: a 31 x 31 x 9 mm tile, 3.6 red diffusion lengths wide)")
     p.add_argument("--n", type=A.integer(1, 64), default=4, help="n x n projector regions")
-    p.add_argument("--setup", choices=SYNTH_SETUPS, default="back",
-                   help="back-lit thin block (transmission), front-lit thick block (reflection), or both: back-lit "
+    p.add_argument("--setup", choices=SYNTH_SETUPS, default=None,
+                   help="(default: both; back with --renderer mitsuba) back-lit thin block (transmission), front-lit thick block (reflection), or both: back-lit "
                         "and observed on both faces (transmission plus reflection, fitted together)")
-    p.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed",
-                   help="the synthetic material")
+    p.add_argument("--volume", choices=SYNTHETIC_KINDS, default="bands",
+                   help="the synthetic material (docs/guide/inverse.md: what surface data determine in each)")
     p.add_argument("--noise", type=A.nonnegative, default=None,
                    help="relative shot noise at the bright end (default 0.01; none with --renderer mitsuba)")
     p.add_argument("--saturation", type=A.positive, default=None, help="clip radiance at this value")
@@ -58,6 +59,12 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("--method", choices=("lbfgs", "tnewton", "var2", "cg"), default="lbfgs",
                    help="optimiser (cg = the paper's Table I)")
     p.add_argument("--lam", type=A.nonnegative, default=1e-5, help="kappa-gradient regularisation weight")
+    p.add_argument("--lam-mu", type=A.nonnegative, default=0.0,
+                   help="weight of the absorption smoothness term sum (ln mu_i - ln mu_j)^2 over node edges (0: off)")
+    p.add_argument("--depth-weight", type=A.nonnegative, default=1.0,
+                   help="--lam-mu: weight of the edges along the depth (z) against the in-plane ones")
+    p.add_argument("--mu-gain", type=A.positive, default=1.0,
+                   help="the minimiser's mu variables are ln mu divided by this (> 1: mu moves faster against kappa)")
     p.add_argument("--stencil", choices=("conservative", "paper"), default="conservative",
                    help="finite-difference stencil of the forward model")
     p.add_argument("--exitant", choices=EXITANT, default="p1",
@@ -106,7 +113,7 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                    help="regularisation weights of the figure-13 study")
     b.add_argument("--max-evals", type=A.integer(1), default=150, help="evaluations per fit")
     b.add_argument("--noise", type=A.nonnegative, default=0.01, help="relative shot noise of the measurements")
-    b.add_argument("--volume", choices=("layers", "veins", "inclusions", "mixed"), default="mixed",
+    b.add_argument("--volume", choices=SYNTHETIC_KINDS, default="mixed",
                    help="the synthetic material")
     b.add_argument("--skip", nargs="*", default=[], choices=("measurements", "lambda", "backends", "scale"),
                    help="parts of the benchmark to leave out")
@@ -130,6 +137,8 @@ def cmd_synth(args: argparse.Namespace) -> int:
     out = check_output(args.out)
     truth = check_output(out.with_name(out.stem + "_truth.npz"))
     nx, ny, nz = args.size
+    if args.setup is None:
+        args.setup = "back" if args.renderer == "mitsuba" else "both"
     kappa, mu = synthetic_volume((nz, ny, nx), args.volume, seed=args.seed)
     if args.grey:
         kappa, mu = (np.repeat(a[..., 1:2], 3, axis=-1) for a in (kappa, mu))
@@ -181,7 +190,8 @@ def _load_truth(path: str, shape: tuple[int, ...], what: str = "--truth file") -
 
 def cmd_fit(args: argparse.Namespace) -> int:
     out = check_output(args.out)
-    options = FitOptions(method=args.method, lam=args.lam, stencil=args.stencil, kappa0=args.kappa0,
+    options = FitOptions(method=args.method, lam=args.lam, lam_mu=args.lam_mu, depth_weight=args.depth_weight,
+                         mu_gain=args.mu_gain, stencil=args.stencil, kappa0=args.kappa0,
                          mu0=args.mu0, max_evals=args.max_evals, max_seconds=args.max_seconds,
                          backend=args.backend, exitant=args.exitant, solver=args.solver)
     if args.backend == "glsl" and args.solver != "auto":
@@ -235,7 +245,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
                          receivers=meas.observed_faces, stencil=options.stencil, eta=meas.eta)
     solver = f" ({resolve_solver(options.solver, meas.grid.graph.active.size)})" if options.backend == "cpu" else ""
     print_table(f"inverse diffusion, {meas.M} measurements, {meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} "
-                f"nodes, method {options.method}, lambda {options.lam:g}, {options.backend} solves{solver}", table)
+                f"nodes, method {options.method}, lambda {options.lam:g}"
+                + (f", lambda_mu {options.lam_mu:g} (depth x{options.depth_weight:g})" if options.lam_mu else "")
+                + f", {options.backend} solves{solver}", table)
     for note in result.notes:
         print(note)
     for c, f in enumerate(result.channels[:1] if result.shared else result.channels):

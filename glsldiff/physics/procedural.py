@@ -43,7 +43,7 @@ Pair = tuple[Array, Array]  # (sigma_a, sigma_s') [mm^-1], each (3,)
 
 VEIN_ABSORPTION = 20.0  # default second material: base sigma_a times this ...
 VEIN_SCATTERING = 0.5   # ... and base sigma_s' times this (darker, more absorbing)
-SYNTHETIC_KINDS = ("layers", "veins", "inclusions", "mixed")
+SYNTHETIC_KINDS = ("layers", "veins", "inclusions", "mixed", "bands")
 POINT_KINDS = ("layers", "inclusions", "sphere")
 
 
@@ -219,7 +219,9 @@ def synthetic_volume(shape: tuple[int, int, int], kind: str = "mixed", seed: int
 
     ``layers``: three z-layers (base, 3x absorption with 0.6x scattering, 1.5x scattering);
     ``veins``: :func:`marble_volume`; ``inclusions``: soft balls of 5x absorption and 0.5x
-    scattering at several depths (:func:`depth_inclusions`); ``mixed``: veins plus inclusions.
+    scattering at several depths (:func:`depth_inclusions`); ``mixed``: veins plus inclusions;
+    ``bands``: broad soft marble bands (:func:`marble_volume` with 1.5 stripes, sharpness 1.5)
+    of 5x absorption and 0.7x scattering, several mm wide (the scales surface data resolve best).
     """
     choice(kind, "volume kind", SYNTHETIC_KINDS)
     shape = tuple(int(s) for s in shape)
@@ -227,6 +229,9 @@ def synthetic_volume(shape: tuple[int, int, int], kind: str = "mixed", seed: int
     rng = np.random.default_rng(seed)
     if kind == "veins":
         return marble_volume(shape, seed=seed, base=base, vein_absorption=10.0, vein_scattering=0.6)
+    if kind == "bands":
+        return marble_volume(shape, seed=seed, base=base, vein_absorption=5.0, vein_scattering=0.7, stripes=1.5,
+                             turbulence=2.0, sharpness=1.5)
     sa = np.broadcast_to(b.sigma_a, shape + (3,)).copy()
     ss = np.broadcast_to(b.sigma_s_prime, shape + (3,)).copy()
     if kind == "layers":
