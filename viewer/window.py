@@ -178,7 +178,8 @@ class Viewer:
         s = rep.seconds
         lines = [f"{self.presets[self.preset][0]}   {fps:.1f} fps   frame {seconds * 1e3:.0f} ms",
                  "t1/t2/t3 " + "/".join(f"{s.get(k, 0.0) * 1e3:.0f}" for k in ("t1", "t2", "t3")) + " ms"
-                 + (f"   pass 2: {rep.solver.sweeps} sweeps, residual {rep.solver.residual:.1e}"
+                 + (f"   pass 2: {rep.solver.sweeps} sweeps"
+                    + ("" if np.isnan(rep.solver.residual) else f", residual {rep.solver.residual:.1e}")
                     if rep.ran("pass2") and rep.solver is not None else "")
                  + ("" if self.renderer.converged else "  (converging)"),
                  f"{rep.nodes:,} nodes   undo {self.renderer.edit_counts[0]} redo {self.renderer.edit_counts[1]}"]
