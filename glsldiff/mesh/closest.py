@@ -195,7 +195,7 @@ def _closest_faces(mesh: Mesh, p: NDArray[np.float64], exact: bool = True) -> ND
     """Index of the face nearest to each point (branch and bound over the BVH; with
     ``exact=False`` the nearest of the faces around the nearest vertex, the bound's start)."""
     bvh = mesh.bvh
-    _, vi = bvh.tree.query(p)
+    _, vi = bvh.tree.query(p, workers=-1)
     lo, hi = bvh.heap_boxes
     out = np.empty(len(p), dtype=np.int64)
     search = _nearest_faces.serial if len(p) < SERIAL_POINTS else _nearest_faces

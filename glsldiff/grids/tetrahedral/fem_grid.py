@@ -505,7 +505,7 @@ def _spread(mesh: Mesh, xs: NDArray[np.float64], fixed: NDArray[np.bool_], smoot
     samples = surface_samples(mesh, h / 3.0)
     S = len(xs)
     for _ in range(rounds):
-        _, owner = cKDTree(xs).query(samples)
+        _, owner = cKDTree(xs).query(samples, workers=-1)
         count = np.bincount(owner, minlength=S)
         centroid = np.stack([np.bincount(owner, samples[:, k], minlength=S) for k in range(3)], axis=1)
         target = np.where(count[:, None] > 0, centroid / np.maximum(count, 1)[:, None], xs)
