@@ -13,6 +13,7 @@ import math
 import statistics
 import sys
 import time
+from typing import Any
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +33,7 @@ from glsldiff.core.tables import print_table
 from glsldiff import gl
 from glsldiff.inverse.glsl import GlslForwardModel
 from glsldiff.inverse.amg import AMG_RTOL
-from glsldiff.core.plotting import pyplot
+from glsldiff.core.plotting import pyplot, save_figure
 
 CHANNEL = 1
 
@@ -287,6 +288,15 @@ def scale_study(sizes: list[tuple[int, int, int]], h: float = 0.5, conditions: i
     return rows
 
 
+def _finish(fig: Any, ax: Any, path: Path) -> None:
+    """Grid lines and legends on every panel of ``ax``, then the figure written to ``path``
+    (:func:`~glsldiff.core.plotting.save_figure`: atomically) and closed."""
+    for a in ax:
+        a.grid(True, which="both", alpha=0.3)
+        a.legend(fontsize=7)
+    save_figure(fig, path, dpi=100)
+
+
 def plot_scale(rows: list[dict], path: Path) -> None:
     plt = pyplot()
     fig, ax = plt.subplots(1, 2, figsize=(9.5, 3.8))
@@ -301,12 +311,7 @@ def plot_scale(rows: list[dict], path: Path) -> None:
     ax[0].set(xlabel="active nodes", ylabel="seconds per evaluation",
               title="value + gradient, one channel, 16 conditions")
     ax[1].set(xlabel="active nodes", ylabel="peak MiB added", title="memory")
-    for a in ax:
-        a.grid(True, which="both", alpha=0.3)
-        a.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _finish(fig, ax, path)
 
 
 def plot(rows: list[dict], curves: list[dict], lam_rows: list[dict], path: Path) -> None:
@@ -332,12 +337,7 @@ def plot(rows: list[dict], curves: list[dict], lam_rows: list[dict], path: Path)
         ax[3].loglog([r["lam"] for r in lam_rows], [r["kappa_rel_error"] for r in lam_rows], "s-",
                      label="kappa rel. error")
         ax[3].set(xlabel="lambda", title="figure 13: regularisation")
-    for a in ax:
-        a.grid(True, which="both", alpha=0.3)
-        a.legend(fontsize=7)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    _finish(fig, ax, path)
 
 
 def run(args: argparse.Namespace) -> None:
