@@ -438,26 +438,35 @@ class AmgFactorized(Factorized):
                     "amg_rtol, or use the superlu solver")
 
 
-def regularizer_matrix(model: ForwardModel) -> sp.csr_matrix:
-    """Forward-difference operator ``D`` over lattice edges between active nodes, scaled so
-    that ``||D kappa||^2 = sum_x |grad kappa(x)|^2`` (paper section 4.2; dimensionless):
-    ``sum_edges ((kappa_i - kappa_j) / h)^2``."""
+def edge_difference_matrix(model: ForwardModel, keep: NDArray[np.bool_] | None = None,
+                           weights: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> sp.csr_matrix:
+    """Forward differences ``w_a (v_j - v_i)`` of a vector over the active nodes, one row per
+    lattice edge between two active nodes (``keep``: a grid-shaped mask further limiting the
+    nodes an edge may join), rows of axis ``a`` (0 is z: arrays are ``(nz, ny, nx)``) scaled by
+    ``weights[a]``; rows axis by axis."""
     g = model.grid
-    act = g.active
     pos = np.full(g.shape, -1, dtype=np.int64)
-    pos[act] = np.arange(model.n)
+    pos[g.active] = np.arange(model.n)
+    if keep is not None:
+        pos[~keep] = -1
     rows, cols, vals = [], [], []
     e = 0
     for axis in range(3):
         a = np.moveaxis(pos, axis, 0)
         i, j = a[:-1].ravel(), a[1:].ravel()
-        keep = (i >= 0) & (j >= 0)
-        i, j = i[keep], j[keep]
+        both = (i >= 0) & (j >= 0)
+        i, j = i[both], j[both]
         r = np.arange(e, e + i.size)
         rows += [r, r]
         cols += [i, j]
-        vals += [np.full(i.size, -1.0), np.full(i.size, 1.0)]
+        vals += [np.full(i.size, -weights[axis]), np.full(i.size, weights[axis])]
         e += i.size
-    s = 1.0 / g.h
-    return sp.csr_matrix((np.concatenate(vals) * s, (np.concatenate(rows), np.concatenate(cols))),
-                         shape=(e, model.n))
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(e, model.n))
+
+
+def regularizer_matrix(model: ForwardModel) -> sp.csr_matrix:
+    """Forward-difference operator ``D`` over lattice edges between active nodes, scaled so
+    that ``||D kappa||^2 = sum_x |grad kappa(x)|^2`` (paper section 4.2; dimensionless):
+    ``sum_edges ((kappa_i - kappa_j) / h)^2``."""
+    s = 1.0 / model.grid.h
+    return edge_difference_matrix(model, weights=(s, s, s))

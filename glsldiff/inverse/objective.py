@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 from glsldiff.core.checks import real
 from glsldiff.core.errors import InputError
 from glsldiff.grids.graph import INTERIOR
-from glsldiff.inverse.model import ForwardModel, regularizer_matrix
+from glsldiff.inverse.model import ForwardModel, edge_difference_matrix, regularizer_matrix
 
 Array = NDArray[np.float64]
 
@@ -126,18 +126,5 @@ def mu_difference_matrix(model: ForwardModel, depth_weight: float = 1.0) -> sp.c
     """Difference operator over the lattice edges between interior nodes (those whose mu
     enters the model), rows along z scaled by ``sqrt(depth_weight)``, so that
     ``||D v||^2 = sum_edges w (v_i - v_j)^2`` (dimensionless for ``v = ln mu``)."""
-    g = model.grid
-    pos = np.full(g.shape, -1, dtype=np.int64)
-    pos[g.active] = np.arange(model.n)
-    pos[g.kind != INTERIOR] = -1
-    blocks = []
-    for axis in range(3):  # axis 0 is z (arrays are (nz, ny, nx))
-        a = np.moveaxis(pos, axis, 0)
-        i, j = a[:-1].ravel(), a[1:].ravel()
-        keep = (i >= 0) & (j >= 0)
-        i, j = i[keep], j[keep]
-        w = np.sqrt(depth_weight) if axis == 0 else 1.0
-        r = np.arange(i.size)
-        blocks.append(sp.csr_matrix((np.concatenate([np.full(i.size, -w), np.full(i.size, w)]),
-                                     (np.concatenate([r, r]), np.concatenate([i, j]))), shape=(i.size, model.n)))
-    return sp.vstack(blocks).tocsr()
+    return edge_difference_matrix(model, keep=model.grid.kind == INTERIOR,
+                                  weights=(float(np.sqrt(depth_weight)), 1.0, 1.0))
