@@ -21,7 +21,7 @@ __all__ = ["jacobi_lambda_max", "jacobi_lambda_bound", "build_prolongations", "g
 
 _DENSE_EIG = 400          # below this many unknowns the eigenvalue is computed densely
 #: pyamg options of the hierarchy (see :mod:`glsldiff.solve.gather_multigrid` for the measurements).
-AMG_DEFAULTS: dict[str, Any] = {"strength": "evolution", "smooth": ("energy", {"degree": 1})}
+AMG_DEFAULTS: dict[str, Any] = {"strength": ("symmetric", {"theta": 0.0}), "smooth": ("energy", {"degree": 1})}
 
 
 def jacobi_lambda_max(A: sp.spmatrix | sp.sparray, tol: float = 1e-3) -> float:
