@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core.camera import look_at, perspective, projection
-from glsldiff.mesh.raycast import first_hits
+from glsldiff.core.jit import kernel
 from glsldiff.render.scene import Scene, vec
 
 
@@ -91,20 +91,44 @@ class Framing:
 
 def silhouette_area(mesh: Any, d: NDArray, rays: int = SILHOUETTE_RAYS) -> float:
     """``mesh``'s silhouette seen along unit ``d`` (mm^2): the share of a ``rays`` x ``rays``
-    grid of parallel rays over its bounding square that hits it, times the square's area."""
+    grid of parallel rays over its bounding square that hits it (a ray hits where its point
+    lies in a projected triangle: :func:`_cover`), times the square's area."""
     v = np.asarray(mesh.vertices, dtype=np.float64)
     d = np.asarray(d, dtype=np.float64) / np.linalg.norm(d)
     a = np.cross(d, [1.0, 0.0, 0.0] if abs(d[0]) < 0.9 else [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(d, a)
-    pa, pb, pd = v @ a, v @ b, v @ d
+    pa, pb = v @ a, v @ b
     side = max(float(np.ptp(pa)), float(np.ptp(pb)), 1e-9)
-    t = (np.arange(rays) + 0.5) / rays * side
-    A, B = np.meshgrid(pa.min() + t, pb.min() + t)
-    start = float(pd.max()) + 0.01 * side
-    origins = A.reshape(-1, 1) * a + B.reshape(-1, 1) * b + start * d
-    hit, _ = first_hits(mesh, origins, np.broadcast_to(-d, origins.shape))
-    return float(np.isfinite(hit).mean()) * side * side
+    # ray (i, j) passes through ((j + 0.5), (i + 0.5)) / rays * side from the low corner
+    uv = np.stack([pa - pa.min(), pb - pb.min()], axis=1) * (rays / side) - 0.5
+    mask = np.zeros((rays, rays), dtype=np.bool_)
+    _cover(np.ascontiguousarray(uv), np.ascontiguousarray(mesh.faces, dtype=np.int64), mask)
+    return float(mask.mean()) * side * side
+
+
+@kernel
+def _cover(uv: NDArray, faces: NDArray, mask: NDArray) -> None:
+    """Set ``mask[i, j]`` where the point ``(j, i)`` lies in (or on) a triangle ``uv[faces]``
+    (pixel units)."""
+    h, w = mask.shape
+    for f in range(len(faces)):
+        x0, y0 = uv[faces[f, 0], 0], uv[faces[f, 0], 1]
+        x1, y1 = uv[faces[f, 1], 0], uv[faces[f, 1], 1]
+        x2, y2 = uv[faces[f, 2], 0], uv[faces[f, 2], 1]
+        area = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if area == 0.0:
+            continue
+        s = 1.0 if area > 0.0 else -1.0
+        j0, j1 = max(int(math.ceil(min(x0, x1, x2))), 0), min(int(math.floor(max(x0, x1, x2))), w - 1)
+        i0, i1 = max(int(math.ceil(min(y0, y1, y2))), 0), min(int(math.floor(max(y0, y1, y2))), h - 1)
+        for i in range(i0, i1 + 1):
+            for j in range(j0, j1 + 1):
+                e0 = s * ((x1 - x0) * (i - y0) - (j - x0) * (y1 - y0))
+                e1 = s * ((x2 - x1) * (i - y1) - (j - x1) * (y2 - y1))
+                e2 = s * ((x0 - x2) * (i - y2) - (j - x2) * (y0 - y2))
+                if e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0:
+                    mask[i, j] = True
 
 
 def _framing(vertices: "Framing | NDArray") -> Framing:
