@@ -73,7 +73,7 @@ FRAME_ITERATIONS = 1
 STALL_FRAMES = 6
 STALL_RATIO = 0.3
 #: Part of the cached aggregation's key: bump it when the hierarchy's construction changes.
-HIERARCHY_CACHE_VERSION = 2   # 2: smoothing damping from a Lanczos upper bound (oracle.amg.jacobi_lambda_bound)
+HIERARCHY_CACHE_VERSION = 3   # 2: smoothing damping from a Lanczos upper bound (oracle.amg.jacobi_lambda_bound); 3: symmetric strength
 #: An edit changing more than this share of the nodes rebuilds the multigrid (the kept one
 #: would precondition a different material).
 REBUILD_SHARE = 0.25
