@@ -99,3 +99,39 @@ def test_improve_shapes_untangles_a_node_pushed_through_its_cells():
     rep = improve_shapes(X, T, free, np.zeros(len(X), dtype=bool), top, lambda p, nodes: p)
     q = shape_quality(X, T)
     assert (q <= 0).sum() == 0 and rep.worst_after > 0.7
+
+
+def test_compiled_search_takes_scipys_nelder_mead_steps():
+    """The compiled search (``shapes._nelder_mead``) = ``scipy.optimize.minimize(method=
+    "Nelder-Mead")`` on the same objective, bit for bit: a free node in 3-D and a sliding node
+    in a plane, with a slide limit that cuts some of the steps off (objective +inf there), at
+    budgets that end inside a reflection, a contraction and a shrink."""
+    import scipy.optimize as so
+
+    from glsldiff.grids.tetrahedral.pillow import node_tets
+    from glsldiff.grids.tetrahedral.shapes import _nelder_mead
+
+    X, T, _ = _kuhn_block(3)
+    rng = np.random.default_rng(5)
+    X = X + rng.uniform(-0.3, 0.3, X.shape)
+    incident = node_tets(T, len(X))
+    for v, basis, slide in ((21, np.eye(3), np.inf), (22, np.eye(3)[:2], 0.15), (37, np.eye(3)[[0, 2]], 0.05)):
+        own = T[incident.indices[incident.indptr[v]:incident.indptr[v + 1]]]
+        old, start = X[v].copy(), X[v].copy()
+        d = len(basis)
+        simplex = np.vstack([np.zeros(d), 0.2 * np.eye(d)])
+
+        def f(u: np.ndarray) -> float:
+            p = old + u @ basis
+            if np.linalg.norm(p - start) > slide:
+                return np.inf
+            Y = X.copy()
+            Y[v] = p
+            return -float(shape_quality(Y, own).min())
+
+        for fev in (5, 9, 14, 80):
+            ref = so.minimize(f, np.zeros(d), method="Nelder-Mead",
+                              options={"initial_simplex": simplex, "maxfev": fev, "xatol": 1e-3, "fatol": 1e-6}).x
+            got = _nelder_mead(X.copy(), own, v, old, np.ascontiguousarray(basis), simplex, fev, 1e-3, 1e-6,
+                               bool(np.isfinite(slide)), start, float(slide))
+            assert np.array_equal(got, ref), (v, fev, got, ref)

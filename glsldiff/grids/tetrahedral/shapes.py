@@ -28,7 +28,6 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-import scipy.optimize as so
 import scipy.sparse as sp
 from numpy.typing import NDArray
 
@@ -77,6 +76,129 @@ def _volume_and_edge(X: NDArray[np.float64], tets: NDArray[np.int64], det: NDArr
         b0, b1, b2 = X[p2, 0] - X[p0, 0], X[p2, 1] - X[p0, 1], X[p2, 2] - X[p0, 2]
         c0, c1, c2 = X[p3, 0] - X[p0, 0], X[p3, 1] - X[p0, 1], X[p3, 2] - X[p0, 2]
         det[t] = (a1 * b2 - a2 * b1) * c0 + (a2 * b0 - a0 * b2) * c1 + (a0 * b1 - a1 * b0) * c2
+
+
+@kernel
+def _worst_at(X: NDArray[np.float64], own: NDArray[np.int64], v: int, old: NDArray[np.float64],
+              basis: NDArray[np.float64], u: NDArray[np.float64], sliding: bool, start: NDArray[np.float64],
+              max_slide: float) -> float:
+    """The worst shape of the tetrahedra ``own`` with node ``v`` at ``old + u @ basis`` (moved
+    there in ``X``); ``-inf`` for a sliding node more than ``max_slide`` (mm) from ``start``."""
+    p = np.zeros(3)
+    for k in range(3):
+        for i in range(len(u)):
+            p[k] += u[i] * basis[i, k]
+        p[k] += old[k]
+    if sliding:
+        d0, d1, d2 = p[0] - start[0], p[1] - start[1], p[2] - start[2]
+        if math.sqrt(d0 * d0 + d1 * d1 + d2 * d2) > max_slide:
+            return -np.inf
+    X[v, 0], X[v, 1], X[v, 2] = p[0], p[1], p[2]
+    det, mean = np.empty(len(own)), np.empty(len(own))
+    _volume_and_edge(X, own, det, mean)
+    worst = np.inf
+    for t in range(len(own)):
+        worst = min(worst, det[t] * math.sqrt(2.0) / math.pow(max(mean[t], 1e-300), 3.0))
+    return worst
+
+
+@kernel
+def _spread(d: NDArray[np.float64]) -> float:
+    """``max |d|`` over all entries, nan if any is nan (as ``np.max``)."""
+    out = 0.0
+    for x in d.ravel():
+        a = abs(x)
+        if math.isnan(a):
+            return math.nan
+        out = max(out, a)
+    return out
+
+
+@kernel
+def _sort_simplex(sim: NDArray[np.float64], fsim: NDArray[np.float64]) -> None:
+    """Order the simplex by value, ties kept in place (the insertion sort numpy's ``argsort``
+    runs on so few points)."""
+    for i in range(1, len(fsim)):
+        j = i
+        while j > 0 and fsim[j] < fsim[j - 1]:
+            fsim[j], fsim[j - 1] = fsim[j - 1], fsim[j]
+            for k in range(sim.shape[1]):
+                sim[j, k], sim[j - 1, k] = sim[j - 1, k], sim[j, k]
+            j -= 1
+
+
+@kernel
+def _nelder_mead(X: NDArray[np.float64], own: NDArray[np.int64], v: int, old: NDArray[np.float64],
+                 basis: NDArray[np.float64], simplex: NDArray[np.float64], maxfev: int, xatol: float,
+                 fatol: float, sliding: bool, start: NDArray[np.float64], max_slide: float
+                 ) -> NDArray[np.float64]:
+    """The ``u`` (``(d,)``, mm along ``basis``' rows) that maximises the worst shape of
+    :func:`_worst_at`: SciPy's Nelder-Mead (``scipy.optimize.minimize``, non-adaptive, no
+    bounds; the same steps, stops and evaluation budget) from ``simplex`` ``(d + 1, d)``,
+    compiled (the Python loop cost 1-2 s of the bunny's grid build in objective calls)."""
+    n = simplex.shape[1]
+    sim = simplex.copy()
+    fsim = np.full(n + 1, np.inf)
+    calls = 0
+    for k in range(n + 1):
+        if calls >= maxfev:
+            break
+        calls += 1
+        fsim[k] = -_worst_at(X, own, v, old, basis, sim[k], sliding, start, max_slide)
+    _sort_simplex(sim, fsim)
+    while calls < maxfev:
+        if _spread(sim - sim[0]) <= xatol and _spread(fsim - fsim[0]) <= fatol:   # np.max's nan fails both
+            break
+        xbar = np.zeros(n)
+        for j in range(n):
+            xbar += sim[j]
+        xbar /= n
+        xr = 2 * xbar - sim[-1]
+        calls += 1
+        fxr = -_worst_at(X, own, v, old, basis, xr, sliding, start, max_slide)
+        if fxr < fsim[0]:
+            if calls >= maxfev:
+                _sort_simplex(sim, fsim)
+                break
+            xe = 3 * xbar - 2 * sim[-1]
+            calls += 1
+            fxe = -_worst_at(X, own, v, old, basis, xe, sliding, start, max_slide)
+            if fxe < fxr:
+                sim[-1], fsim[-1] = xe, fxe
+            else:
+                sim[-1], fsim[-1] = xr, fxr
+        elif fxr < fsim[-2]:
+            sim[-1], fsim[-1] = xr, fxr
+        else:
+            shrink = False
+            if calls >= maxfev:
+                _sort_simplex(sim, fsim)
+                break
+            if fxr < fsim[-1]:
+                xc = 1.5 * xbar - 0.5 * sim[-1]
+                calls += 1
+                fxc = -_worst_at(X, own, v, old, basis, xc, sliding, start, max_slide)
+                if fxc <= fxr:
+                    sim[-1], fsim[-1] = xc, fxc
+                else:
+                    shrink = True
+            else:
+                xcc = 0.5 * xbar + 0.5 * sim[-1]
+                calls += 1
+                fxcc = -_worst_at(X, own, v, old, basis, xcc, sliding, start, max_slide)
+                if fxcc < fsim[-1]:
+                    sim[-1], fsim[-1] = xcc, fxcc
+                else:
+                    shrink = True
+            if shrink:
+                for j in range(1, n + 1):
+                    sim[j] = sim[0] + 0.5 * (sim[j] - sim[0])
+                    if calls >= maxfev:
+                        break
+                    calls += 1
+                    fsim[j] = -_worst_at(X, own, v, old, basis, sim[j], sliding, start, max_slide)
+        _sort_simplex(sim, fsim)
+    return sim[0].copy()
 
 
 @dataclass
@@ -178,11 +300,9 @@ def improve_shapes(X: NDArray[np.float64], tets: NDArray[np.int64], free: NDArra
         d = len(basis)
         simplex = np.vstack([np.zeros(d), SEARCH_SIMPLEX * edge * np.eye(d)])
         # in the tangent plane (projection onto the mesh costs ~1 ms a point): projected once at the end
-        own = tets[tt]
-        res = so.minimize(lambda u: -worst(v, tt, old + u @ basis, own)[0], np.zeros(d), method="Nelder-Mead",
-                          options={"initial_simplex": simplex, "maxfev": SEARCH_EVALUATIONS,
-                                   "xatol": 1e-3 * edge, "fatol": 1e-6})
-        m, qn = worst(v, tt, place(v, old + res.x @ basis))
+        u = _nelder_mead(X, tets[tt], v, old, np.ascontiguousarray(basis), simplex, SEARCH_EVALUATIONS,
+                         1e-3 * edge, 1e-6, bool(sliding[v]), start[v], float(max_slide))
+        m, qn = worst(v, tt, place(v, old + u @ basis))
         if better(m, qn, before):
             return qn
         X[v] = old
