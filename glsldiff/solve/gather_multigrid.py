@@ -7,16 +7,18 @@ Hierarchy (CPU, once per matrix)
     Smoothed aggregation (pyamg) on the channel-mean matrix ``(A_R + A_G + A_B) / 3`` gives the
     prolongations ``P_l`` (``n_l x n_{l+1}``), shared by the three channels (one pattern,
     similar values); the coarse operators are Galerkin per channel, ``A_{l+1} = P_l^T A_l P_l``.
-    Options (:data:`glsldiff.oracle.amg.AMG_DEFAULTS`): ``"evolution"`` strength of connection and energy-minimising
-    prolongation smoothing (degree 1). pyamg's default (``"symmetric"`` strength, theta 0,
-    Jacobi-smoothed P) aggregates ~27 fine nodes of a P1 matrix per coarse node, and its
-    iteration counts grow with the grid (10 mm sphere, 5 mm cubes, n = 3, 6, 8 nodes per cube
-    edge, iterations to 1e-4: plain V(2,2) 11, 22, 27 against 7, 10, 12; PCG 6, 9, 10 against
-    5, 6, 6). The symmetric strength with energy smoothing, ``amg={"strength": ("symmetric",
-    {"theta": 0.0})}``, sets up 4x faster (pyamg 0.55 s against 2.1 s on the 125k-node bunny
-    grid; operator complexity 1.1 against 1.5-1.6) for 6, 8, 10 PCG iterations on the spheres
-    and 24 against 17 on the bunny, at about the same solve time: the choice where the
-    hierarchy is rebuilt often.
+    Options (:data:`glsldiff.oracle.amg.AMG_DEFAULTS`): the ``"symmetric"`` strength of
+    connection with theta 0 and energy-minimising prolongation smoothing (degree 1). pyamg's
+    own default (the same strength, Jacobi-smoothed P) aggregates ~27 fine nodes of a P1 matrix
+    per coarse node, and its iteration counts grow with the grid (10 mm sphere, 5 mm cubes,
+    n = 3, 6, 8 nodes per cube edge, iterations to 1e-4: plain V(2,2) 11, 22, 27 against 7,
+    10, 12 with the ``"evolution"`` strength; PCG 6, 9, 10 against 5, 6, 6). The energy
+    smoothing takes 6, 8, 10 PCG iterations there. The evolution strength (the default until
+    the first-render work of issue 45; ``amg={"strength": "evolution"}``) converges in fewer
+    cycles but sets up slower: on the default bunny (147k nodes, fresh cache, 2 cores) pyamg
+    1.7-2.0 s against 0.96 s, 4 levels against 3, 6 PCG cycles (1.04-1.11 s) against 8
+    (1.2-1.4 s), pass 2 5.1 s against 3.6 s; an edit to 0.5 % 0.21 s (bench edit), a light
+    change to 0.5 % 0.62-0.71 s (bench frames) with this default.
     The coarsening stops at ``max_coarse`` unknowns (default 300). pyamg and the damping estimates
     run on one BLAS thread (OpenBLAS's threads on 2 busy cores made them 2-4x slower).
 Coarsest level
