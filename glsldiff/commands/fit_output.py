@@ -63,6 +63,9 @@ def verdict(result: FitResult, E: float | None = None, coefficients: list[dict[s
         worst = max(max(r["sigma_a_median_rel_err"], r["sigma_s_median_rel_err"]) for r in coefficients)
         parts.append(f"coefficients {'recovered' if worst <= GOOD_COEFFICIENT else 'NOT recovered'}: worst median "
                      f"error per node {100 * worst:.0f} % (target {100 * GOOD_COEFFICIENT:.0f} %)")
+        if max(r["sigma_a_median_rel_err"] for r in coefficients) > GOOD_COEFFICIENT:
+            parts.append("steady-state captures do not fix sigma_a per node, only with sigma_s' "
+                         "(docs/guide/inverse.md, 'What the captures determine')")
     loose = []
     for c, f in enumerate(fits):
         if f.ranges is not None:
