@@ -417,7 +417,7 @@ def test_coefficient_errors_are_zero_for_the_truth_and_name_a_scale() -> None:
 
 
 @pytest.mark.parametrize("args, match", [
-    (["--setup", "front"], "back-lit setup only"),
+    (["--setup", "front"], "back-lit setups only"),
     (["--noise", "0.01"], "Monte Carlo has its own"),
     (["--spp", "100"], "power of 4"),
 ])

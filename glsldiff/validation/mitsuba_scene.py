@@ -260,8 +260,11 @@ def shape_dict(mi: Any, mesh: Mesh, medium: Any, eta: float) -> Any:
     return shape
 
 
-def emitter_dict(mi: Any, light: dict[str, Any]) -> dict[str, Any]:
-    """Mitsuba emitter dict of checked light parameters (:func:`check_light`)."""
+def emitter_dict(mi: Any, light: dict[str, Any], transparent: bool = False) -> dict[str, Any]:
+    """Mitsuba emitter dict of checked light parameters (:func:`check_light`); ``transparent``
+    gives an area light's rectangle a ``null`` BSDF (it emits, one-sided, and lets everything
+    through) instead of Mitsuba's default for an emitter's shape (a black diffuse BSDF: it absorbs
+    what reaches it and hides what lies behind it)."""
     if light["type"] == "directional":
         return {"type": "directional", "direction": (-light["direction"]).tolist(),
                 "irradiance": {"type": "rgb", "value": light["irradiance"].tolist()}}
@@ -274,7 +277,8 @@ def emitter_dict(mi: Any, light: dict[str, Any]) -> dict[str, Any]:
                                                            up=up)}
     if light["type"] == "area":
         return {"type": "rectangle", "to_world": mi.ScalarTransform4f(light["to_world"].tolist()),
-                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}}
+                "emitter": {"type": "area", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}},
+                **({"bsdf": {"type": "null"}} if transparent else {})}
     if light["type"] == "constant":
         return {"type": "constant", "radiance": {"type": "rgb", "value": light["radiance"].tolist()}}
     return {"type": "envmap", "scale": light["scale"],
