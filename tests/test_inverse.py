@@ -420,6 +420,7 @@ def test_coefficient_errors_are_zero_for_the_truth_and_name_a_scale() -> None:
     (["--setup", "front"], "back-lit setups only"),
     (["--noise", "0.01"], "Monte Carlo has its own"),
     (["--spp", "100"], "power of 4"),
+    (["--setup", "back", "--reflection-from", "2"], "--setup both"),
 ])
 def test_cli_synth_mitsuba_refuses_what_it_cannot_render(tmp_path, capsys, args, match) -> None:
     assert main(["synth", str(tmp_path / "m.npz"), "--renderer", "mitsuba", *args]) == 2

@@ -322,6 +322,11 @@ def test_mitsuba_measurements_of_both_faces():
         quad = [mc[r, :5, :5].sum(), mc[r, :5, -5:].sum(), mc[r, -5:, :5].sum(), mc[r, -5:, -5:].sum()]
         assert int(np.argmax(quad)) == r                       # row-major regions: (y-, x-), (y-, x+), ...
         assert 1.3 < (ours[r] * mask[r]).sum() / (mc[r] * mask[r]).sum() < 2.1   # the model's known excess
+    far, _ = mitsuba_measurements(kappa, mu, 0.5, 2, spp=4, seed=3, setup="both", reflection_from_mm=1.0)
+    kept = far.reflected_mask[0, ..., 0]                      # region 0: face nodes [0:5, 0:5]
+    assert not kept[:6, :6].any() and kept[6:].all() and kept[:, 6:].all()   # 2 nodes out and beyond
+    with pytest.raises(InputError, match="setup='both'"):
+        mitsuba_measurements(kappa, mu, 0.5, 2, spp=4, reflection_from_mm=1.0)
 
 
 def test_the_z_minus_camera_does_not_see_the_light_rectangles():

@@ -52,6 +52,10 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                         "(back or both setup, eta = 1; glsldiff.validation.measure)")
     p.add_argument("--spp", type=A.integer(4, 1 << 20), default=1024,
                    help="Monte Carlo samples per pixel with --renderer mitsuba (a power of 4)")
+    p.add_argument("--reflection-from", type=A.nonnegative, default=0.0, metavar="MM",
+                   help="--renderer mitsuba --setup both: fit the lit face's reflection only this far (mm) from a "
+                        "lit region and beyond (the diffusion model is too bright next to it: 2 mm in "
+                        "docs/guide/inverse.md)")
     p.set_defaults(func=cmd_synth)
 
     p = sub.add_parser("fit", help="fit kappa and mu to measurements by inverse diffusion")
@@ -143,6 +147,9 @@ def cmd_synth(args: argparse.Namespace) -> int:
     kappa, mu = synthetic_volume((nz, ny, nx), args.volume, seed=args.seed)
     if args.grey:
         kappa, mu = (np.repeat(a[..., 1:2], 3, axis=-1) for a in (kappa, mu))
+    if args.reflection_from and (args.renderer, args.setup) != ("mitsuba", "both"):
+        raise InputError("--reflection-from masks the reflection of Mitsuba captures; use it with --renderer mitsuba "
+                         "--setup both")
     if args.renderer == "mitsuba":
         meas = _mitsuba_synth(args, kappa, mu)
     else:
@@ -173,7 +180,8 @@ def _mitsuba_synth(args: argparse.Namespace, kappa: np.ndarray, mu: np.ndarray) 
     def progress(done: int, total: int, seconds: float) -> None:
         print(f"  region {done}/{total}: {seconds:.0f} s", flush=True)
 
-    meas, info = mitsuba_measurements(kappa, mu, args.h, args.n, args.spp, args.seed, progress, args.setup)
+    meas, info = mitsuba_measurements(kappa, mu, args.h, args.n, args.spp, args.seed, progress, args.setup,
+                                      args.reflection_from)
     shares = ", ".join(f"{100 * v:.1f} % of the {face} image" for face, v in info["unscattered_shares"].items())
     print(f"Mitsuba: {info['regions']} regions at {info['spp']} spp in {info['seconds']:.0f} s; unscattered light "
           f"removed ({shares})")

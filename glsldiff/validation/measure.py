@@ -31,7 +31,8 @@ the physical truth:
   are the same as ``back``'s (equal bit for bit in the tests). The ``z-`` image's unscattered
   part is removed as well (it is 0: the camera sees the rectangles from behind). Its
   ``reflected_mask`` keeps the nodes with q < :data:`UNLIT_Q` (the region and a ring of penumbra
-  are left out, as a front-lit capture leaves out the directly lit nodes).
+  are left out, as a front-lit capture leaves out the directly lit nodes), and with
+  ``reflection_from_mm`` only those at least that far from the region.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ from typing import Any, Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from glsldiff.core.checks import choice
+from glsldiff.core.checks import choice, real
 from glsldiff.core.errors import InputError
 from glsldiff.inverse.measurements import Measurements, face_regions
 from glsldiff.mesh import box_mesh
@@ -86,16 +87,34 @@ def _to_face(face: str, img: NDArray) -> NDArray:
     return img[::-1] if face == "z+" else img[::-1, ::-1]
 
 
+def _region_distance(regions: list[tuple[slice, slice]], face_shape: tuple[int, int]) -> NDArray:
+    """``(M, rows, cols)``: each face node's distance in nodes (the larger of its row and column
+    offsets) from the nearest node of each region; 0 inside it."""
+    i, j = np.indices(face_shape)
+
+    def off(k: NDArray, sl: slice) -> NDArray:
+        return np.maximum(np.maximum(sl.start - k, k - (sl.stop - 1)), 0)
+
+    return np.stack([np.maximum(off(i, sy), off(j, sx)) for sy, sx in regions])
+
+
 def mitsuba_measurements(kappa: NDArray, mu: NDArray, h: float, n: int, spp: int = 1024, seed: int = 0,
-                         progress: Callable[[int, int, float], None] | None = None, setup: str = "back"
-                         ) -> tuple[Measurements, dict[str, Any]]:
+                         progress: Callable[[int, int, float], None] | None = None, setup: str = "back",
+                         reflection_from_mm: float = 0.0) -> tuple[Measurements, dict[str, Any]]:
     """Back-lit measurements (lit ``z-``, observed ``z+``, and with ``setup="both"`` the lit face
     ``z-`` too, as ``reflected``) of the block ``(kappa, mu)`` (each ``(nz, ny, nx, 3)``, mm and
     mm^-1) with ``n x n`` regions, rendered by Mitsuba with ``spp`` samples per pixel (a power
-    of 4). Returns the measurements and an info dict (seconds, spp, regions, the unscattered
-    share of each observed face's image). ``progress(done, total, seconds)`` after each region."""
+    of 4). ``reflection_from_mm`` (``both``): fit the reflection only at nodes at least this far
+    (mm, along x or y) from every node of the lit region, beyond the model's excess next to it
+    (docs/guide/inverse.md: 2 mm there). Returns the measurements and an info dict (seconds, spp,
+    regions, the unscattered share of each observed face's image). ``progress(done, total,
+    seconds)`` after each region."""
     check_ldsampler_spp(spp)                 # before any rendering
     choice(setup, "setup", MITSUBA_SETUPS)
+    reflection_from_mm = real(reflection_from_mm, "reflection_from_mm (mm)", 0.0)
+    if reflection_from_mm > 0 and setup != "both":
+        raise InputError(f"reflection_from_mm = {reflection_from_mm} masks the reflection, which only setup 'both' "
+                         "captures; use setup='both' or leave it at 0")
     kappa, mu = np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64)
     if kappa.ndim != 4 or kappa.shape[-1] != 3 or mu.shape != kappa.shape:
         raise InputError(f"kappa and mu must both have shape (nz, ny, nx, 3), got {kappa.shape} and {mu.shape}")
@@ -134,7 +153,8 @@ def mitsuba_measurements(kappa: NDArray, mu: NDArray, h: float, n: int, spp: int
     reflected, reflected_mask = None, None
     if setup == "both":
         reflected = images["z-"]
-        reflected_mask = incoming.max(axis=-1) < UNLIT_Q    # q = 1 inside a region (radiance 1/pi)
+        reflected_mask = (incoming.max(axis=-1) < UNLIT_Q) & (_region_distance(regions, (fy, fx)) * h
+                                                              >= reflection_from_mm - 1e-9 * h)
     meas = Measurements((nz, ny, nx), h, "z-", "z+", incoming, images["z+"], None, eta=1.0,
                         reflected=reflected, reflected_mask=reflected_mask)
     share = {face: unsc[face] / max(total[face], 1e-300) for face in faces}
