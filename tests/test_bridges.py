@@ -79,6 +79,25 @@ def test_slit_frame_with_thin_parts_off_has_the_same_cubes():
     np.testing.assert_array_equal(a.cubes, b.cubes)
 
 
+def test_candidates_offer_each_thresholds_repair_once():
+    """At 1.2 mm cubes the slit frame's thresholds repair into four different cube sets: the
+    search offers each once, least inside volume left out first (the one polycube_from_mesh
+    returns), each with the mesh's topology; grown or not, in the same order."""
+    mesh = _slit_frame()
+    plain = list(P.polycube_candidates(mesh, cube_size=1.2, thin_parts=False))
+    grown = list(P.polycube_candidates(mesh, cube_size=1.2))
+    assert [pc.threshold for pc in plain] == [pc.threshold for pc in grown] == [0.6, 0.5, 0.3, 0.2]
+    first = P.polycube_from_mesh(mesh, cube_size=1.2, thin_parts=False)
+    np.testing.assert_array_equal(plain[0].cubes, first.cubes)
+    assert plain[0].threshold == first.threshold and plain[0].repair == first.repair
+    lost = [float(pc.repair.split(" cubes of inside volume")[0].rsplit("(", 1)[1]) for pc in plain]
+    assert lost == sorted(lost)
+    assert len({pc.cubes.tobytes() for pc in plain}) == len(plain)
+    for pc in plain:
+        topo = pc.surface_topology
+        assert (topo.components, topo.cavities, topo.genus, topo.manifold) == (1, 0, 0, True) and pc.bridged > 0
+
+
 def test_meshes_that_build_never_reach_the_repair(monkeypatch):
     """Cube sets with the mesh's topology are returned as before: the repair is not called."""
     def boom(*args, **kwargs):

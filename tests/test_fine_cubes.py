@@ -97,7 +97,7 @@ def test_retries_other_cube_sizes_until_the_targets_are_met(monkeypatch, sphere)
     outcomes = {1.0: (1, 1.1), RETRY_SIZES[0]: (0, 2.0), RETRY_SIZES[1]: (0, 1.2), RETRY_SIZES[2]: (0, 1.0)}
     calls = []
 
-    def fake(mesh, n, cube_size, n_cubes, threshold, mapping, budget):
+    def fake(mesh, n, cube_size, n_cubes, threshold, mapping, budget, repairs=True):
         size = 2.0 if cube_size is None else cube_size
         calls.append(round(size / 2.0, 6))
         inverted, coverage = outcomes[round(size / 2.0, 6)]
@@ -118,6 +118,37 @@ def test_retries_other_cube_sizes_until_the_targets_are_met(monkeypatch, sphere)
     g = build_fem_grid(sphere, n=8, n_cubes=40)
     assert calls == [1.0, *RETRY_SIZES] and g.quality.inverted == 1 and g.quality.size_factor == 1.0
     assert g.quality.retries == len(RETRY_SIZES)
+
+
+def test_maps_the_other_repairs_until_one_meets_the_targets(monkeypatch, sphere) -> None:
+    """Step 9's control flow, on stand-in polycubes and mappings: where the search repaired the
+    cubes, its other repairs are mapped in its order (each ungrown, then grown if that misses)
+    until one meets the targets, and that grid is kept; the retries of step 8 are not needed
+    (the real case: CGAL's camel, whose first repair left 1.53 h)."""
+    from types import SimpleNamespace
+
+    from glsldiff.grids.polycube import Polycube
+    from glsldiff.grids.tetrahedral import fem_grid
+    from glsldiff.grids.tetrahedral.fem_grid import MappingQuality
+
+    thresholds = (0.7, 0.3, 0.2, 0.5)   # the repairs, least inside volume left out first
+    coverage = {(0.7, 0): 1.75, (0.7, 1): 1.53, (0.3, 0): 1.57, (0.3, 1): 1.6, (0.2, 0): 1.22, (0.5, 0): 1.0}
+    mapped = []
+
+    def candidates(mesh, cube_size=None, n_cubes=None, threshold=0.5, thin_parts=True):
+        for t in thresholds:
+            yield Polycube(np.array([[0, 0, 0]]), 1.0, np.zeros(3), np.ones(1), t, int(thin_parts), 3, "repaired")
+
+    def fake_map(mesh, polycube, n, mapping, budget):
+        mapped.append((polycube.threshold, polycube.grown))
+        return SimpleNamespace(quality=MappingQuality(coverage_max=coverage[mapped[-1]]), polycube=polycube,
+                               complex=SimpleNamespace(lattice=SimpleNamespace(n=n)))
+
+    monkeypatch.setattr(fem_grid, "polycube_candidates", candidates)
+    monkeypatch.setattr(fem_grid, "_map_polycube", fake_map)
+    g = build_fem_grid(sphere, n=2, cube_size=1.0)
+    assert mapped == [(0.7, 0), (0.7, 1), (0.3, 0), (0.3, 1), (0.2, 0)]   # stops at the first that meets them
+    assert g.polycube.threshold == 0.2 and g.quality.coverage_max == 1.22 and g.quality.retries == 0
 
 
 def test_cubes_snapped_far_beyond_the_count_fall_back() -> None:

@@ -20,7 +20,7 @@ from glsldiff.grids.polygrid import Polygrid, build_polygrid
 from glsldiff.mesh import Mesh
 
 #: Part of every key: entries of an older construction are never read.
-CACHE_VERSION = 18   # 18: harmonic map on one BLAS thread (17: tetrahedral modules moved to grids.tetrahedral)
+CACHE_VERSION = 19   # 19: the other repaired polycubes mapped in turn (18: harmonic map on one BLAS thread)
 
 
 def polygrid_key(mesh: Mesh, kind: str = "polygrid", **params: Any) -> str:

@@ -26,7 +26,11 @@ builds it automatically:
    (:func:`glsldiff.grids.bridges.repair_bridges`); the repair that leaves out the least
    inside volume is kept, grown into thin parts (step 5), and said in one warning
    (:attr:`Polycube.repair`). CGAL's camel at 15,000 cubes: genus 1-2 at every threshold;
-   repaired by leaving out 4-26 cubes.
+   repaired by leaving out 4-26 cubes. :func:`polycube_candidates` offers the other thresholds'
+   repairs as well, by the inside volume they leave out: which one maps best turns on where
+   the near-contacts and thin parts fall (the camel's 15,000 cubes: coverage 1.22-2.28 h and
+   0-9 inverted tetrahedra over its six thresholds' repairs, grown or not), so the tetrahedral
+   grid build maps them in turn (:mod:`glsldiff.grids.tetrahedral.fem_grid`, step 9).
 
 Cube coordinates are integer triples ``(ix, iy, iz)``; cube ``(i, j, k)`` spans
 ``origin + size * ([i, i+1] x [j, j+1] x [k, k+1])``. Cube lists are kept in scan-line
@@ -39,6 +43,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -49,7 +54,7 @@ from scipy.spatial import cKDTree
 
 from glsldiff.core.checks import integer, real, vector3
 from glsldiff.core.errors import InputError
-from glsldiff.grids.bridges import repair_bridges
+from glsldiff.grids.bridges import BridgeRepair, repair_bridges
 from glsldiff.grids.cubeset import (MANIFOLD, OFFSETS, Topology, addable, block_codes, cube_coordinates, occupancy,
                                     topology_of)
 from glsldiff.mesh import Mesh, contains_grid, surface_samples
@@ -436,7 +441,18 @@ def snap_to_extents(size: float, extents: NDArray[np.float64], band: float = 0.2
 
 def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int | None = None,
                        threshold: float = 0.5, samples: int = 4, thin_parts: bool = True) -> Polycube:
-    """Polycube approximating a closed mesh, with the mesh's topology.
+    """Polycube approximating a closed mesh, with the mesh's topology: the first of
+    :func:`polycube_candidates` (same parameters)."""
+    return next(polycube_candidates(mesh, cube_size, n_cubes, threshold, samples, thin_parts))
+
+
+def polycube_candidates(mesh: Mesh, cube_size: float | None = None, n_cubes: int | None = None,
+                        threshold: float = 0.5, samples: int = 4, thin_parts: bool = True) -> Iterator[Polycube]:
+    """Polycubes approximating a closed mesh, with the mesh's topology, best first (computed
+    as they are asked for): the first threshold's cubes that have it (one), else the
+    repaired cube sets of every threshold whose repair gives it, by the inside volume they
+    leave out (module docstring, step 7). Raises :class:`PolycubeNotFound` on the first
+    ``next`` where there is none.
 
     Parameters
     ----------
@@ -496,14 +512,21 @@ def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int 
             pc = Polycube(cubes, s, fr.origin, frac, t, grown)
             log.info("%s: polycube of %d cubes (%d in thin parts), size %.6g mm, threshold %g (genus %d)",
                      name, pc.count, grown, s, t, topo.genus)
-            return pc
+            yield pc
+            return
         failures.append(f"threshold {t:g} ({len(cubes)} cubes of {s:.4g} mm): {topo.components} "
                         f"component(s), {topo.cavities} cavit(y/ies), genus {topo.genus}")
         missed.append((t, fr, topo))
-    pc = _without_bridges(mesh, missed, thin_parts)
-    if pc is not None:
-        log.warning("%s: %s", name, pc.repair)
-        return pc
+    found = False
+    for pc in _without_bridges(mesh, missed, thin_parts):
+        if found:
+            log.info("%s: another repair: %s", name, pc.repair)
+        else:
+            log.warning("%s: %s", name, pc.repair)
+        found = True
+        yield pc
+    if found:
+        return
     raise PolycubeNotFound(
         f"no polycube of {name} (extents {ext_txt}, genus {mesh.genus}) with one component, "
         f"no cavity and genus {mesh.genus} was found: " + "; ".join(failures) +
@@ -512,21 +535,32 @@ def polycube_from_mesh(mesh: Mesh, cube_size: float | None = None, n_cubes: int 
 
 
 def _without_bridges(mesh: Mesh, missed: list[tuple[float, _Fractions, Topology]], thin_parts: bool
-                     ) -> Polycube | None:
+                     ) -> Iterator[Polycube]:
     """Step 7 of the module docstring over the thresholds whose cubes ``missed`` the mesh's
-    topology (threshold, fractions, the topology they had): the repaired polycube that leaves
-    out the least inside volume, or None where no repair gives the mesh's topology."""
-    best = None
+    topology (threshold, fractions, the topology they had): the repaired polycubes that have
+    it, the least inside volume left out first (each finished as it is asked for; a cube set
+    that an earlier threshold's repair gave too, once)."""
+    repairs, seen = [], set()
     for t, fr, _ in missed:
         base = _base(fr, t)
         if base is None:
             continue
         rep = repair_bridges(base[0], base[1], mesh.genus)
-        if rep.matches(mesh.genus) and (best is None or rep.removed_volume < best[0].removed_volume):
-            best = (rep, t, fr, base)
-    if best is None:
-        return None
-    rep, t, fr, (_, frac, off) = best
+        key = (fr.size, (np.argwhere(rep.occ) - base[2]).tobytes())   # thresholds of the same cubes: once
+        if rep.matches(mesh.genus) and key not in seen:
+            seen.add(key)
+            repairs.append((rep, t, fr, base))
+    repairs.sort(key=lambda r: r[0].removed_volume)   # stable: ties in the thresholds' order
+    for rep, t, fr, (_, frac, off) in repairs:
+        pc = _finish_repair(mesh, missed, rep, t, fr, frac, off, thin_parts)
+        if pc is not None:
+            yield pc
+
+
+def _finish_repair(mesh: Mesh, missed: list[tuple[float, _Fractions, Topology]], rep: BridgeRepair, t: float,
+                   fr: _Fractions, frac: NDArray[np.float64], off: int, thin_parts: bool) -> Polycube | None:
+    """The repaired cubes ``rep`` of threshold ``t`` grown into thin parts (step 5) as a
+    polycube with its note (:attr:`Polycube.repair`), or None where they lost the mesh's topology."""
     samples = surface_samples(mesh, fr.size / 3.0) if thin_parts else None
     cubes, kept, occ, grown = _finish(fr, rep.occ, frac, off, samples)
     got = topology_of(occ)
