@@ -10,8 +10,8 @@ re-sums exactly those, in time proportional to the edit, not to the grid.
 
 The pattern is fixed once per grid (every edge of a tetrahedron between two active nodes and
 the diagonal, explicit zeros kept), so the three channel matrices and the block-diagonal
-:class:`~glsldiff.oracle.assembly.LinearSystem` share one ``(3, nnz)`` value array: an update
-changes them all without copies. Units: ``K``, ``A`` mm; ``b`` mm^2 times the source's units.
+:class:`~glsldiff.oracle.assembly.ChannelSystem` over them share one ``(3, nnz)`` value array: an
+update changes them all without copies. Units: ``K``, ``A`` mm; ``b`` mm^2 times the source's units.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ from glsldiff.core import cache
 from glsldiff.core.errors import InputError
 from glsldiff.core.jit import kernel
 from glsldiff.grids.tetrahedral.pillow import TET_EDGES
-from glsldiff.oracle.assembly import LinearSystem, row_entries
+from glsldiff.oracle.assembly import ChannelSystem, row_entries
 from glsldiff.oracle.fem import TetGeometry
 
 __all__ = ["P1Pattern", "P1System", "P1Update", "cached_p1_pattern"]
@@ -216,8 +216,9 @@ class P1System:
     values
         ``(3, nnz)`` the entries of the three channel matrices (one pattern).
     system
-        The :class:`~glsldiff.oracle.assembly.LinearSystem` (``b`` zero until
-        :meth:`set_rhs`); its ``A`` and ``diag`` share :attr:`values`.
+        The :class:`~glsldiff.oracle.assembly.ChannelSystem` of :meth:`matrices` (``b`` zero
+        until :meth:`set_rhs`); its blocks (and its block-diagonal ``A``, made when asked for) share
+        :attr:`values`.
     """
 
     def __init__(self, geo: TetGeometry, active: ArrayLike, C: float, kappa: ArrayLike, mu: ArrayLike,
@@ -244,10 +245,10 @@ class P1System:
         self._matrices: list[sp.csr_matrix] | None = None
         self.kappa = np.zeros((n_all, 3))
         self.mu = np.zeros((n_all, 3))
-        self.system = LinearSystem(sp.csr_matrix((self.values.reshape(-1), self._block_indices(),
-                                                  self._block_indptr()), shape=(3 * n, 3 * n)),
-                                   np.zeros(3 * n), self.values[:, self._pos_ii[self.active]].reshape(-1),
-                                   self.active)
+        # the channel matrices, not a block-diagonal copy of their indices (24 MB on the bunny):
+        # its A is assembled only where something asks for it (tests, benches), sharing values
+        self.system = ChannelSystem(self.matrices(), np.zeros(3 * n),
+                                    self.values[:, self._pos_ii[self.active]].reshape(-1), self.active)
         self._assemble(np.asarray(kappa, dtype=np.float64), np.asarray(mu, dtype=np.float64))
 
     # ---- pattern ------------------------------------------------------------------------------
@@ -255,21 +256,6 @@ class P1System:
     def n(self) -> int:
         """Unknowns per channel."""
         return int(self.active.size)
-
-    def _block_dtype(self) -> type:
-        """int32 where the block-diagonal system's indices fit (scipy would narrow int64 ones to it)."""
-        return np.int32 if 3 * max(self.n, self.indices.size) < np.iinfo(np.int32).max else np.int64
-
-    def _block_indices(self) -> NDArray[np.integer]:
-        nnz, out = self.indices.size, np.empty(3 * self.indices.size, dtype=self._block_dtype())
-        for c in range(3):
-            np.add(self.indices, c * self.n, out=out[c * nnz:(c + 1) * nnz], casting="unsafe")
-        return out
-
-    def _block_indptr(self) -> NDArray[np.integer]:
-        nnz, dt = self.indices.size, self._block_dtype()
-        return np.concatenate([self.indptr[:-1].astype(dt) + dt(c * nnz) for c in range(3)]
-                              + [np.array([3 * nnz], dtype=dt)])
 
     def matrices(self) -> list[sp.csr_matrix]:
         """The three channel matrices ``(n, n)``, whose ``data`` are the rows of :attr:`values`
