@@ -4,22 +4,18 @@ vertices, non-manifold edges and vertices, incoherent orientation, small holes),
 topology and orient the faces outward. What the repair changed is counted in
 :attr:`glsldiff.mesh.types.Mesh.repairs`. Coordinates are taken as mm.
 
-pymeshlab is a core dependency but a heavy import: it is imported only
-where a mesh is read or checked.
+pymeshlab is a core dependency but a heavy import (~96 MB resident, kept until the process ends):
+it is imported only where a mesh is read or checked (:mod:`glsldiff.mesh.meshlab`), and
+:func:`cached_load_mesh` (the renderer's) runs it in a child interpreter.
 """
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import importlib.metadata
+import importlib.util
 import logging
 import os
 import re
-import sys
-import tempfile
-from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -28,6 +24,7 @@ from glsldiff.core import cache
 from glsldiff.core.checks import choice, real
 from glsldiff.core.errors import InputError
 from glsldiff.core.io import not_a_file
+from glsldiff.mesh.meshlab import MAX_HOLE_EDGES, ChildMeshLab, ChildUnavailable, MeshLab
 from glsldiff.mesh.types import (Mesh, check_face_indices, n_directed_edges, signed_volume, unique_edges,
                                  vertex_labels)
 
@@ -40,8 +37,6 @@ SAMPLE_MESHES: dict[str, str] = {
     "bone": "bone.ply",
     "airplane": "airplane.obj",
 }
-#: Largest hole (in boundary edges) that ``repair=True`` closes.
-MAX_HOLE_EDGES = 30
 COMPONENT_MODES = ("error", "largest")
 
 
@@ -50,12 +45,11 @@ def sample_mesh_path(name: str) -> Path:
     if name not in SAMPLE_MESHES:
         raise InputError(f"unknown sample mesh {name!r}; valid names: {', '.join(SAMPLE_MESHES)} "
                          "(or pass the path of a mesh file)")
-    try:
-        import pymeshlab  # heavy import; it ships the sample meshes
-    except ImportError as exc:  # pragma: no cover - depends on the environment
+    spec = importlib.util.find_spec("pymeshlab")     # found, not imported (a heavy import)
+    if spec is None or not spec.submodule_search_locations:  # pragma: no cover - depends on the environment
         raise InputError(f"sample mesh {name!r} ships with pymeshlab, which is not installed; "
-                         "install it with: pip install pymeshlab") from exc
-    path = Path(pymeshlab.__file__).parent / "tests" / "sample_meshes" / SAMPLE_MESHES[name]
+                         "install it with: pip install pymeshlab")
+    path = Path(list(spec.submodule_search_locations)[0]) / "tests" / "sample_meshes" / SAMPLE_MESHES[name]
     if not path.is_file():  # pragma: no cover - broken install
         raise InputError(f"sample mesh {name!r}: {path} is missing from the pymeshlab install; "
                          "reinstall pymeshlab or pass a mesh file path")
@@ -87,16 +81,38 @@ def load_mesh(source: str | os.PathLike, size_mm: float | None = None, repair: b
         ``'error'``: several connected components raise InputError; ``'largest'``: keep
         the component of largest volume (counted as ``removed_components``).
     """
+    return _load(source, size_mm, repair, component, child=False)
+
+
+def _load(source: str | os.PathLike, size_mm: float | None, repair: bool, component: str, child: bool) -> Mesh:
+    """:func:`load_mesh`, pymeshlab in a child interpreter with ``child`` (:func:`_meshset`)."""
     path, name = _mesh_file(source)
-    _check_file_numbers(path)
-    ms = _meshset()
+    ms = _read(path, child)
     try:
-        with _quiet():
-            ms.load_new_mesh(str(path))
+        return _finish(ms, name, size_mm, repair, component, file_units=True)
+    finally:
+        ms.close()
+
+
+def _read(path: Path, child: bool) -> MeshLab | ChildMeshLab:
+    """A MeshSet holding the mesh file ``path``, checked first (:func:`_check_file_numbers`,
+    while a child starts); in this process where the child cannot serve (:func:`_meshset`)."""
+    ms = _meshset(child=child)
+    try:
+        _check_file_numbers(path)
+        ms.read(str(path))
+        return ms
+    except ChildUnavailable as exc:
+        ms.close()
+        log.debug("no pymeshlab child process (%s): loading in this process", exc)
+        return _read(path, child=False)
+    except InputError:
+        ms.close()
+        raise
     except Exception as exc:  # pymeshlab.PyMeshLabException and friends
+        ms.close()
         raise InputError(f"mesh file {str(path)!r} could not be read by pymeshlab ({exc}); "
                          "check the file format (obj, ply, stl, off, ...)") from exc
-    return _finish(ms, name, size_mm, repair, component, file_units=True)
 
 
 def _mesh_file(source: str | os.PathLike) -> tuple[Path, str]:
@@ -118,7 +134,9 @@ def cached_load_mesh(source: str | os.PathLike, size_mm: float | None = None, re
                      component: str = "error") -> Mesh:
     """:func:`load_mesh` through the on-disk cache (:mod:`glsldiff.core.cache`), keyed by the
     file's bytes, name and suffix, the arguments and pymeshlab's version (0.5 s of reading,
-    checks and repair for the bunny). A file that does not load raises every time (nothing
+    checks and repair for the bunny). pymeshlab runs in a child interpreter
+    (:class:`~glsldiff.mesh.meshlab.ChildMeshLab`; here where none starts): its ~96 MB of
+    libraries stay out of the renderer. A file that does not load raises every time (nothing
     is cached for it)."""
     path, name = _mesh_file(source)
     try:
@@ -127,7 +145,7 @@ def cached_load_mesh(source: str | os.PathLike, size_mm: float | None = None, re
         return load_mesh(source, size_mm, repair, component)     # which says what to install
     key = cache.digest(f"mesh v{LOAD_CACHE_VERSION}", path.read_bytes(), name, path.suffix.lower(), size_mm,
                        repair, component, reader)
-    return cache.memo("mesh", key, Mesh, lambda: load_mesh(source, size_mm, repair, component))
+    return cache.memo("mesh", key, Mesh, lambda: _load(source, size_mm, repair, component, child=True))
 
 
 def mesh_from_arrays(vertices: ArrayLike, faces: ArrayLike, size_mm: float | None = None,
@@ -155,55 +173,28 @@ def mesh_from_arrays(vertices: ArrayLike, faces: ArrayLike, size_mm: float | Non
     v = np.asarray(v, dtype=np.float64)
     _check_finite(v, label)
     check_face_indices(f, len(v), label)
-    return _finish(_meshset(v, f, label), name, size_mm, repair, component)
-
-
-def _meshset(v: NDArray[np.float64] | None = None, f: NDArray[np.int64] | None = None,
-             name: str = "") -> Any:
-    """An empty pymeshlab MeshSet, or one holding the mesh ``(v, f)``."""
+    ms = _meshset(v, f, label)
     try:
-        import pymeshlab  # heavy import, loaded only to read or repair a mesh
+        return _finish(ms, name, size_mm, repair, component)
+    finally:
+        ms.close()
+
+
+def _meshset(v: NDArray[np.float64] | None = None, f: NDArray[np.int64] | None = None, name: str = "",
+             child: bool = False) -> MeshLab | ChildMeshLab:
+    """An empty pymeshlab MeshSet, or one holding the mesh ``(v, f)``: in a child interpreter
+    with ``child`` (:class:`~glsldiff.mesh.meshlab.ChildMeshLab`; in this process where none starts),
+    else here. The caller closes it."""
+    if child:
+        try:
+            return ChildMeshLab(v, f, name)
+        except OSError as exc:
+            log.debug("no pymeshlab child process (%s): loading in this process", exc)
+    try:
+        return MeshLab(v, f, name)
     except ImportError as exc:  # pragma: no cover - depends on the environment
         raise InputError("loading meshes needs pymeshlab; install it with: "
                          "pip install pymeshlab") from exc
-    ms = pymeshlab.MeshSet(verbose=False)
-    if v is not None and f is not None:
-        ms.add_mesh(pymeshlab.Mesh(vertex_matrix=v, face_matrix=np.asarray(f, dtype=np.int32)), name)
-    return ms
-
-
-@contextlib.contextmanager
-def _quiet() -> Iterator[None]:
-    """Send what native code writes to stdout/stderr (pymeshlab warnings) to the log."""
-    try:
-        fds = (sys.__stdout__.fileno(), sys.__stderr__.fileno())  # type: ignore[union-attr]
-    except (AttributeError, ValueError, OSError):  # no real file descriptors: do nothing
-        yield
-        return
-    try:
-        libc: Any = ctypes.CDLL(None)
-    except OSError:  # pragma: no cover - no C library handle (Windows)
-        libc = None
-    for stream in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            stream.flush()
-    saved = [os.dup(fd) for fd in fds]
-    with tempfile.TemporaryFile() as tmp:
-        try:
-            for fd in fds:
-                os.dup2(tmp.fileno(), fd)
-            yield
-        finally:
-            if libc is not None:
-                with contextlib.suppress(Exception):
-                    libc.fflush(None)
-            for fd, s in zip(fds, saved):
-                os.dup2(s, fd)
-                os.close(s)
-            tmp.seek(0)
-            text = tmp.read().decode(errors="replace").strip()
-            if text:
-                log.debug("pymeshlab output: %s", text)
 
 
 #: A NaN or infinite number as C's strtod spells it, as a whole token.
@@ -268,58 +259,7 @@ def _check_finite(v: NDArray[np.float64], label: str) -> None:
                          f"(e.g. vertex {int(np.flatnonzero(bad)[0])}); fix or remove them")
 
 
-def _counts(ms: Any) -> tuple[int, int]:
-    m = ms.current_mesh()
-    return m.vertex_number(), m.face_number()
-
-
-def _arrays(ms: Any) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    m = ms.current_mesh()
-    return (np.array(m.vertex_matrix(), dtype=np.float64),
-            np.array(m.face_matrix(), dtype=np.int64).reshape(-1, 3))
-
-
-def _repair(ms: Any) -> dict[str, int]:
-    """Run the pymeshlab repair filters; return the non-zero change counts."""
-    rep: dict[str, int] = {}
-
-    def add(key: str, n: int) -> None:
-        rep[key] = rep.get(key, 0) + abs(int(n))
-
-    def step(filt: str, v_key: str | None, f_key: str | None, **kw: Any) -> None:
-        v0, f0 = _counts(ms)
-        getattr(ms, filt)(**kw)
-        v1, f1 = _counts(ms)
-        if v_key:
-            add(v_key, v0 - v1)
-        if f_key:
-            add(f_key, f0 - f1)
-
-    with _quiet():
-        # merging duplicates also drops faces that then repeat a vertex (degenerate)
-        step("meshing_remove_duplicate_vertices", "duplicate_vertices", "degenerate_faces")
-        step("meshing_remove_duplicate_faces", None, "duplicate_faces")
-        step("meshing_remove_null_faces", None, "degenerate_faces")
-        step("meshing_remove_unreferenced_vertices", "unreferenced_vertices", None)
-        step("meshing_repair_non_manifold_edges", None, "nonmanifold_edge_faces")
-        step("meshing_repair_non_manifold_vertices", "split_nonmanifold_vertices", None)
-        step("meshing_remove_unreferenced_vertices", "unreferenced_vertices", None)
-        f_before = _arrays(ms)[1]
-        ms.meshing_re_orient_faces_coherently()
-        f_after = _arrays(ms)[1]
-        if f_before.shape == f_after.shape:
-            changed = int((f_before != f_after).any(axis=1).sum())
-            # pymeshlab may flip the majority; the outward flip below undoes that globally
-            add("reoriented_faces", min(changed, len(f_after) - changed))
-        holes0 = int(ms.get_topological_measures()["number_holes"])
-        step("meshing_close_holes", None, "hole_faces_added", maxholesize=MAX_HOLE_EDGES)
-        if rep["hole_faces_added"]:
-            add("closed_holes", max(holes0 - int(ms.get_topological_measures()["number_holes"]), 0))
-            step("meshing_remove_null_faces", None, "degenerate_faces")
-    return {k: n for k, n in rep.items() if n}
-
-
-def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: str,
+def _finish(ms: MeshLab | ChildMeshLab, name: str, size_mm: float | None, repair: bool, component: str,
             file_units: bool = False) -> Mesh:
     """Validate, repair and scale the meshset's mesh. ``file_units``: a file read without
     ``size_mm`` keeps its units, taken as mm, which must then make a physical size."""
@@ -327,7 +267,7 @@ def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: 
     choice(component, f"{label}: component", COMPONENT_MODES)
     if size_mm is not None:
         real(size_mm, f"{label}: size_mm (mm; None keeps the file's units)", lo=MIN_SIZE_MM, hi=MAX_SIZE_MM)
-    v, f = _arrays(ms)
+    v, f = ms.arrays()
     if len(f) == 0:
         raise InputError(f"{label} has no faces ({len(v)} vertices); pass a closed triangle "
                          "surface")
@@ -336,8 +276,8 @@ def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: 
         raise InputError(f"mesh {name!r} is {longest:.3g} mm across in its file's units (taken as mm), "
                          f"outside {MIN_SIZE_MM:g} .. {MAX_SIZE_MM:g} mm; scale it to a physical size with "
                          "--size-mm (polygrid) or [mesh].size_mm (scenes)")
-    repairs = _repair(ms) if repair else {}
-    v, f = _arrays(ms)
+    repairs = ms.repair() if repair else {}
+    v, f = ms.arrays()
     if len(f) == 0:
         raise InputError(f"{label}: no faces left after removing degenerate/duplicate ones")
 
@@ -357,7 +297,7 @@ def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: 
         repairs["removed_components"] = len(comps) - 1
         log.info("%s: kept the largest of %d components (%d faces)", label, len(comps), len(f))
 
-    _check_topology(v, f, label, repair, n_components=len(comps) if component == "error" else 1)
+    _check_topology(ms, v, f, label, repair, n_components=len(comps) if component == "error" else 1)
     vol = signed_volume(v, f)
     ext = v.max(axis=0) - v.min(axis=0)
     if not abs(vol) > 1e-9 * float(ext.max()) ** 3:
@@ -374,13 +314,11 @@ def _finish(ms: Any, name: str, size_mm: float | None, repair: bool, component: 
     return Mesh(v, f, name=name, repairs=repairs)
 
 
-def _check_topology(v: NDArray[np.float64], f: NDArray[np.int64], label: str, repair: bool,
-                    n_components: int = 1) -> None:
-    """Raise one InputError listing every problem: open, non-manifold, incoherent, several
-    components."""
-    ms = _meshset(v, f)
-    with _quiet():
-        topo = ms.get_topological_measures()
+def _check_topology(ms: MeshLab | ChildMeshLab, v: NDArray[np.float64], f: NDArray[np.int64], label: str,
+                    repair: bool, n_components: int = 1) -> None:
+    """Raise one InputError listing every problem of the mesh ``(v, f)`` (measured by ``ms``'s
+    pymeshlab): open, non-manifold, incoherent, several components."""
+    topo = ms.topology(v, f)
     problems = []
     if topo["boundary_edges"] > 0:
         problems.append(f"it is open: {topo['boundary_edges']} boundary edges in "
