@@ -82,8 +82,8 @@ def _pattern_numpy(geo: TetGeometry, active: np.ndarray):
     inv = np.empty_like(order)
     inv[order] = np.arange(order.size)
     ne = int(live.sum())
-    pos_ij = np.full(len(edges), -1, dtype=np.int64)
-    pos_ji = np.full(len(edges), -1, dtype=np.int64)
+    pos_ij = np.full(len(edges), -1, dtype=np.int32)   # int32 where the entries allow (always here)
+    pos_ji = np.full(len(edges), -1, dtype=np.int32)
     pos_ij[live], pos_ji[live] = inv[:ne], inv[ne:2 * ne]
     pos_ii = np.full(len(geo.positions), -1, dtype=np.int64)
     pos_ii[act] = inv[2 * ne:]

@@ -31,8 +31,8 @@ from glsldiff.oracle.fem import TetGeometry
 __all__ = ["P1Pattern", "P1System", "P1Update", "cached_p1_pattern"]
 
 #: Part of every cached pattern's key: bump it when :class:`P1Pattern` changes.
-PATTERN_CACHE_VERSION = 3   # 2: the surface mass at its positions only; no node -> tetrahedra lists;
-#                               3: the surface mass is lumped at crease nodes
+PATTERN_CACHE_VERSION = 4   # 2: the surface mass at its positions only; no node -> tetrahedra lists;
+#                               3: the surface mass is lumped at crease nodes; 4: int32 pos_ij, pos_ji
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,8 @@ class P1Pattern:
     element's entries go in it (a function of the grid alone: :func:`cached_p1_pattern` keeps it
     on disk with the grid). ``index`` grid node -> active index (-1: inactive); ``indptr``,
     ``indices`` the CSR pattern (every edge between active nodes both ways, and the diagonal);
-    ``pos_ij``, ``pos_ji`` each unique edge's two positions (-1: an edge to an inactive node),
+    ``pos_ij``, ``pos_ji`` each unique edge's two positions (-1: an edge to an inactive node;
+    int32 where the pattern's entries allow),
     ``pos_ii`` each node's diagonal position; ``surface_pos``, ``surface_mass`` the consistent
     surface mass (mm^2) at the pattern positions it fills (ascending; the surface's few percent
     of the entries)."""
@@ -65,8 +66,8 @@ class P1Pattern:
     index: NDArray[np.int64]
     indptr: NDArray[np.int32]
     indices: NDArray[np.int32]
-    pos_ij: NDArray[np.int64]
-    pos_ji: NDArray[np.int64]
+    pos_ij: NDArray[np.integer]
+    pos_ji: NDArray[np.integer]
     pos_ii: NDArray[np.int64]
     surface_pos: NDArray[np.int64]
     surface_mass: NDArray[np.float64]
@@ -80,6 +81,8 @@ class P1Pattern:
         index[act] = np.arange(n)
         indptr64, indices, pos_ij, pos_ji, diag = _csr_pattern(geo._edges[0], index, n)
         indptr = indptr64.astype(np.int32)
+        if indices.size < np.iinfo(np.int32).max:     # the edge positions in int32: 8 MB less on the bunny
+            pos_ij, pos_ji = pos_ij.astype(np.int32), pos_ji.astype(np.int32)
         pos_ii = np.full(n_all, -1, dtype=np.int64)
         pos_ii[act] = diag
         sm = geo.surface_mass.tocoo()
@@ -165,7 +168,7 @@ def _node_tets(tets: NDArray[np.int64], n: int) -> tuple[NDArray[np.int64], NDAr
 @kernel
 def _fill_values(values: NDArray[np.float64], robin_pos: NDArray[np.int64], robin: NDArray[np.float64],
                  off: NDArray[np.float64], diag: NDArray[np.float64], mu: NDArray[np.float64],
-                 node_volumes: NDArray[np.float64], pos_ij: NDArray[np.int64], pos_ji: NDArray[np.int64],
+                 node_volumes: NDArray[np.float64], pos_ij: NDArray[np.integer], pos_ji: NDArray[np.integer],
                  pos_ii: NDArray[np.int64], active: NDArray[np.int64]) -> None:
     """``values`` ``(C, nnz)``: the Robin term (``robin`` at the distinct ``robin_pos``, 0
     elsewhere), plus each live edge's ``off`` at its two positions, plus ``diag + mu m`` on
