@@ -21,8 +21,8 @@ from glsldiff import gl
 from glsldiff.core.errors import InputError, SolverError
 from glsldiff.oracle.amg import jacobi_lambda_max
 from glsldiff.oracle.assembly import ChannelSystem, LinearSystem, channel_values
-from glsldiff.solve.gather import (GlslSparse, channel_matrices, pack_ell, pack_nodes, sweep_rate,
-                                   upload_packed)
+from glsldiff.solve.gather import (APPLY, GatherProgram, GlslSparse, channel_matrices, pack_ell, pack_nodes,
+                                   sweep_rate, texture_width, upload_packed, write_band)
 from glsldiff.system.report import CURRENT
 
 from gather_systems import lit_laplacians, rel, spsolve3   # tests/gather_systems.py
@@ -372,3 +372,55 @@ def test_release_and_sweep_rate(ctx):
         assert 3 <= s.mean_fetches <= 3 + 2 * s.slots + 1
         tex = s.state.textures[0]
     assert isinstance(tex.mglo, moderngl.InvalidObject)
+
+
+# ---- spilled rows ---------------------------------------------------------------------------
+def _few_long_rows(n: int, seed: int) -> list[sp.csr_matrix]:
+    """Three matrices on one pattern whose rows have 3-4 entries but one in 200 has 12-20: the
+    layout where spilling the long rows saves texels (under SPILL_SHARE of them)."""
+    rng = np.random.default_rng(seed)
+    counts = np.where(rng.random(n) < 1 / 200, rng.integers(12, 21, n), rng.integers(3, 5, n))
+    rows = np.repeat(np.arange(n), counts)
+    cols = rng.integers(0, n, rows.size)
+    pat = sp.csr_matrix((np.ones(rows.size), (rows, cols)), shape=(n, n))
+    pat.sum_duplicates()
+    return [sp.csr_matrix((rng.uniform(-1, 1, pat.nnz), pat.indices, pat.indptr), shape=(n, n)) for _ in range(3)]
+
+
+def test_spilled_gather_is_the_same_product(ctx):
+    """A gather whose long rows spill (upload_packed(spill=True)) gives the bits of the one that
+    pads every row to the longest, in every mode's sum (APPLY here), and a band re-packed in place
+    (write_band, an update) those of a new upload of the changed matrices."""
+    n = 8000
+    mats = _few_long_rows(n, 3)
+    size = texture_width(n, int(ctx.info["GL_MAX_TEXTURE_SIZE"]))
+    res = gl.Resources()
+    try:
+        prog = GatherProgram(ctx, res)
+        v = np.random.default_rng(4).uniform(-1, 1, (n, 3))
+        src = res.add(gl.float_texture(ctx, size, pack_nodes(v, size)))
+        out = res.add(gl.float_texture(ctx, size))
+        fbo = res.add(ctx.framebuffer(color_attachments=[out]))
+
+        def apply(m) -> np.ndarray:
+            with gl.keep_framebuffer(ctx):
+                prog.draw(APPLY, fbo, size, m, src, size)
+            return np.frombuffer(out.read(), dtype=np.float32).reshape(-1, 4)[:n, :3].copy()
+
+        padded, _ = upload_packed(ctx, mats, size, res, diagonal=True)
+        spilled, _ = upload_packed(ctx, mats, size, res, diagonal=True, spill=True, band_bytes=1 << 14)
+        assert spilled.spill is not None and spilled.layers < padded.layers == spilled.slots
+        got = apply(spilled)
+        assert np.array_equal(got, apply(padded))
+        assert rel(got, np.stack([M @ v[:, c] for c, M in enumerate(mats)], axis=1)) < 1e-6
+        W = size[0]
+        changed = [M.copy() for M in mats]
+        for M in changed:
+            M.data *= 1.5
+        y0, y1 = 20, 40                                      # texel rows 20..39 re-packed
+        write_band(spilled, [M[y0 * W:y1 * W] for M in changed], y0, (W, y1 - y0), diagonal=True)
+        keep = [sp.vstack([M[:y0 * W], C[y0 * W:y1 * W], M[y1 * W:]]).tocsr() for M, C in zip(mats, changed)]
+        fresh, _ = upload_packed(ctx, keep, size, res, diagonal=True, spill=True)
+        assert np.array_equal(apply(spilled), apply(fresh))
+    finally:
+        res.release()

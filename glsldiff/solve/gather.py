@@ -91,7 +91,7 @@ from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 __all__ = ["GlslSparse", "GatherSolver", "auto_omega", "sweep_rate", "MAX_NODES", "channel_matrices",
            "channel_values", "compact_channels", "node_rhs", "check_symmetric", "block_diagonal", "distinct",
            "texture_width", "pack_nodes", "EllPack", "pack_ell", "GatherMatrix", "upload_ell", "upload_packed",
-           "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY", "ADD", "MATVEC"]
+           "write_band", "spill_layers", "GatherProgram", "parse_start", "JACOBI", "RESIDUAL", "APPLY", "ADD", "MATVEC"]
 
 PRECISIONS = ("fp32",)
 MAX_NODES = 1 << 24       # neighbour indices are stored as floats (exact integers below 2^24)
@@ -101,6 +101,10 @@ Matrices = sp.spmatrix | sp.sparray | NDArray | Sequence[sp.spmatrix | sp.sparra
 Start = ArrayLike | str | None  # x0: (n, 3) array, CURRENT, or None (zero)
 JACOBI, RESIDUAL, APPLY, ADD, MATVEC = 0, 1, 2, 3, 4   # gather.frag u_mode
 BAND_BYTES = 1 << 23      # upload_packed: slots packed and written about this many bytes at a time
+#: upload_packed(spill=True): at most this share of a gather's rows spill (an 8-fragment SIMD group
+#: of llvmpipe with one spilled row runs the spill loop: the bunny's finest matrix, 31 slots, with
+#: 14 main layers (13 % of the rows spilled) cycled 15 % slower than padded; with 19 (1 %) as fast)
+SPILL_SHARE = 0.01
 
 
 # ---- the damping ----------------------------------------------------------------------------
@@ -327,23 +331,45 @@ def _ell_counts(indptr: NDArray[np.int64], cols: NDArray[np.int64], v0: NDArray[
 @kernel
 def _ell_fill(indptr: NDArray[np.int64], cols: NDArray[np.int64], v0: NDArray[np.float64],
               v1: NDArray[np.float64], v2: NDArray[np.float64], keep_zeros: bool, drop_diagonal: bool,
-              row_offset: int, coef: NDArray[np.float32]) -> None:
+              row_offset: int, ranks: NDArray[np.int64], rank0: int, coef: NDArray[np.float32],
+              spill: NDArray[np.float32]) -> None:
     """Every texel of ``coef`` ``(K, texels, 4)``: row ``i``'s kept entries (as
     :func:`_ell_counts` counts them) in its first slots, ``(a0, a1, a2, j)``, then empty slots
-    ``(0, 0, 0, -1)``; texels past the last row all empty."""
+    ``(0, 0, 0, -1)``; texels past the last row all empty. A spilled row (``ranks[i] >= 0``)
+    keeps its first ``K - 1`` entries here, a link ``(0, 0, 0, -2 - rank)`` in slot ``K - 1``
+    and the rest in ``spill`` ``(K1, m, 4)`` at texel ``ranks[i] - rank0`` (then empty slots)."""
     K, n = coef.shape[0], indptr.size - 1
     for i in range(coef.shape[1]):
         s = 0
         if i < n:
+            r = ranks[i] - rank0 if ranks[i] >= 0 else -1
+            cap = K - 1 if r >= 0 else K
             for jj in range(indptr[i], indptr[i + 1]):
                 if drop_diagonal and cols[jj] == i + row_offset:
                     continue
                 if keep_zeros or v0[jj] != 0.0 or v1[jj] != 0.0 or v2[jj] != 0.0:
-                    coef[s, i, 0] = v0[jj]
-                    coef[s, i, 1] = v1[jj]
-                    coef[s, i, 2] = v2[jj]
-                    coef[s, i, 3] = cols[jj]
+                    if s < cap:
+                        coef[s, i, 0] = v0[jj]
+                        coef[s, i, 1] = v1[jj]
+                        coef[s, i, 2] = v2[jj]
+                        coef[s, i, 3] = cols[jj]
+                    else:
+                        spill[s - cap, r, 0] = v0[jj]
+                        spill[s - cap, r, 1] = v1[jj]
+                        spill[s - cap, r, 2] = v2[jj]
+                        spill[s - cap, r, 3] = cols[jj]
                     s += 1
+            if r >= 0:
+                for k in range(s - cap, spill.shape[0]):
+                    spill[k, r, 0] = 0.0
+                    spill[k, r, 1] = 0.0
+                    spill[k, r, 2] = 0.0
+                    spill[k, r, 3] = -1.0
+                coef[cap, i, 0] = 0.0
+                coef[cap, i, 1] = 0.0
+                coef[cap, i, 2] = 0.0
+                coef[cap, i, 3] = -2.0 - ranks[i]
+                s = K
         for k in range(s, K):
             coef[k, i, 0] = 0.0
             coef[k, i, 1] = 0.0
@@ -354,7 +380,9 @@ def _ell_fill(indptr: NDArray[np.int64], cols: NDArray[np.int64], v0: NDArray[np
 @dataclass
 class _EllLayout:
     """Three matrices' entries on one pattern (:func:`_aligned`) and the slots of their rows:
-    what :func:`_ell_fill` packs, all at once or a band of rows at a time."""
+    what :func:`_ell_fill` packs, all at once or a band of rows at a time. ``main`` layers hold
+    every row but the spilled ones (``ranks >= 0``, in row order), whose rest goes to
+    ``spill_slots`` layers of a texture of their own (:func:`spill_layers`)."""
 
     indptr: NDArray[np.int64]
     cols: NDArray[np.int64]
@@ -364,26 +392,63 @@ class _EllLayout:
     row_offset: int
     counts: NDArray[np.int64]
     slots: int
+    main: int
+    ranks: NDArray[np.int64]
 
     @property
     def layers(self) -> int:
-        """Texture-array layers: ``max(K, 1)``."""
-        return max(self.slots, 1)
+        """Texture-array layers: ``max(main, 1)``."""
+        return max(self.main, 1)
 
-    def fill(self, first: int, texels: int) -> NDArray[np.float32]:
+    @property
+    def spill_slots(self) -> int:
+        """Layers of the spill texture (0: no row spills)."""
+        return self.slots - self.main + 1 if self.main < self.slots else 0
+
+    def fill(self, first: int, texels: int) -> tuple[NDArray[np.float32], NDArray[np.float32], int]:
         """``(layers, texels, 4)``: the slots of the rows from ``first`` on in ``texels`` texels
-        (texels past the last row empty)."""
+        (texels past the last row empty); ``(spill_slots, m, 4)``: the rest of their ``m`` spilled
+        rows, from spill texel ``rank0`` on (the third value)."""
         n = self.indptr.size - 1
         r0, r1 = min(first, n), min(first + texels, n)
+        ranks = self.ranks[r0:r1]
+        spilled = ranks[ranks >= 0]
+        rank0 = int(spilled[0]) if spilled.size else 0
         coef = np.empty((self.layers, texels, 4), dtype=np.float32)
+        spill = np.empty((self.spill_slots, spilled.size, 4), dtype=np.float32)
         _ell_fill(self.indptr[r0:r1 + 1], self.cols, *self.vals, self.keep_zeros, self.drop_diagonal,
-                  self.row_offset + r0, coef)
-        return coef
+                  self.row_offset + r0, ranks, rank0, coef, spill)
+        return coef, spill, rank0
+
+
+def spill_layers(counts: NDArray[np.int64], texels: int, max_size: int, share: float = SPILL_SHARE) -> int:
+    """The main layers ``K0`` of a gather whose rows have ``counts`` slots in ``texels`` texels:
+    the fewest texels in all (``K0`` layers of ``texels``, plus ``K - K0 + 1`` layers of a
+    power-of-two-wide texture of the rows longer than ``K0``, which keep a link in their last
+    main slot) with at most ``share`` of the rows spilled; ``K`` (no spill) unless that saves an
+    eighth. The bunny's finest matrix: 31 slots, 13.3 per row on average, 19 layers (73 -> 45 MB)."""
+    K = int(counts.max()) if counts.size else 0
+    if K < 2:
+        return K
+    longer = np.cumsum(np.bincount(counts, minlength=K + 1)[::-1])[::-1]     # longer[k]: rows of >= k slots
+    best, best_texels = K, K * texels
+    for k0 in range(1, K):
+        m = int(longer[k0 + 1])
+        if m > share * counts.size:
+            continue
+        W, H = texture_width(m, max_size)
+        total = k0 * texels + (K - k0 + 1) * W * H
+        if total < best_texels:
+            best, best_texels = k0, total
+    return best if 8 * best_texels <= 7 * K * texels else K
 
 
 def _ell_layout(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *, diagonal: bool,
-                keep_zeros: bool = False, row_offset: int = 0, slots: int | None = None) -> _EllLayout:
-    """The :class:`_EllLayout` of ``mats`` in ``size`` texels (the arguments as :func:`pack_ell`'s)."""
+                keep_zeros: bool = False, row_offset: int = 0, slots: int | None = None,
+                main: int | None = None, ranks: NDArray[np.integer] | None = None) -> _EllLayout:
+    """The :class:`_EllLayout` of ``mats`` in ``size`` texels (the arguments as :func:`pack_ell`'s;
+    ``main`` layers with the rows longer than it spilled, ranked in row order, or ``ranks``
+    given: a band of an uploaded gather's rows, :attr:`GatherMatrix.ranks`)."""
     W, H = size
     mats = [sp.csr_matrix(M, dtype=np.float64) for M in mats]
     for M in mats:
@@ -400,7 +465,11 @@ def _ell_layout(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int],
         if K > slots:
             raise InputError(f"a row has {K} entries; the packed matrix has {slots} slots")
         K = slots
-    return _EllLayout(indptr, cols, vals, bool(keep_zeros), not diagonal, int(row_offset), counts, K)
+    K0 = K if main is None else int(main)
+    if ranks is None:
+        ranks = _ell_layout_ranks(counts, K0)
+    return _EllLayout(indptr, cols, vals, bool(keep_zeros), not diagonal, int(row_offset), counts, K, K0,
+                      np.asarray(ranks, dtype=np.int64))
 
 
 def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
@@ -417,16 +486,27 @@ def pack_ell(mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int], *,
     replaced, the same bits)."""
     W, H = size
     lay = _ell_layout(mats, size, diagonal=diagonal, keep_zeros=keep_zeros, row_offset=row_offset, slots=slots)
-    return EllPack(lay.fill(0, H * W).reshape(lay.layers, H, W, 4), lay.slots, lay.counts)
+    return EllPack(lay.fill(0, H * W)[0].reshape(lay.layers, H, W, 4), lay.slots, lay.counts)
 
 
 # ---- GPU: uploaded slot layers and the gather pass -----------------------------------------
 @dataclass
 class GatherMatrix:
-    """An :class:`EllPack` on the GPU: the texture array and ``slots`` (``K``)."""
+    """An :class:`EllPack` on the GPU: the texture array and ``slots`` (``K``, the longest row);
+    where rows spill (:func:`upload_packed`), ``layers`` of them in ``texture`` and the rest of
+    the longer rows in ``spill`` (``spill_slots`` layers, ``spill_width`` texels wide; a spilled
+    row's rank, its texel there, in ``ranks``, -1 for the others)."""
 
     texture: moderngl.TextureArray
     slots: int
+    layers: int = 0
+    spill: moderngl.TextureArray | None = None
+    spill_slots: int = 0
+    spill_width: int = 1
+    ranks: NDArray[np.int32] | None = None
+
+    def __post_init__(self) -> None:
+        self.layers = self.layers or max(self.slots, 1)
 
 
 def _slot_texture(ctx: moderngl.Context, size: tuple[int, int], slots: int, data: NDArray[np.float32] | None,
@@ -460,14 +540,32 @@ def upload_ell(ctx: moderngl.Context, pack: EllPack, resources: gl.Resources) ->
     return GatherMatrix(_slot_texture(ctx, (W, H), pack.slots, pack.coef, resources), pack.slots)
 
 
+def _write_texels(tex: moderngl.TextureArray, data: NDArray[np.float32], first: int) -> None:
+    """Write ``data`` ``(layers, m, 4)`` to the texels ``first .. first + m - 1`` (row-major) of
+    every layer of ``tex``: at most three rectangles (a partial row, whole rows, a partial row)."""
+    W = tex.size[0]
+    m, at = data.shape[1], 0
+    while at < m:
+        t = first + at
+        x, y = t % W, t // W
+        w = min(W - x, m - at) if x or m - at < W else W
+        h = 1 if w < W else (m - at) // W
+        block = data[:, at:at + w * h].reshape(data.shape[0], h, w, 4)
+        tex.write(memoryview(np.ascontiguousarray(block)), viewport=(x, y, 0, w, h, data.shape[0]), alignment=1)
+        at += w * h
+
+
 def upload_packed(ctx: moderngl.Context, mats: Sequence[sp.spmatrix | sp.sparray], size: tuple[int, int],
                   resources: gl.Resources, *, diagonal: bool, keep_zeros: bool = False,
-                  band_bytes: int = BAND_BYTES, hint: str = "") -> tuple[GatherMatrix, NDArray[np.int64]]:
+                  band_bytes: int = BAND_BYTES, hint: str = "", spill: bool = False
+                  ) -> tuple[GatherMatrix, NDArray[np.int64]]:
     """:func:`pack_ell` and :func:`upload_ell` of ``mats`` band by band: the texture array made
     empty, then each band of texel rows (about ``band_bytes``) packed and written, so that the
     whole pack never exists in memory (the bunny's finest matrix alone is 73 MB of slots; the
-    texture's content is the same bits). Returns the matrix on the GPU and the used slots per
-    row (:attr:`EllPack.row_slots`).
+    texture's content is the same bits). With ``spill`` the rows longer than
+    :func:`spill_layers` go on in a texture of their own (``shaders/gather.frag`` follows their
+    link; the same entries in the same order). Returns the matrix on the GPU and the used slots
+    per row (:attr:`EllPack.row_slots`).
 
     Raises
     ------
@@ -475,12 +573,49 @@ def upload_packed(ctx: moderngl.Context, mats: Sequence[sp.spmatrix | sp.sparray
         As :func:`pack_ell` and :func:`upload_ell` (``hint`` ends the message of too many slots)."""
     W, H = size
     lay = _ell_layout(mats, size, diagonal=diagonal, keep_zeros=keep_zeros)
-    tex = _slot_texture(ctx, size, lay.slots, None, resources, hint)
+    if spill:
+        lay.main = spill_layers(lay.counts, W * H, int(ctx.info["GL_MAX_TEXTURE_SIZE"]))
+        lay.ranks = _ell_layout_ranks(lay.counts, lay.main)
+    tex = _slot_texture(ctx, size, lay.main, None, resources, hint)
+    out = GatherMatrix(tex, lay.slots, lay.layers)
+    if lay.spill_slots:
+        n_spill = int(lay.ranks.max()) + 1
+        sw, sh = texture_width(n_spill, int(ctx.info["GL_MAX_TEXTURE_SIZE"]))
+        out.spill = _slot_texture(ctx, (sw, sh), lay.spill_slots, None, resources, hint)
+        out.spill.write(np.tile(np.array([0, 0, 0, -1], dtype=np.float32), (lay.spill_slots * sw * sh, 1)).tobytes(),
+                        alignment=1)        # texels past the last spilled row: empty
+        out.spill_slots, out.spill_width, out.ranks = lay.spill_slots, sw, lay.ranks.astype(np.int32)
     rows = max(1, band_bytes // (lay.layers * W * 16))       # texel rows per band
     for y in range(0, H, rows):
         h = min(rows, H - y)
-        tex.write(memoryview(lay.fill(y * W, h * W)), viewport=(0, y, 0, W, h, lay.layers), alignment=1)
-    return GatherMatrix(tex, lay.slots), lay.counts
+        coef, rest, rank0 = lay.fill(y * W, h * W)
+        tex.write(memoryview(coef), viewport=(0, y, 0, W, h, lay.layers), alignment=1)
+        if rest.shape[1]:
+            assert out.spill is not None
+            _write_texels(out.spill, rest, rank0)
+    return out, lay.counts
+
+
+def write_band(matrix: GatherMatrix, band: Sequence[sp.spmatrix | sp.sparray], y: int, size: tuple[int, int], *,
+               diagonal: bool, keep_zeros: bool = False) -> None:
+    """Re-pack the rows of an uploaded gather that texel rows ``y ..`` of its ``size`` (``W``, rows)
+    hold, from ``band``, those rows of matrices on the uploaded pattern (an in-place update),
+    and write them (and the rest of their spilled rows) over the old ones."""
+    W, h = size
+    lay = _ell_layout(band, (W, h), diagonal=diagonal, keep_zeros=keep_zeros, row_offset=y * W,
+                      slots=matrix.slots, main=matrix.layers,
+                      ranks=None if matrix.ranks is None else matrix.ranks[y * W:y * W + band[0].shape[0]])
+    coef, rest, rank0 = lay.fill(0, W * h)
+    matrix.texture.write(coef.tobytes(), viewport=(0, y, 0, W, h, coef.shape[0]), alignment=1)
+    if rest.shape[1]:
+        assert matrix.spill is not None
+        _write_texels(matrix.spill, rest, rank0)
+
+
+def _ell_layout_ranks(counts: NDArray[np.int64], main: int) -> NDArray[np.int64]:
+    """Each row's rank among the rows longer than ``main`` slots (-1 for the others)."""
+    longer = counts > main
+    return np.where(longer, np.cumsum(longer) - 1, -1)
 
 
 class GatherProgram:
@@ -488,17 +623,17 @@ class GatherProgram:
     docstring; the modes are :data:`JACOBI`, :data:`RESIDUAL`, :data:`APPLY`, :data:`ADD`,
     :data:`MATVEC`).
     Its GPU objects go to ``resources``. Texture units: 0 ``u_src``, 1 ``u_self``, 2
-    ``u_diag``, 3 ``u_b``, 4 ``u_coef``."""
+    ``u_diag``, 3 ``u_b``, 4 ``u_coef``, 5 ``u_spill``."""
 
     def __init__(self, ctx: moderngl.Context, resources: gl.Resources) -> None:
         self.ctx = ctx
         self.prog = resources.add(gl.program(ctx, "quad.vert", "gather.frag"))
         gl.set_uniforms(self.prog, {"u_size": (1.0, 1.0), "u_src": 0, "u_self": 1, "u_diag": 2, "u_b": 3,
-                                    "u_coef": 4})
+                                    "u_coef": 4, "u_spill": 5})
         self._vbo = resources.add(ctx.buffer(np.array([0, 0, 1, 0, 0, 1, 1, 1], dtype="f4").tobytes()))
         self.vao = resources.add(ctx.vertex_array(self.prog, [(self._vbo, "2f", "in_pos")]))
-        self._u = {name: self.prog[name] for name in ("u_slots", "u_src_shift", "u_mode", "u_omega")
-                   if name in self.prog}
+        self._u = {name: self.prog[name] for name in ("u_slots", "u_src_shift", "u_mode", "u_omega",
+                                                      "u_spill_slots", "u_spill_shift") if name in self.prog}
         self._set: dict[str, float] = {}
 
     def _uniform(self, name: str, value: float) -> None:
@@ -523,8 +658,11 @@ class GatherProgram:
         if b is not None:
             b.use(3)
         matrix.texture.use(4)
+        (matrix.texture if matrix.spill is None else matrix.spill).use(5)     # a texture array there either way
         self._uniform("u_mode", mode)
-        self._uniform("u_slots", matrix.slots)
+        self._uniform("u_slots", matrix.layers)
+        self._uniform("u_spill_slots", matrix.spill_slots)
+        self._uniform("u_spill_shift", matrix.spill_width.bit_length() - 1)
         self._uniform("u_src_shift", src_size[0].bit_length() - 1)
         self._uniform("u_omega", float(omega))
         self.vao.render(moderngl.TRIANGLE_STRIP)

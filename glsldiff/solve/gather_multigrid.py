@@ -36,7 +36,10 @@ GPU storage, per level ``l`` (node ``i`` at texel ``(i % W_l, i // W_l)``, ``W_l
     ``l < L-1`` the slots of ``P_l`` (rows: level ``l``'s nodes), of ``R_l = P_l^T`` (rows:
     level ``l+1``'s nodes), both with the shared value in all three channels, and of
     ``omega_l D_l^-1`` (one slot: the first pre-smoothing sweep from ``x = 0``); at the
-    coarsest the dense inverse. All are :class:`~glsldiff.solve.gather.EllPack` layers, packed
+    coarsest the dense inverse. All are :class:`~glsldiff.solve.gather.EllPack` layers, the few
+    longest rows (at most :data:`~glsldiff.solve.gather.SPILL_SHARE`) spilled to a small texture
+    of their own instead of padding every row to them (the bunny's finest matrix: 19 layers, not
+    31: 73 -> 45 MB; all gathers 122 -> 85 MB), packed
     and written level by level, matrix by matrix, a band of texel rows at a time
     (:func:`~glsldiff.solve.gather.upload_packed`: the packs are never all in memory at once,
     215 MB on the 147k-node bunny) and drawn by :class:`~glsldiff.solve.gather.GatherProgram`
@@ -108,8 +111,8 @@ from glsldiff.oracle.assembly import ChannelSystem, row_entries
 from glsldiff.oracle.solvers import Callback
 from glsldiff.solve.gather import (ADD, APPLY, JACOBI, MATVEC, PRECISIONS, RESIDUAL, GatherMatrix, GatherProgram,
                                    GatherSolver, Matrices, Start, channel_matrices, check_symmetric, compact_channels,
-                                   distinct, node_rhs, pack_ell, pack_nodes, parse_omega, texture_width,
-                                   upload_packed)
+                                   distinct, node_rhs, pack_nodes, parse_omega, texture_width, upload_packed,
+                                   write_band)
 from glsldiff.system.report import CURRENT, MAXITER, RELAX_TOL, SolveReport
 
 __all__ = ["GlslSparseMultigrid", "MultigridLevel", "smoother_omega", "SMOOTH_TARGET", "MAX_COARSE", "ACCELERATIONS"]
@@ -476,7 +479,7 @@ class GlslSparseMultigrid(GatherSolver):
         size, diag = lv.size, self._diagonal(l)
 
         def gather(mats: Sequence[sp.spmatrix], at: tuple[int, int], **kw: bool) -> GatherMatrix:
-            return upload_packed(ctx, mats, at, res, **kw,
+            return upload_packed(ctx, mats, at, res, **kw, spill=True,
                                  hint=f" (a level of {lv.n} unknowns: lower max_coarse or change amg)")[0]
 
         btex = res.add(gl.float_texture(ctx, size, None if bb is None else pack_nodes(bb, size)))
@@ -602,9 +605,7 @@ class GlslSparseMultigrid(GatherSolver):
             r0, r1 = int(y0) * W, min(self.n, (int(y1) + 1) * W)
             size = (W, int(y1 - y0) + 1)
             if not diagonal_only:
-                band = [M[r0:r1] for M in mats]
-                coef = pack_ell(band, size, diagonal=False, keep_zeros=True, row_offset=r0, slots=lv.slots).coef
-                g.A.texture.write(coef.tobytes(), viewport=(0, int(y0), 0, W, size[1], coef.shape[0]), alignment=1)
+                write_band(g.A, [M[r0:r1] for M in mats], int(y0), size, diagonal=False, keep_zeros=True)
             d = self.system.diag.reshape(3, self.n)[:, r0:r1].T                  # (rows, 3), just updated
             g.diag.write(pack_nodes(d, size, pad=1.0).tobytes(), viewport=(0, int(y0), W, size[1]), alignment=1)
             if g.first is not None:      # omega D^-1 as a one-slot gather: (values, own column), -1 past n
