@@ -607,3 +607,46 @@ def test_fit_reaches_the_same_objective_with_both_solvers() -> None:
     assert np.allclose(va[:6], vc[:6], rtol=1e-5, atol=0)
     for name in ("cold", "warm"):
         assert fits[name].trace.best.value == pytest.approx(a.trace.best.value, rel=0.02)
+
+
+def test_a_fit_too_large_for_nlopt_says_so_before_it_starts(small_case, monkeypatch) -> None:
+    """NLopt's Luksan methods fail with a bare runtime_error above NLOPT_MAX_VARIABLES (the
+    paper's 256 x 256 x 20 sample has more): the fit refuses at once and names --method cg."""
+    import glsldiff.inverse.optimize as optimize
+
+    _, _, meas = small_case
+    model = ForwardModel(meas.grid)
+    monkeypatch.setattr(optimize, "NLOPT_MAX_VARIABLES", 2 * model.n - 1)
+    for method in ("lbfgs", "tnewton", "var2"):
+        with pytest.raises(InputError, match="use --method cg"):
+            fit_channel(model, *meas.channel(1), FitOptions(method=method, max_evals=2))
+    fit = fit_channel(model, *meas.channel(1), FitOptions(method="cg", max_evals=2))
+    assert len(fit.trace.records) <= 2
+
+
+@pytest.mark.slow
+def test_nlopt_fails_above_its_variable_limit() -> None:
+    """The limit itself: NLopt's L-BFGS minimises a quadratic just under it and raises just
+    over it (2.6 M variables, about 0.4 GB)."""
+    import nlopt
+
+    from glsldiff.inverse.optimize import NLOPT_MAX_VARIABLES
+
+    def run(n: int) -> bool:
+        a = np.linspace(1.0, 10.0, n)
+
+        def f(x: np.ndarray, g: np.ndarray) -> float:
+            if g.size:
+                g[:] = a * (x - 1.0)
+            return float(0.5 * (a * (x - 1.0) ** 2).sum())
+
+        opt = nlopt.opt(nlopt.LD_LBFGS, n)
+        opt.set_min_objective(f)
+        opt.set_maxeval(3)
+        try:
+            opt.optimize(np.zeros(n))
+        except nlopt.runtime_error:
+            return False
+        return True
+
+    assert run(NLOPT_MAX_VARIABLES) and not run(NLOPT_MAX_VARIABLES + 2000)

@@ -32,7 +32,7 @@ from glsldiff.inverse.glsl import GlslForwardModel
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import SOLVERS, ForwardModel
 from glsldiff.inverse.objective import Objective
-from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, minimize
+from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, check_variables, minimize
 from glsldiff.inverse.ranges import PROFILE_TOLERANCE, CoefficientRanges, profile_ranges
 from glsldiff.physics.exitance import EXITANT
 
@@ -172,6 +172,7 @@ def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitO
     in ``ChannelFit.snapshots`` as ``(record, kappa, mu)``. ``checkpoint`` saves where the
     fit stands (as channel ``channel``) when due and at the end; ``start`` continues a saved
     one (:mod:`glsldiff.inverse.checkpoint`)."""
+    check_variables(options.method, 2 * model.n)     # before the homogeneous stage's minutes
     objective = Objective(model, Q, Y, W, lam=options.lam, lam_mu=options.lam_mu,
                           depth_weight=options.depth_weight)
     if start is None:

@@ -21,13 +21,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from glsldiff.core.checks import choice
-from glsldiff.core.errors import SolverError
+from glsldiff.core.errors import InputError, SolverError
 from glsldiff.inverse.objective import Objective
 
 Array = NDArray[np.float64]
 
 NLOPT_METHODS = {"lbfgs": "LD_LBFGS", "tnewton": "LD_TNEWTON_PRECOND_RESTART", "var2": "LD_VAR2"}
 METHODS = (*NLOPT_METHODS, "cg")
+#: NLopt's Luksan methods (lbfgs, tnewton, var2) stop with a bare ``runtime_error`` after the
+#: first evaluation above about this many variables, at any vector storage (NLopt's LD_LBFGS,
+#: LD_VAR2 and LD_TNEWTON_PRECOND_RESTART on a quadratic: 2,148,949 variables run, 2,149,739
+#: fail): about 1.07 M nodes, less than the paper's 256 x 256 x 20 sample (1.31 M).
+NLOPT_MAX_VARIABLES = 2_148_000
 KAPPA_RANGE = (1e-2, 1e2)   # kappa stays within these factors of its homogeneous value
 MU_RANGE = (1e-6, 1e3)      # mu within these factors of its scale ("linear": lower bound 0)
 PARAMETERIZATIONS = ("log", "linear")
@@ -183,6 +188,15 @@ class ScaledProblem:
         return self(z, g), g
 
 
+def check_variables(method: str, n: int) -> None:
+    """An :class:`InputError` naming the fix where ``method`` cannot minimise over ``n``
+    variables (:data:`NLOPT_MAX_VARIABLES`)."""
+    if method in NLOPT_METHODS and n > NLOPT_MAX_VARIABLES:
+        raise InputError(f"--method {method}: NLopt's {method} fails above {NLOPT_MAX_VARIABLES:,} variables and "
+                         f"this fit has {n:,} (kappa and mu at {n // 2:,} nodes); use --method cg (the paper's "
+                         "conjugate gradients, no such limit) or a coarser grid")
+
+
 def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float = 1e-7) -> Array:
     """Minimise from ``z0`` until ``f < stopval``, the relative change of f falls below
     ``ftol_rel``, or the budget is spent. Returns the best ``z``; ``problem.trace`` says why
@@ -211,6 +225,7 @@ def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float 
 def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -> None:
     import nlopt  # only the nlopt methods need it (~50 ms import)
 
+    check_variables(problem.method, z0.size)
     opt = nlopt.opt(getattr(nlopt, NLOPT_METHODS[problem.method]), z0.size)
     opt.set_min_objective(problem)
     opt.set_lower_bounds(problem.lower)
