@@ -259,7 +259,7 @@ def test_mitsuba_measurements_match_the_diffusion_model_of_the_same_block():
     nz, n = 8, 12
     kappa, mu = np.broadcast_to(k, (nz, n, n, 3)).copy(), np.broadcast_to(m, (nz, n, n, 3)).copy()
     meas, info = mitsuba_measurements(kappa, mu, 0.5, 2, spp=256, seed=3)
-    assert meas.M == 4 and meas.eta == 1.0 and 0 < info["unscattered_share"] < 0.5   # 3.5 mm: seen through
+    assert meas.M == 4 and meas.eta == 1.0 and 0 < info["unscattered_shares"]["z+"] < 0.5   # 3.5 mm: seen through
     inc = meas.incoming[0, ..., 0]
     assert inc[:3, :3].min() > 0.9 and inc[-3:, -3:].max() < 1e-3
     g = meas.grid

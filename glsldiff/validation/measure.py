@@ -159,4 +159,4 @@ def mitsuba_measurements(kappa: NDArray, mu: NDArray, h: float, n: int, spp: int
                         reflected=reflected, reflected_mask=reflected_mask)
     share = {face: unsc[face] / max(total[face], 1e-300) for face in faces}
     return meas, {"seconds": time.perf_counter() - t0, "spp": spp, "regions": len(regions), "setup": setup,
-                  "unscattered_share": share["z+"], "unscattered_shares": share}
+                  "unscattered_shares": share}
