@@ -164,7 +164,7 @@ def test_fit_recovers_surface_appearance(small_case) -> None:
     assert np.all(np.isfinite(res.kappa)) and np.all(np.isfinite(res.mu))
 
 
-@pytest.mark.parametrize("method", ["lbfgs", "tnewton", "var2", "cg"])
+@pytest.mark.parametrize("method", ["lbfgs", "tnewton", "var2", "lbfgsb", "cg"])
 def test_every_method_decreases_the_objective(small_case, method: str) -> None:
     _, _, meas = small_case
     model = ForwardModel(meas.grid)
@@ -443,11 +443,13 @@ class _Quadratic:
         return self._ns(value=v, data=v, grad_kappa=2.0 * (kappa - 1.0), grad_mu=2.0 * (mu - 1.0))
 
 
+@pytest.mark.parametrize("method", ["lbfgs", "lbfgsb"])
 @pytest.mark.parametrize("where", ["outside the objective", "inside the objective"])
-def test_ctrl_c_during_an_nlopt_run_keeps_the_best_point(where: str) -> None:
-    """A real SIGINT during NLopt's L-BFGS, either where NLopt's own code runs (Python then
-    raises it at the callback's entry, which NLopt turned into a bare ``runtime_error``: a CI
-    run's traceback) or inside the objective: the run ends "interrupted" with its best point."""
+def test_ctrl_c_during_an_lbfgs_run_keeps_the_best_point(where: str, method: str) -> None:
+    """A real SIGINT during NLopt's L-BFGS (or SciPy's L-BFGS-B), either where the library's own
+    code runs (Python then raises it at the callback's entry, which NLopt turned into a bare
+    ``runtime_error``: a CI run's traceback) or inside the objective: the run ends
+    "interrupted" with its best point."""
     import signal
 
     class Interrupted(ScaledProblem):
@@ -456,7 +458,7 @@ def test_ctrl_c_during_an_nlopt_run_keeps_the_best_point(where: str) -> None:
                 signal.raise_signal(signal.SIGINT)
             return super().__call__(z, grad)
 
-    prob = Interrupted(_Quadratic(20), 1.0, 1.0, "lbfgs", max_evals=100)
+    prob = Interrupted(_Quadratic(20), 1.0, 1.0, method, max_evals=100)
     if where == "inside the objective":
         prob.callback = lambda rec: rec.evaluation == 3 and signal.raise_signal(signal.SIGINT)
     z = minimize(prob, np.full(40, np.log(3.0)), stopval=-1.0)
@@ -609,19 +611,44 @@ def test_fit_reaches_the_same_objective_with_both_solvers() -> None:
         assert fits[name].trace.best.value == pytest.approx(a.trace.best.value, rel=0.02)
 
 
-def test_a_fit_too_large_for_nlopt_says_so_before_it_starts(small_case, monkeypatch) -> None:
+def test_a_fit_too_large_for_nlopt_runs_scipy_lbfgsb_or_says_so(small_case, monkeypatch) -> None:
     """NLopt's Luksan methods fail with a bare runtime_error above NLOPT_MAX_VARIABLES (the
-    paper's 256 x 256 x 20 sample has more): the fit refuses at once and names --method cg."""
+    paper's 256 x 256 x 20 sample has more): L-BFGS runs as SciPy's L-BFGS-B there, the other
+    two refuse at once and name --method lbfgsb."""
     import glsldiff.inverse.optimize as optimize
 
     _, _, meas = small_case
     model = ForwardModel(meas.grid)
     monkeypatch.setattr(optimize, "NLOPT_MAX_VARIABLES", 2 * model.n - 1)
-    for method in ("lbfgs", "tnewton", "var2"):
-        with pytest.raises(InputError, match="use --method cg"):
+    for method in ("tnewton", "var2"):
+        with pytest.raises(InputError, match="use --method lbfgsb"):
             fit_channel(model, *meas.channel(1), FitOptions(method=method, max_evals=2))
-    fit = fit_channel(model, *meas.channel(1), FitOptions(method="cg", max_evals=2))
-    assert len(fit.trace.records) <= 2
+    fit = fit_channel(model, *meas.channel(1), FitOptions(method="lbfgs", max_evals=4))
+    assert fit.trace.method == "lbfgsb" and len(fit.trace.records) == 4 and fit.trace.status == "budget spent"
+    for method in ("cg", "lbfgsb"):
+        fit = fit_channel(model, *meas.channel(1), FitOptions(method=method, max_evals=2))
+        assert fit.trace.method == method and len(fit.trace.records) <= 2
+
+
+def test_scipy_lbfgsb_follows_nlopt_lbfgs(small_case) -> None:
+    """The two L-BFGS implementations (10 corrections each, the same stop rules) reach the
+    same objective on the small fit, within 20 % (both stop at f < 1e-4 after 9-10 evaluations); on a
+    quadratic (linear variables) L-BFGS-B stops at f < stopval with the point that reached it."""
+    _, _, meas = small_case
+    model = ForwardModel(meas.grid)
+    fits = {m: fit_channel(model, *meas.channel(1), FitOptions(method=m, max_evals=60)) for m in ("lbfgs", "lbfgsb")}
+    a, b = fits["lbfgs"].trace, fits["lbfgsb"].trace
+    assert b.best.value == pytest.approx(a.best.value, rel=0.2), (a.best.value, b.best.value, a.status, b.status)
+    assert b.best.value < 0.01 * b.records[0].value
+    prob = ScaledProblem(_Quadratic(30), 1.0, 1.0, "lbfgsb", max_evals=100, parameterization="linear")
+    z = minimize(prob, np.full(60, 3.0), stopval=1e-3)
+    assert prob.trace.status == "converged (f < eps)" and prob.trace.converged
+    assert prob.trace.records[-1].value < 1e-3 and np.array_equal(z, prob.best_z)
+    k_h, m_h = fits["lbfgsb"].homogeneous
+    prob = ScaledProblem(Objective(model, *meas.channel(1)), k_h, m_h, "lbfgsb", max_evals=100)
+    minimize(prob, prob.variables(np.full(model.n, k_h), np.full(model.n, m_h)), stopval=0.0, ftol_rel=0.05)
+    assert prob.trace.status == "converged (f stopped changing)", prob.trace.status
+    assert len(prob.trace.records) < 100   # well before the budget
 
 
 @pytest.mark.slow

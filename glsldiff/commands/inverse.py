@@ -19,9 +19,10 @@ from glsldiff.inverse.checkpoint import CHECKPOINT_EVERY_S, Checkpoint, checkpoi
 from glsldiff.inverse.amg import AUTO_MAX_DIRECT
 from glsldiff.inverse.fit import FitOptions, fit_measurements, save_material
 from glsldiff.inverse.model import SOLVERS, resolve_solver
+from glsldiff.inverse.optimize import METHODS, NLOPT_MAX_VARIABLES, method_for
 from glsldiff.inverse.measurements import Measurements, load_measurements, save_measurements
 from glsldiff.inverse.reflectance import diffuse_reflectance
-from glsldiff.inverse.synthetic import SYNTH_SETUPS, bssrdf_error, coefficient_errors, synthetic_measurements
+from glsldiff.inverse.synthetic import BSSRDF_MAX_SOURCES, SYNTH_SETUPS, bssrdf_error, coefficient_errors, synthetic_measurements
 from glsldiff.physics.procedural import SYNTHETIC_KINDS, synthetic_volume
 from glsldiff.physics.exitance import EXITANT
 
@@ -61,8 +62,9 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p = sub.add_parser("fit", help="fit kappa and mu to measurements by inverse diffusion")
     p.add_argument("measurements", help=".npz measurements (see glsldiff.inverse.measurements)")
     p.add_argument("-o", "--out", default="material.npz", help="fitted material (.npz)")
-    p.add_argument("--method", choices=("lbfgs", "tnewton", "var2", "cg"), default="lbfgs",
-                   help="optimiser (cg = the paper's Table I)")
+    p.add_argument("--method", choices=METHODS, default="lbfgs",
+                   help="optimiser: NLopt's lbfgs, tnewton or var2, SciPy's lbfgsb (lbfgs becomes lbfgsb above "
+                        f"NLopt's limit of {NLOPT_MAX_VARIABLES:,} variables), or cg (the paper's Table I)")
     p.add_argument("--lam", type=A.nonnegative, default=1e-5, help="kappa-gradient regularisation weight")
     p.add_argument("--lam-mu", type=A.nonnegative, default=0.0,
                    help="weight of the absorption smoothness term sum (ln mu_i - ln mu_j)^2 over node edges (0: off)")
@@ -86,6 +88,9 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("--kappa0", type=A.positive, default=0.3, help="initial kappa of the homogeneous fit, mm")
     p.add_argument("--mu0", type=A.nonnegative, default=0.01, help="initial mu of the homogeneous fit, 1/mm")
     p.add_argument("--truth", default=None, help="true material (.npz) to report the figure-11 error E")
+    p.add_argument("--truth-sources", type=A.integer(1), default=BSSRDF_MAX_SOURCES, metavar="N",
+                   help="--truth: E samples at most N source nodes of the lit face (every 4th node, or sparser "
+                        "above N); each costs 6 solves")
     p.add_argument("--no-png", action="store_true", help="skip the depth-slice pictures")
     p.add_argument("--resume", action="store_true",
                    help="continue the fit saved in OUT_checkpoint.npz (written every --checkpoint-every seconds "
@@ -112,7 +117,7 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
                    help="nodes per axis of the synthetic block")
     b.add_argument("--h", type=A.positive, default=0.5, help="node spacing, mm")
     b.add_argument("--n", type=A.integer(1, 64), nargs="+", default=[1, 2, 3, 4, 5, 6], help="n for n x n measurements")
-    b.add_argument("--methods", nargs="+", default=["lbfgs", "cg"], choices=("lbfgs", "tnewton", "var2", "cg"),
+    b.add_argument("--methods", nargs="+", default=["lbfgs", "cg"], choices=METHODS,
                    help="optimisers to compare (cg = the paper's Table I)")
     b.add_argument("--lams", type=A.nonnegative, nargs="+", default=[1e-4, 1e-5, 1e-6],
                    help="regularisation weights of the figure-13 study")
@@ -208,6 +213,11 @@ def cmd_fit(args: argparse.Namespace) -> int:
     if args.backend == "glsl" and args.solver != "auto":
         raise InputError("--solver chooses the CPU backend's solver; --backend glsl solves by Jacobi on the GPU")
     meas = load_measurements(args.measurements)
+    n_variables = 2 * meas.grid.graph.active.size
+    options.method = method_for(args.method, n_variables)
+    if options.method != args.method:
+        print(f"--method {args.method}: NLopt's L-BFGS fails above {NLOPT_MAX_VARIABLES:,} variables and this fit "
+              f"has {n_variables:,}; running SciPy's L-BFGS-B (lbfgsb) instead")
     truth = None
     if args.truth:
         d = _load_truth(args.truth, meas.shape)
@@ -253,7 +263,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     E = None
     if truth is not None:
         E = bssrdf_error(meas.grid, truth, (result.kappa, result.mu), sources=(meas.lit_face,),
-                         receivers=meas.observed_faces, stencil=options.stencil, eta=meas.eta)
+                         receivers=meas.observed_faces, stencil=options.stencil, eta=meas.eta,
+                         max_sources=args.truth_sources)
     solver = f" ({resolve_solver(options.solver, meas.grid.graph.active.size)})" if options.backend == "cpu" else ""
     print_table(f"inverse diffusion, {meas.M} measurements, {meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} "
                 f"nodes, method {options.method}, lambda {options.lam:g}"

@@ -32,7 +32,7 @@ from glsldiff.inverse.glsl import GlslForwardModel
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import SOLVERS, ForwardModel
 from glsldiff.inverse.objective import Objective
-from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, check_variables, minimize
+from glsldiff.inverse.optimize import METHODS, Record, ScaledProblem, Trace, method_for, minimize
 from glsldiff.inverse.ranges import PROFILE_TOLERANCE, CoefficientRanges, profile_ranges
 from glsldiff.physics.exitance import EXITANT
 
@@ -172,7 +172,7 @@ def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitO
     in ``ChannelFit.snapshots`` as ``(record, kappa, mu)``. ``checkpoint`` saves where the
     fit stands (as channel ``channel``) when due and at the end; ``start`` continues a saved
     one (:mod:`glsldiff.inverse.checkpoint`)."""
-    check_variables(options.method, 2 * model.n)     # before the homogeneous stage's minutes
+    method = method_for(options.method, 2 * model.n)  # before the homogeneous stage's minutes
     objective = Objective(model, Q, Y, W, lam=options.lam, lam_mu=options.lam_mu,
                           depth_weight=options.depth_weight)
     if start is None:
@@ -181,7 +181,7 @@ def fit_channel(model: ForwardModel, Q: Array, Y: Array, W: Array, options: FitO
     else:
         (k_h, m_h), h_trace, ranges = start.homogeneous, start.homogeneous_trace, start.ranges
     mu_scale = max(m_h, 1e-2 / (3.0 * k_h))  # keep the mu variable O(1) even for mu_h -> 0 (1 % of sigma_t')
-    problem = ScaledProblem(objective, k_h, mu_scale, options.method, options.max_evals,
+    problem = ScaledProblem(objective, k_h, mu_scale, method, options.max_evals,
                             options.max_seconds, callback, snapshot_every, options.parameterization, options.mu_gain)
     n = model.n
     z0 = problem.variables(np.full(n, k_h), np.full(n, m_h))

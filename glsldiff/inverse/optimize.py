@@ -1,4 +1,5 @@
-"""Minimisers of f_M: NLopt (quasi-Newton, truncated Newton) and the paper's Table I CG.
+"""Minimisers of f_M: NLopt (quasi-Newton, truncated Newton), SciPy's L-BFGS-B (for fits
+beyond NLopt's variable limit) and the paper's Table I CG.
 
 Every method works on scaled variables, ``z = (kappa / kappa_s, mu / mu_s)`` ("linear") or
 ``z = log(kappa / kappa_s), log(mu / mu_s)`` ("log", the default: chosen by measurement, the
@@ -27,7 +28,7 @@ from glsldiff.inverse.objective import Objective
 Array = NDArray[np.float64]
 
 NLOPT_METHODS = {"lbfgs": "LD_LBFGS", "tnewton": "LD_TNEWTON_PRECOND_RESTART", "var2": "LD_VAR2"}
-METHODS = (*NLOPT_METHODS, "cg")
+METHODS = (*NLOPT_METHODS, "lbfgsb", "cg")
 #: NLopt's Luksan methods (lbfgs, tnewton, var2) stop with a bare ``runtime_error`` after the
 #: first evaluation above about this many variables, at any vector storage (NLopt's LD_LBFGS,
 #: LD_VAR2 and LD_TNEWTON_PRECOND_RESTART on a quadratic: 2,148,949 variables run, 2,149,739
@@ -188,13 +189,18 @@ class ScaledProblem:
         return self(z, g), g
 
 
-def check_variables(method: str, n: int) -> None:
-    """An :class:`InputError` naming the fix where ``method`` cannot minimise over ``n``
-    variables (:data:`NLOPT_MAX_VARIABLES`)."""
-    if method in NLOPT_METHODS and n > NLOPT_MAX_VARIABLES:
-        raise InputError(f"--method {method}: NLopt's {method} fails above {NLOPT_MAX_VARIABLES:,} variables and "
-                         f"this fit has {n:,} (kappa and mu at {n // 2:,} nodes); use --method cg (the paper's "
-                         "conjugate gradients, no such limit) or a coarser grid")
+def method_for(method: str, n: int) -> str:
+    """The minimiser that runs ``method`` over ``n`` variables: NLopt's L-BFGS gives way to
+    SciPy's L-BFGS-B (the same limited-memory quasi-Newton method, without NLopt's limit)
+    above :data:`NLOPT_MAX_VARIABLES`; the other NLopt methods are an :class:`InputError`
+    naming the fix there."""
+    if method not in NLOPT_METHODS or n <= NLOPT_MAX_VARIABLES:
+        return method
+    if method == "lbfgs":
+        return "lbfgsb"
+    raise InputError(f"--method {method}: NLopt's {method} fails above {NLOPT_MAX_VARIABLES:,} variables and "
+                     f"this fit has {n:,} (kappa and mu at {n // 2:,} nodes); use --method lbfgsb (SciPy's "
+                     "L-BFGS-B, no such limit) or a coarser grid")
 
 
 def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float = 1e-7) -> Array:
@@ -207,6 +213,8 @@ def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float 
     try:
         if problem.method == "cg":
             table1_cg(problem, z0, stopval, ftol_rel)
+        elif problem.method == "lbfgsb":
+            _lbfgsb(problem, z0, stopval, ftol_rel)
         else:
             _nlopt(problem, z0, stopval, ftol_rel)
     except Budget:
@@ -225,7 +233,9 @@ def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float 
 def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -> None:
     import nlopt  # only the nlopt methods need it (~50 ms import)
 
-    check_variables(problem.method, z0.size)
+    if method_for(problem.method, z0.size) != problem.method:
+        raise InputError(f"--method {problem.method}: NLopt fails above {NLOPT_MAX_VARIABLES:,} variables and this "
+                         f"fit has {z0.size:,}; use --method lbfgsb")
     opt = nlopt.opt(getattr(nlopt, NLOPT_METHODS[problem.method]), z0.size)
     opt.set_min_objective(problem)
     opt.set_lower_bounds(problem.lower)
@@ -257,6 +267,50 @@ def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -
                             nlopt.XTOL_REACHED: "converged (x stopped changing)",
                             nlopt.SUCCESS: "converged",
                             nlopt.MAXEVAL_REACHED: "budget spent"}.get(code, f"nlopt code {code}")
+
+
+class _Reached(Exception):
+    """Raised inside SciPy's L-BFGS-B when f fell below the stop value (it has no such rule)."""
+
+
+def _lbfgsb(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -> None:
+    """SciPy's L-BFGS-B with NLopt's stop rules: ``f < stopval`` after any evaluation, and a
+    relative change of f below ``ftol_rel`` between iterations (SciPy's own ``ftol`` is
+    relative to ``max(|f|, 1)``, an absolute rule for f_M << 1, so it is switched off).
+    10 stored corrections, as for NLopt's L-BFGS."""
+    from scipy.optimize import Bounds, minimize as scipy_minimize
+
+    def fun(z: Array) -> tuple[float, Array]:
+        f, g = problem.gradient(z)
+        if f < stopval:
+            raise _Reached
+        return f, g
+
+    last = [math.inf]
+
+    def iteration(intermediate_result: object) -> None:
+        problem.trace.iterations += 1
+        f = float(intermediate_result.fun)  # type: ignore[attr-defined]
+        if abs(last[0] - f) <= ftol_rel * abs(f):
+            problem.trace.status = "converged (f stopped changing)"
+            raise StopIteration
+        last[0] = f
+
+    try:
+        res = scipy_minimize(fun, z0, jac=True, method="L-BFGS-B", callback=iteration,
+                             bounds=Bounds(problem.lower, problem.upper),
+                             options=dict(maxcor=10, ftol=0.0, gtol=0.0, maxiter=2**31 - 1, maxfun=2**31 - 1))
+    except _Reached:
+        problem.trace.status = "converged (f < eps)"
+        return
+    if problem.trace.status != "running":   # stopped by the rules above, a budget or Ctrl-C
+        return
+    if res.success:
+        problem.trace.status = "converged"
+    elif "ABNORMAL" in str(res.message):    # the line search found no decrease: NLopt's "roundoff limited"
+        problem.trace.status = "converged (roundoff limited)"
+    else:
+        problem.trace.status = f"L-BFGS-B: {res.message}"
 
 
 @contextmanager
