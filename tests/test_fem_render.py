@@ -119,6 +119,25 @@ def test_fem_second_render_takes_the_checked_cached_solution(tmp_path, monkeypat
     assert np.abs(c - a).max() < 1e-2 * a.max()
 
 
+def test_fem_system_is_the_last_frames_even_from_the_cache(tmp_path, monkeypatch):
+    """``Renderer.fem_system`` holds the last frame's source, also when two frames in a row came
+    from the disk cache (a cached frame assembles nothing: the system held the first light's
+    source, and the oracle columns of a bench compared against the wrong light)."""
+    from glsldiff.oracle.fem import tet_rhs
+
+    monkeypatch.setenv("GLSLDIFF_CACHE", str(tmp_path / "cache"))
+    back = [{**LIGHT[0], "direction": [-0.3, -0.4, -1.0]}]
+    scenes = parse_scene(_scene()), parse_scene({**_scene(), "lights": back})
+    with Renderer() as r:
+        for s in scenes:
+            r.render(s)
+    with Renderer() as r:
+        for s in scenes:
+            _, rep = r.render(s)
+            assert rep.solver.method.startswith("cached")
+            np.testing.assert_array_equal(r.fem_system.b, tet_rhs(r.fem_problem(s)).T.reshape(-1))
+
+
 def test_shell_mapped_volume_on_tetrahedra(tmp_path, monkeypatch):
     """A [material].volume block and a reflectance map are wrapped around a fem grid through
     the shell: surface nodes take the block's top layer, nodes deeper than the shell the core,

@@ -457,14 +457,12 @@ class TetBackend(GridBackend):
 
     @property
     def system(self) -> LinearSystem | None:
-        """The P1 system of the last frame (``None`` before one; assembled here if that frame's
-        answer came from the disk cache)."""
+        """The P1 system of the last frame (``None`` before one). Brought to that frame's
+        material and source here: a frame answered from the disk cache assembles nothing, so
+        the system could still hold an earlier frame's source (or none)."""
         if self.pass2 is None or self._last is None:
             return None
-        if self.pass2.p1 is None:
-            self.linear_system(self._last)
-        assert self.pass2.p1 is not None
-        return self.pass2.p1.system
+        return self.linear_system(self._last)
 
     # ---- pass 2 -------------------------------------------------------------------------------
     @property
