@@ -363,3 +363,26 @@ def test_cli_synth_mitsuba_observes_both_faces(tmp_path, capsys):
     assert "0.0 % of the z- image" in capsys.readouterr().out
     meas = load_measurements(out)
     assert meas.observed_faces == ("z+", "z-") and meas.eta == 1.0 and meas.M == 4
+
+
+def test_cli_fit_with_transport_refinement(tmp_path, capsys):
+    """`fit --transport-rounds` on Mitsuba captures: a line per round, the material saved; on
+    the diffusion renderer's captures (eta 1.3, not the Mitsuba rig) one line and exit 2."""
+    from glsldiff.commands.cli import main
+    from glsldiff.core.io import read_npz
+
+    out = tmp_path / "m.npz"
+    assert main(["synth", str(out), "--renderer", "mitsuba", "--size", "8", "8", "5", "--h", "0.5", "--n", "2",
+                 "--spp", "4", "--grey", "--volume", "veins", "--setup", "both"]) == 0
+    capsys.readouterr()
+    mat = tmp_path / "mat.npz"
+    assert main(["fit", str(out), "-o", str(mat), "--truth", str(tmp_path / "m_truth.npz"), "--no-png",
+                 "--max-evals", "5", "--transport-rounds", "1", "--transport-spp", "4"]) == 0
+    text = capsys.readouterr().out
+    assert "transport refinement: 1 round(s)" in text and "round 1: defect T - D" in text, text
+    assert text.count("E = ") >= 2 and "with the transport refinement" in text
+    assert read_npz(str(mat), "material", ("kappa", "mu"))["kappa"].shape == (5, 8, 8, 3)
+    diff = tmp_path / "d.npz"
+    assert main(["synth", str(diff), "--size", "8", "8", "5", "--n", "2"]) == 0
+    assert main(["fit", str(diff), "-o", str(tmp_path / "x.npz"), "--transport-rounds", "1"]) == 2
+    assert "index-matched rig" in capsys.readouterr().err

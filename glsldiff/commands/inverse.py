@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import time
 
 import numpy as np
 
@@ -88,6 +89,13 @@ def add_parsers(sub: argparse._SubParsersAction, bsub: argparse._SubParsersActio
     p.add_argument("--kappa0", type=A.positive, default=0.3, help="initial kappa of the homogeneous fit, mm")
     p.add_argument("--mu0", type=A.nonnegative, default=0.01, help="initial mu of the homogeneous fit, 1/mm")
     p.add_argument("--truth", default=None, help="true material (.npz) to report the figure-11 error E")
+    p.add_argument("--transport-rounds", type=A.integer(0), default=0, metavar="R",
+                   help="after the diffusion fit, R rounds of transport refinement: the fitted material's captures "
+                        "path traced by Mitsuba 3, their difference from the diffusion model's taken out of the "
+                        "measurements, and the fit run again (measurements of `synth --renderer mitsuba` only; "
+                        "glsldiff.validation.refine)")
+    p.add_argument("--transport-spp", type=A.integer(1), default=1024, metavar="SPP",
+                   help="--transport-rounds: Monte Carlo samples per pixel of each round's render (a power of 4)")
     p.add_argument("--truth-sources", type=A.integer(1), default=BSSRDF_MAX_SOURCES, metavar="N",
                    help="--truth: E samples at most N source nodes of the lit face (every 4th node, or sparser "
                         "above N); each costs 6 solves")
@@ -233,6 +241,9 @@ def cmd_fit(args: argparse.Namespace) -> int:
         raise InputError(f"{str(saved)!r} holds an unfinished fit: continue it with --resume, or delete it to "
                          "start again")
     checkpoint = Checkpoint(saved, meas, options, args.checkpoint_every, options.method)
+    transport = None
+    if args.transport_rounds:
+        transport = _transport(meas, args.transport_spp)
     progress = FitProgress(options.max_evals)
     print(f"fit: {meas.M} conditions lit on {meas.lit_face}, observed on {' and '.join(meas.observed_faces)}, "
           f"{meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} nodes; {options.method}, at most {options.max_evals} "
@@ -255,6 +266,13 @@ def cmd_fit(args: argparse.Namespace) -> int:
               + f"; continue with --resume (from {saved})")
         return 130
     checkpoint.remove()
+    seconds = result.seconds
+    if transport is not None:
+        t0 = time.perf_counter()
+        result = _refine(args, meas, options, result, transport, truth, out)
+        if result is None:
+            return 130
+        seconds += time.perf_counter() - t0
     table = []
     for c, f in enumerate(result.channels):
         table.append(dict(channel="RGB"[c], kappa_h=f.homogeneous[0], mu_h=f.homogeneous[1],
@@ -290,8 +308,51 @@ def cmd_fit(args: argparse.Namespace) -> int:
         png = out.with_name(out.stem + "_slices.png")
         depth_slices(png, result.kappa, result.mu, meas.h, truth=truth)
         print(f"wrote {png}")
-    print(f"wrote {out} and {trace} in {result.seconds:.1f} s")
+    print(f"wrote {out} and {trace} in {seconds:.1f} s" + (" (with the transport refinement; the trace is the diffusion "
+                                                         "fit's)" if transport is not None else ""))
     return 0
+
+
+def _transport(meas: Measurements, spp: int):
+    """The Mitsuba renderer of --transport-rounds, its inputs checked before the fit."""
+    from glsldiff.validation.mitsuba import check_ldsampler_spp
+    from glsldiff.validation.mitsuba_scene import load_mitsuba
+    from glsldiff.validation.refine import mitsuba_transport
+
+    check_ldsampler_spp(spp)
+    transport = mitsuba_transport(meas, spp)
+    load_mitsuba("scalar_rgb")             # a missing Mitsuba fails before the fit
+    return transport
+
+
+def _refine(args: argparse.Namespace, meas: Measurements, options: FitOptions, result, transport, truth, out):
+    """--transport-rounds after the diffusion fit: one line per round, the material saved
+    after each; None after a Ctrl-C (``out`` then holds the last finished round's)."""
+    from glsldiff.validation.refine import transport_refine
+
+    def error(r) -> str:
+        if truth is None:
+            return ""
+        E = bssrdf_error(meas.grid, truth, (r.kappa, r.mu), sources=(meas.lit_face,), receivers=meas.observed_faces,
+                         stencil=options.stencil, eta=meas.eta, max_sources=args.truth_sources)
+        return f", E = {E:.5f}"
+
+    print(f"transport refinement: {args.transport_rounds} round(s), Mitsuba 3 at {args.transport_spp} spp; the "
+          f"the diffusion fit took {result.seconds:.0f} s{error(result)}", flush=True)
+
+    def report(rnd) -> None:
+        save_material(out, rnd.result)
+        print(f"  round {rnd.round}: defect T - D {100 * rnd.defect:.1f} % rms of the data; Monte Carlo of the "
+              f"material against the data {rnd.transport_misfit:.2e}; refit data term {rnd.data:.2e}"
+              f"{error(rnd.result)} ({rnd.seconds:.0f} s)", flush=True)
+
+    try:
+        rounds = transport_refine(meas, options, result, args.transport_rounds, transport, report)
+    except KeyboardInterrupt:
+        print(f"interrupted during transport refinement: {out} holds the last finished round's material (or the "
+              "diffusion fit's)")
+        return None
+    return rounds[-1].result
 
 
 def cmd_reflectance(args: argparse.Namespace) -> int:
