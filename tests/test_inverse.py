@@ -182,6 +182,28 @@ def test_budget_is_reported_not_hidden(small_case) -> None:
     assert fit.trace.status == "budget spent" and not fit.converged
 
 
+@pytest.mark.parametrize("statuses,says", [
+    (["converged (f < eps)"] * 3, "converged (objective, data term plus regularisation, < 0.0001 of the measured power)"),
+    (["converged (f < eps)", "converged (f stopped changing)", "converged (roundoff limited)"],
+     "converged (R: f < eps; G: f stopped changing; B: roundoff limited)"),
+    (["converged (f < eps)", "budget spent", "budget spent"], "NOT converged in G, B (objective, data term plus "
+     "regularisation, >= 0.0001 of the measured power when 60 evaluations were spent): raise --max-evals"),
+    (["L-BFGS-B: something", "budget spent", "converged"], "NOT converged in R, G (L-BFGS-B: something; budget spent)"),
+])
+def test_the_verdict_names_the_stop_rule_that_ended_each_channel(statuses: list[str], says: str) -> None:
+    """Only the paper's rule (the whole objective below 1e-4 of the measured power) reads as
+    plain "converged"; another stop rule is named per channel (a channel that stopped because
+    f stopped changing did not reach the paper's level)."""
+    from types import SimpleNamespace
+
+    from glsldiff.commands.fit_output import verdict
+
+    chs = [SimpleNamespace(converged=s.startswith("converged"), ranges=None, trace=SimpleNamespace(status=s))
+           for s in statuses]
+    result = SimpleNamespace(channels=chs, shared=False, interrupted=False, options=SimpleNamespace(max_evals=60))
+    assert verdict(result).startswith("verdict: " + says), verdict(result)
+
+
 def test_cg_line_search_respects_bounds(small_case) -> None:
     _, _, meas = small_case
     model = ForwardModel(meas.grid)

@@ -53,10 +53,17 @@ def verdict(result: FitResult, E: float | None = None, coefficients: list[dict[s
     if result.interrupted:
         parts = ["interrupted: the best material so far is saved (resume with --resume)"]
     elif stalled:
-        parts = [f"NOT converged in {', '.join(stalled)} (data term >= {STOP_FRACTION:g} of the measured power "
-                 f"when {result.options.max_evals} evaluations were spent): raise --max-evals"]
-    else:
-        parts = [f"converged (data term < {STOP_FRACTION:g} of the measured power)"]
+        why = {f.trace.status for f in fits if not f.converged}
+        parts = [f"NOT converged in {', '.join(stalled)} ("
+                 + (f"objective, data term plus regularisation, >= {STOP_FRACTION:g} of the measured power when "
+                    f"{result.options.max_evals} evaluations were spent): raise --max-evals" if why == {"budget spent"}
+                    else f"{'; '.join(sorted(why))})")]
+    elif all(f.trace.status == "converged (f < eps)" for f in fits):
+        parts = [f"converged (objective, data term plus regularisation, < {STOP_FRACTION:g} of the measured power)"]
+    else:   # another stop rule: say which, the objective did not reach the paper's level
+        parts = ["converged (" + "; ".join(f"{names if result.shared else names[c]}: "
+                                          f"{f.trace.status.removeprefix('converged ').strip('()') or 'converged'}"
+                                          for c, f in enumerate(fits)) + ")"]
     if E is not None:
         parts.append(f"E = {E:.4f} {'<=' if E <= GOOD_E else '>'} {GOOD_E:g} (the paper's figure-11 level)")
     if coefficients:

@@ -247,7 +247,8 @@ def cmd_fit(args: argparse.Namespace) -> int:
     progress = FitProgress(options.max_evals)
     print(f"fit: {meas.M} conditions lit on {meas.lit_face}, observed on {' and '.join(meas.observed_faces)}, "
           f"{meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} nodes; {options.method}, at most {options.max_evals} "
-          f"evaluations per channel; stop when the data term < 1e-4 of the measured power", flush=True)
+          f"evaluations per channel; stop when the objective (data term plus regularisation) < 1e-4 of the "
+          "measured power", flush=True)
     try:
         result = fit_measurements(meas, options, progress, checkpoint, resume)
     finally:
@@ -337,7 +338,7 @@ def _refine(args: argparse.Namespace, meas: Measurements, options: FitOptions, r
                          stencil=options.stencil, eta=meas.eta, max_sources=args.truth_sources)
         return f", E = {E:.5f}"
 
-    print(f"transport refinement: {args.transport_rounds} round(s), Mitsuba 3 at {args.transport_spp} spp; the "
+    print(f"transport refinement: {args.transport_rounds} round(s), Mitsuba 3 at {args.transport_spp} spp; "
           f"the diffusion fit took {result.seconds:.0f} s{error(result)}", flush=True)
 
     def report(rnd) -> None:
