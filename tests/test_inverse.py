@@ -699,3 +699,19 @@ def test_nlopt_fails_above_its_variable_limit() -> None:
         return True
 
     assert run(NLOPT_MAX_VARIABLES) and not run(NLOPT_MAX_VARIABLES + 2000)
+
+
+def test_fit_progress_prints_by_count_and_by_time() -> None:
+    """One line at the first evaluation, every ``every``-th, at least one per ``interval_s``
+    of a channel's fit (long evaluations), and the channel's last; the clock restarts per channel."""
+    from glsldiff.commands.fit_output import FitProgress
+    from glsldiff.inverse.optimize import Record
+
+    lines: list[str] = []
+    p = FitProgress(200, every=40, out=lines.append, interval_s=300.0)
+    for channel, times in ((0, [0, 100, 200, 310, 400, 620, 700]), (1, [5, 250, 320])):
+        for i, t in enumerate(times, start=1):
+            p(channel, Record(i, float(t), 1.0, 1.0, 0.1))
+    p.flush()
+    got = [(line[4], int(line.split("evaluation")[1].split("/")[0])) for line in lines]
+    assert got == [("R", 1), ("R", 4), ("R", 6), ("R", 7), ("G", 1), ("G", 3)], lines
