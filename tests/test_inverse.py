@@ -187,7 +187,8 @@ def test_budget_is_reported_not_hidden(small_case) -> None:
     (["converged (f < eps)", "converged (f stopped changing)", "converged (roundoff limited)"],
      "converged (R: f < eps; G: f stopped changing; B: roundoff limited)"),
     (["converged (f < eps)", "budget spent", "budget spent"], "NOT converged in G, B (objective, data term plus "
-     "regularisation, >= 0.0001 of the measured power when 60 evaluations were spent): raise --max-evals"),
+     "regularisation, >= 0.0001 of the measured power when the budget was spent: 60 evaluations per channel): "
+     "raise --max-evals"),
     (["L-BFGS-B: something", "budget spent", "converged"], "NOT converged in R, G (L-BFGS-B: something; budget spent)"),
 ])
 def test_the_verdict_names_the_stop_rule_that_ended_each_channel(statuses: list[str], says: str) -> None:
@@ -200,8 +201,12 @@ def test_the_verdict_names_the_stop_rule_that_ended_each_channel(statuses: list[
 
     chs = [SimpleNamespace(converged=s.startswith("converged"), ranges=None, trace=SimpleNamespace(status=s))
            for s in statuses]
-    result = SimpleNamespace(channels=chs, shared=False, interrupted=False, options=SimpleNamespace(max_evals=60))
+    result = SimpleNamespace(channels=chs, shared=False, interrupted=False,
+                             options=SimpleNamespace(max_evals=60, max_seconds=float("inf")))
     assert verdict(result).startswith("verdict: " + says), verdict(result)
+    result.options.max_seconds = 1500.0
+    if {s for s in statuses if not s.startswith("converged")} == {"budget spent"}:   # a time budget is named too
+        assert "60 evaluations or 1500 s per channel): raise --max-evals or --max-seconds" in verdict(result)
 
 
 def test_cg_line_search_respects_bounds(small_case) -> None:

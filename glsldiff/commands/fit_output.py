@@ -62,7 +62,10 @@ def verdict(result: FitResult, E: float | None = None, coefficients: list[dict[s
         why = {f.trace.status for f in fits if not f.converged}
         parts = [f"NOT converged in {', '.join(stalled)} ("
                  + (f"objective, data term plus regularisation, >= {STOP_FRACTION:g} of the measured power when "
-                    f"{result.options.max_evals} evaluations were spent): raise --max-evals" if why == {"budget spent"}
+                    f"the budget was spent: {result.options.max_evals} evaluations"
+                    + (f" or {result.options.max_seconds:g} s" if math.isfinite(result.options.max_seconds) else "")
+                    + " per channel): raise --max-evals" + (" or --max-seconds" if math.isfinite(
+                        result.options.max_seconds) else "") if why == {"budget spent"}
                     else f"{'; '.join(sorted(why))})")]
     elif all(f.trace.status == "converged (f < eps)" for f in fits):
         parts = [f"converged (objective, data term plus regularisation, < {STOP_FRACTION:g} of the measured power)"]
