@@ -59,14 +59,14 @@ def verdict(result: FitResult, E: float | None = None, coefficients: list[dict[s
     if result.interrupted:
         parts = ["interrupted: the best material so far is saved (resume with --resume)"]
     elif stalled:
-        why = {f.trace.status for f in fits if not f.converged}
-        parts = [f"NOT converged in {', '.join(stalled)} ("
-                 + (f"objective, data term plus regularisation, >= {STOP_FRACTION:g} of the measured power when "
-                    f"the budget was spent: {result.options.max_evals} evaluations"
-                    + (f" or {result.options.max_seconds:g} s" if math.isfinite(result.options.max_seconds) else "")
-                    + " per channel): raise --max-evals" + (" or --max-seconds" if math.isfinite(
-                        result.options.max_seconds) else "") if why == {"budget spent"}
-                    else f"{'; '.join(sorted(why))})")]
+        statuses = {f.trace.status for f in fits if not f.converged}
+        o = result.options
+        timed = math.isfinite(o.max_seconds)
+        why = (f"objective, data term plus regularisation, >= {STOP_FRACTION:g} of the measured power when the "
+               f"budget was spent: {o.max_evals} evaluations" + (f" or {o.max_seconds:g} s" if timed else "")
+               + " per channel): raise --max-evals" + (" or --max-seconds" if timed else "")
+               if statuses == {"budget spent"} else "; ".join(sorted(statuses)) + ")")
+        parts = [f"NOT converged in {', '.join(stalled)} ({why}"]
     elif all(f.trace.status == "converged (f < eps)" for f in fits):
         parts = [f"converged (objective, data term plus regularisation, < {STOP_FRACTION:g} of the measured power)"]
     else:   # another stop rule: say which, the objective did not reach the paper's level

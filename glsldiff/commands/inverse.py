@@ -267,23 +267,21 @@ def cmd_fit(args: argparse.Namespace) -> int:
               + f"; continue with --resume (from {saved})")
         return 130
     checkpoint.remove()
-    seconds = result.seconds
+    seconds, E = result.seconds, None
     if transport is not None:
         t0 = time.perf_counter()
-        result = _refine(args, meas, options, result, transport, truth, out)
-        if result is None:
+        refined = _refine(args, meas, options, result, transport, truth, out)
+        if refined is None:
             return 130
+        result, E = refined
         seconds += time.perf_counter() - t0
     table = []
     for c, f in enumerate(result.channels):
         table.append(dict(channel="RGB"[c], kappa_h=f.homogeneous[0], mu_h=f.homogeneous[1],
                           hom_evals=len(f.homogeneous_trace.records), evals=len(f.trace.records),
                           data=f.data, status=f.trace.status, seconds=f.trace.seconds))
-    E = None
-    if truth is not None:
-        E = bssrdf_error(meas.grid, truth, (result.kappa, result.mu), sources=(meas.lit_face,),
-                         receivers=meas.observed_faces, stencil=options.stencil, eta=meas.eta,
-                         max_sources=args.truth_sources)
+    if truth is not None and E is None:
+        E = _truth_error(args, meas, options, truth, result)
     solver = f" ({resolve_solver(options.solver, meas.grid.graph.active.size)})" if options.backend == "cpu" else ""
     print_table(f"inverse diffusion, {meas.M} measurements, {meas.shape[2]}x{meas.shape[1]}x{meas.shape[0]} "
                 f"nodes, method {options.method}, lambda {options.lam:g}"
@@ -326,17 +324,26 @@ def _transport(meas: Measurements, spp: int):
     return transport
 
 
+def _truth_error(args: argparse.Namespace, meas: Measurements, options: FitOptions, truth, result) -> float:
+    """E of a fitted material against ``--truth``, over the pairs the captures observe."""
+    return bssrdf_error(meas.grid, truth, (result.kappa, result.mu), sources=(meas.lit_face,),
+                        receivers=meas.observed_faces, stencil=options.stencil, eta=meas.eta,
+                        max_sources=args.truth_sources)
+
+
 def _refine(args: argparse.Namespace, meas: Measurements, options: FitOptions, result, transport, truth, out):
     """--transport-rounds after the diffusion fit: one line per round, the material saved
-    after each; None after a Ctrl-C (``out`` then holds the last finished round's)."""
+    after each. Returns the last round's material and its E (None without --truth); None
+    after a Ctrl-C (``out`` then holds the last finished round's)."""
     from glsldiff.validation.refine import transport_refine
+
+    last: list[float | None] = [None]
 
     def error(r) -> str:
         if truth is None:
             return ""
-        E = bssrdf_error(meas.grid, truth, (r.kappa, r.mu), sources=(meas.lit_face,), receivers=meas.observed_faces,
-                         stencil=options.stencil, eta=meas.eta, max_sources=args.truth_sources)
-        return f", E = {E:.5f}"
+        last[0] = _truth_error(args, meas, options, truth, r)
+        return f", E = {last[0]:.5f}"
 
     print(f"transport refinement: {args.transport_rounds} round(s), Mitsuba 3 at {args.transport_spp} spp; "
           f"the diffusion fit took {result.seconds:.0f} s{error(result)}", flush=True)
@@ -353,7 +360,7 @@ def _refine(args: argparse.Namespace, meas: Measurements, options: FitOptions, r
         print(f"interrupted during transport refinement: {out} holds the last finished round's material (or the "
               "diffusion fit's)")
         return None
-    return rounds[-1].result
+    return rounds[-1].result, last[0]
 
 
 def cmd_reflectance(args: argparse.Namespace) -> int:

@@ -233,7 +233,7 @@ def minimize(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float 
 def _nlopt(problem: ScaledProblem, z0: Array, stopval: float, ftol_rel: float) -> None:
     import nlopt  # only the nlopt methods need it (~50 ms import)
 
-    if method_for(problem.method, z0.size) != problem.method:
+    if z0.size > NLOPT_MAX_VARIABLES:   # a problem built directly, not through method_for
         raise InputError(f"--method {problem.method}: NLopt fails above {NLOPT_MAX_VARIABLES:,} variables and this "
                          f"fit has {z0.size:,}; use --method lbfgsb")
     opt = nlopt.opt(getattr(nlopt, NLOPT_METHODS[problem.method]), z0.size)

@@ -42,6 +42,25 @@ def render(model: ForwardModel, kappa: Array, mu: Array, Q: Array, chunk: int = 
                            for i in range(0, max(Q.shape[1], 1), chunk)], axis=1)
 
 
+def face_captures(model: ForwardModel, kappa: Array, mu: Array, Qs: list[Array], observed: str,
+                  lit: str | None = None) -> tuple[Array, Array | None]:
+    """The captures of the volume ``(kappa, mu)`` (``(nz, ny, nx, 3)``) for channel sources
+    ``Qs`` (three ``(n_boundary, M)``): radiance on the ``observed`` face and, with ``lit``, the
+    reflection on that face, as ``(M, a, b, 3)`` face stacks (reflection None without ``lit``)."""
+    g = model.grid
+    radiance = reflected = None
+    for c in range(3):
+        L = render(model, kappa[..., c], mu[..., c], Qs[c])
+        r = np.moveaxis(g.boundary_to_face(observed, L), -1, 0)
+        radiance = np.zeros(r.shape + (3,)) if radiance is None else radiance
+        radiance[..., c] = r
+        if lit is not None:
+            r = np.moveaxis(g.boundary_to_face(lit, L), -1, 0)
+            reflected = np.zeros(r.shape + (3,)) if reflected is None else reflected
+            reflected[..., c] = r
+    return radiance, reflected
+
+
 def camera_noise(L: Array, rng: np.random.Generator | int | None, rel: float = 0.01,
                  read: float = 1e-3) -> Array:
     """Poisson-Gaussian camera noise: variance ``rel^2 L_ref L + (read L_ref)^2`` with
@@ -72,13 +91,7 @@ def synthetic_measurements(kappa: Array, mu: Array, h: float, n: int, setup: str
     patterns = region_patterns(grid, lit, n)
     model = ForwardModel(grid, stencil=stencil, eta=eta)
     Q = grid.face_to_boundary(lit, np.stack(patterns, axis=-1))
-    radiance = np.zeros((len(patterns),) + grid.face_shape(observed) + (3,))
-    reflected = np.zeros((len(patterns),) + grid.face_shape(lit) + (3,)) if both else None
-    for c in range(3):
-        L = render(model, kappa[..., c], mu[..., c], Q)
-        radiance[..., c] = np.moveaxis(grid.boundary_to_face(observed, L), -1, 0)
-        if both:
-            reflected[..., c] = np.moveaxis(grid.boundary_to_face(lit, L), -1, 0)
+    radiance, reflected = face_captures(model, kappa, mu, [Q] * 3, observed, lit if both else None)
     incoming = np.repeat(np.stack(patterns)[..., None], 3, axis=-1)
     unlit = np.stack(patterns) == 0  # reflection: only nodes that are not directly lit
     mask = unlit if setup == "front" else None

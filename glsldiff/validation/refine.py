@@ -31,7 +31,7 @@ from glsldiff.core.errors import InputError
 from glsldiff.inverse.fit import FitOptions, FitResult, fit_measurements
 from glsldiff.inverse.measurements import Measurements
 from glsldiff.inverse.model import ForwardModel
-from glsldiff.inverse.synthetic import render
+from glsldiff.inverse.synthetic import face_captures
 from glsldiff.validation.measure import mitsuba_measurements
 
 __all__ = ["RefineRound", "diffusion_captures", "transport_refine"]
@@ -58,17 +58,10 @@ def diffusion_captures(meas: Measurements, kappa: Array, mu: Array, options: Fit
     """``D(m)``: the captures the fit's forward model predicts for the volume ``(kappa, mu)``
     (``(nz, ny, nx, 3)``) under ``meas``' lighting, as ``(radiance, reflected)`` face stacks
     shaped like ``meas.radiance`` and ``meas.reflected`` (None without a reflection)."""
-    g = meas.grid
-    model = ForwardModel(g, options.stencil, options.face_mean, meas.eta, meas.C, options.exitant,
+    model = ForwardModel(meas.grid, options.stencil, options.face_mean, meas.eta, meas.C, options.exitant,
                          solver=options.solver)
-    radiance = np.zeros_like(meas.radiance)
-    reflected = None if meas.reflected is None else np.zeros_like(meas.reflected)
-    for c in range(3):
-        L = render(model, kappa[..., c], mu[..., c], meas.channel(c)[0])
-        radiance[..., c] = np.moveaxis(g.boundary_to_face(meas.observed_face, L), -1, 0)
-        if reflected is not None:
-            reflected[..., c] = np.moveaxis(g.boundary_to_face(meas.lit_face, L), -1, 0)
-    return radiance, reflected
+    return face_captures(model, kappa, mu, [meas.channel(c)[0] for c in range(3)], meas.observed_face,
+                         None if meas.reflected is None else meas.lit_face)
 
 
 def _fitted(meas: Measurements, radiance: Array, reflected: Array | None) -> Array:
