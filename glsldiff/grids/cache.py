@@ -20,7 +20,7 @@ from glsldiff.grids.polygrid import Polygrid, build_polygrid
 from glsldiff.mesh import Mesh
 
 #: Part of every key: entries of an older construction are never read.
-CACHE_VERSION = 19   # 19: the other repaired polycubes mapped in turn (18: harmonic map on one BLAS thread)
+CACHE_VERSION = 20   # 20: the shape step again after the split; 19: the other repaired polycubes mapped in turn (18: harmonic map on one BLAS thread)
 
 
 def polygrid_key(mesh: Mesh, kind: str = "polygrid", **params: Any) -> str:

@@ -541,7 +541,8 @@ class TetBackend(GridBackend):
                    f"{len(pg.tets):,} tetrahedra, {q.inverted} "
                    f"inverted, worst quality {q.worst_quality:.3g} ({q.poor_before:,} -> {q.poor:,} below "
                    f"{SHAPE_TARGET:g} by the shape step), {q.split_edges:,} edges longer than "
-                   f"{SPLIT_LENGTH:g} h split; coverage: mesh vertices within "
+                   f"{SPLIT_LENGTH:g} h split ({q.split_poor_before:,} -> {q.split_poor:,} below {SHAPE_TARGET:g} "
+                   "after it); coverage: mesh vertices within "
                    f"{q.coverage_max:.2f} h of a surface node (99 %: {q.coverage_p99:.2f} h)")
         ar = self.adapt_report
         out.append("adapt: off ([polygrid] adapt = true refines under the lights' sharp edges; \"auto\", "
