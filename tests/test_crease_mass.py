@@ -48,3 +48,31 @@ def test_unlit_faces_beside_a_lit_one_stay_non_negative(box, monkeypatch):
     assert lowest() > -1e-3
     monkeypatch.setattr(fem, "CREASE_LUMP_DEG", 180.0)      # no crease nodes: the consistent mass everywhere
     assert lowest() < -0.02
+
+
+def test_flat_tetrahedra_lump_the_mass_at_their_surface_nodes(box):
+    """An interior node pushed up close to the top face flattens the tetrahedra between it and
+    the face: their surface nodes join the lumped ones (the consistent entries would add to their
+    stiffness's positive couplings), and the mass keeps its row sums."""
+    from glsldiff.grids.tetrahedral.shapes import SHAPE_TARGET, shape_quality
+    X = box.positions.copy()
+    S = box.surface_nodes
+    inner = np.setdiff1d(np.unique(box.tets), S)
+    v = inner[np.argmin(np.abs(X[inner, :2]).sum(axis=1) + np.abs(X[inner, 2] - HALF[2]))]   # under the top's centre
+    assert HALF[2] - X[v, 2] > 0.2
+    X[v, 2] = HALF[2] - 0.05                       # 5 % of h under the face
+    q = shape_quality(X, box.tets)
+    assert q.min() > 0 and (q < SHAPE_TARGET).any()
+    geo = TetGeometry(X, box.tets, box.surface)
+    flat = geo.flat_surface_nodes
+    expect = np.zeros(len(X), dtype=bool)
+    expect[box.tets[q < SHAPE_TARGET].ravel()] = True
+    expect &= np.isin(np.arange(len(X)), S)
+    np.testing.assert_array_equal(flat, expect)
+    assert flat.any() and not (flat & geo.crease_nodes).all()
+    C = geo.surface_mass.tocoo()
+    off = (C.row != C.col) & (C.data != 0.0)
+    assert not np.any(off & (flat[C.row] | flat[C.col]))
+    np.testing.assert_allclose(np.asarray(geo.surface_mass.sum(axis=1)).ravel(), geo.node_areas, rtol=1e-12)
+    plain = TetGeometry(box.positions, box.tets, box.surface)      # the undistorted box: no flat tetrahedra
+    assert not plain.flat_surface_nodes.any()

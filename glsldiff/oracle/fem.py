@@ -10,7 +10,8 @@ With P1 elements on tetrahedra this is ``A phi = b``, ``A = K + diag(mu m) + M_s
 the cotangent weights of TransCut eqs. 10-14), ``m`` the lumped node volumes (``V_t / 4`` per
 corner), ``a`` the lumped surface areas (``A_f / 3`` per corner of each surface triangle) and
 ``M_s`` the surface mass matrix: consistent (``A_f (1 + delta_ij) / 12`` per surface triangle,
-the default; lumped on every edge of a :attr:`TetGeometry.crease_nodes` node, see there) or
+the default; lumped on every edge of a :attr:`TetGeometry.crease_nodes` or
+:attr:`TetGeometry.flat_surface_nodes` node, see there) or
 lumped (``diag(a)``, ``TetProblem.boundary_mass``). Per
 tetrahedron ``kappa_t`` is the mean of its corners' ``kappa`` (mm), ``mu`` (mm^-1) is per node.
 Units: lengths mm, ``K`` and ``A`` in mm, ``b`` in mm^2 times the source's units.
@@ -34,6 +35,7 @@ from glsldiff.core.jit import kernel
 from glsldiff.core.rng import pinned_global_rng
 from glsldiff.core.errors import InputError
 from glsldiff.grids.tetrahedral.pillow import six_volumes, unique_tet_edges
+from glsldiff.grids.tetrahedral.shapes import SHAPE_TARGET, shape_quality
 from glsldiff.mesh import vertex_areas
 from glsldiff.oracle.assembly import LinearSystem
 from glsldiff.system.report import REFERENCE_TOL, SolveReport
@@ -49,8 +51,8 @@ logger = logging.getLogger(__name__)
 DIRECT_MAX_NODES = 20_000
 
 #: Part of every cached geometry's key: bump it when a factor of :data:`CACHED_FACTORS` changes.
-GEOMETRY_CACHE_VERSION = 3      # 2: no local_stiffness (the assembly recomputes it per tetrahedron); int32 edges;
-#                                 3: the surface mass is lumped at crease nodes
+GEOMETRY_CACHE_VERSION = 4      # 2: no local_stiffness (the assembly recomputes it per tetrahedron); int32 edges;
+#                                 3: the surface mass is lumped at crease nodes; 4: and at flat tetrahedra's
 #: A surface node where two of its surface triangles' normals differ by more than this (degrees)
 #: is a crease node: the consistent surface mass is lumped on its edges (:attr:`TetGeometry.surface_mass`).
 CREASE_LUMP_DEG = 60.0
@@ -161,10 +163,22 @@ class TetGeometry:
         return out
 
     @cached_property
+    def flat_surface_nodes(self) -> NDArray[np.bool_]:
+        """``(n,)`` surface nodes of a tetrahedron below the shape target
+        (:data:`~glsldiff.grids.tetrahedral.shapes.SHAPE_TARGET`, shape quality
+        ``6 sqrt(2) V / l^3``): nearly flat tetrahedra, whose stiffness already couples their
+        nodes with large positive entries (obtuse dihedral angles)."""
+        flat = np.zeros(len(self.positions), dtype=bool)
+        flat[self.tets[shape_quality(self.positions, self.tets) < SHAPE_TARGET].ravel()] = True
+        on_surface = np.zeros(len(self.positions), dtype=bool)
+        on_surface[self.surface.ravel()] = True
+        return flat & on_surface
+
+    @cached_property
     def surface_mass(self) -> sp.csr_matrix:
         """``(n, n)`` surface mass ``int l_i l_j dA``, mm^2: consistent (``A_f (1 + delta_ij) / 12``
-        per surface triangle) but on the edges of :attr:`crease_nodes`, whose entries are lumped
-        onto the diagonal. Its row sums are :attr:`node_areas`, its pattern lies inside the
+        per surface triangle) but on the edges of :attr:`crease_nodes` and
+        :attr:`flat_surface_nodes`, whose entries are lumped onto the diagonal. Its row sums are :attr:`node_areas`, its pattern lies inside the
         stiffness pattern since surface triangles are tetrahedron faces.
 
         Why lumped at creases: the source ``a q / (2C)`` is lumped, and where ``q`` jumps (a lit
@@ -175,14 +189,17 @@ class TetGeometry:
         there is also the more accurate: a couplingdown crease 4.8 -> 1.3 % RMS of the fluence
         (max 13 -> 5 %), the elk's ring-to-plate crease 1.7 -> 0.6 % (docs/guide/tetrahedral.md).
         Elsewhere the consistent mass stays (the sphere bench's smooth surfaces: lower error
-        than lumped)."""
+        than lumped). At flat tetrahedra for the same reason: there the consistent entries add to
+        the stiffness's positive couplings, and the fluence dipped below zero next to them (the
+        back-lit elk's ring: -1.2 % of the largest with the consistent entries, -0.38 % lumped;
+        docs/guide/tetrahedral.md)."""
         X, f = self.positions, self.surface
         A = 0.5 * np.linalg.norm(np.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]]), axis=1)
         local = (np.ones((3, 3)) + np.eye(3)) / 12.0
         n = len(X)
         rows, cols = np.repeat(f, 3, axis=1).ravel(), np.tile(f, (1, 3)).ravel()
         vals = (A[:, None, None] * local).ravel()
-        crease = self.crease_nodes
+        crease = self.crease_nodes | self.flat_surface_nodes
         lump = (rows != cols) & (crease[rows] | crease[cols])
         cols = np.where(lump, rows, cols)            # a lumped entry moves onto its row's diagonal
         return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))

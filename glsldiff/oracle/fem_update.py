@@ -31,8 +31,9 @@ from glsldiff.oracle.fem import TetGeometry
 __all__ = ["P1Pattern", "P1System", "P1Update", "cached_p1_pattern"]
 
 #: Part of every cached pattern's key: bump it when :class:`P1Pattern` changes.
-PATTERN_CACHE_VERSION = 4   # 2: the surface mass at its positions only; no node -> tetrahedra lists;
-#                               3: the surface mass is lumped at crease nodes; 4: int32 pos_ij, pos_ji
+PATTERN_CACHE_VERSION = 5   # 2: the surface mass at its positions only; no node -> tetrahedra lists;
+#                               3: the surface mass is lumped at crease nodes; 4: int32 pos_ij, pos_ji;
+#                               5: the surface mass is lumped at flat tetrahedra's surface nodes too
 
 
 @dataclass(frozen=True)

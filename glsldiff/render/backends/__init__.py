@@ -38,8 +38,9 @@ __all__ = ["FALLBACK_POLYGRID", "GridBackend", "Pass2Frame", "Pass2Inputs", "PAS
            "as_built", "make_backend", "set_up_backend"]
 
 #: Part of every cached pass-2 solution's key: bump it when the discrete system changes.
-SOLUTION_CACHE_VERSION = 3   # 2: the volume source solves with the Fresnel-moment boundary constant;
-#                                   3: the tetrahedra's surface mass is lumped at crease nodes
+SOLUTION_CACHE_VERSION = 4   # 2: the volume source solves with the Fresnel-moment boundary constant;
+#                                   3: the tetrahedra's surface mass is lumped at crease nodes;
+#                                   4: and at flat tetrahedra's surface nodes
 PASS2_HINT = ("the object may be optically too small or thin for its material (size_mm, sigma), or "
               "[options].tol too tight")
 
