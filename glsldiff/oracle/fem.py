@@ -178,8 +178,9 @@ class TetGeometry:
     def surface_mass(self) -> sp.csr_matrix:
         """``(n, n)`` surface mass ``int l_i l_j dA``, mm^2: consistent (``A_f (1 + delta_ij) / 12``
         per surface triangle) but on the edges of :attr:`crease_nodes` and
-        :attr:`flat_surface_nodes`, whose entries are lumped onto the diagonal. Its row sums are :attr:`node_areas`, its pattern lies inside the
-        stiffness pattern since surface triangles are tetrahedron faces.
+        :attr:`flat_surface_nodes`, whose entries are lumped onto the diagonal. Its row sums are
+        :attr:`node_areas`, its pattern lies inside the stiffness pattern since surface triangles
+        are tetrahedron faces.
 
         Why lumped at creases: the source ``a q / (2C)`` is lumped, and where ``q`` jumps (a lit
         face beside an unlit one across a crease) the consistent entries' positive couplings

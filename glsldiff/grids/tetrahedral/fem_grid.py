@@ -229,7 +229,8 @@ class FemGrid:
         lattice node ``i``, node ``N + k`` the surface copy of lattice node ``complex.outer[k]``.
     positions
         ``(N + S + K, 3)`` node positions, mm (lattice nodes of no cell: lattice position);
-        the last ``K`` are the midpoints of the long edges split after the mapping (step 6).
+        the last ``K`` are the nodes of the long edges split after the mapping (step 6): the
+        midpoints of their edges on the surface, moved by the shape step inside.
     normals
         ``(S + S', 3)`` outward unit mesh normals at the surface nodes (:attr:`surface_nodes`
         order: the ``S`` copies, then the ``S'`` split midpoints on the surface).
