@@ -53,7 +53,8 @@ def test_the_verdict_says_why_sigma_a_per_node_is_not_recovered():
     from glsldiff.commands.fit_output import verdict
 
     ch = SimpleNamespace(converged=True, ranges=None, trace=SimpleNamespace(status="converged (f < eps)"))
-    result = SimpleNamespace(channels=[ch] * 3, shared=False, interrupted=False, options=SimpleNamespace(max_evals=60, max_seconds=float("inf")))
+    result = SimpleNamespace(channels=[ch] * 3, shared=False, interrupted=False,
+                             options=SimpleNamespace(max_evals=60, max_seconds=float("inf")))
     bad = [{"sigma_a_median_rel_err": 0.5, "sigma_s_median_rel_err": 0.07}] * 3
     good = [{"sigma_a_median_rel_err": 0.1, "sigma_s_median_rel_err": 0.3}] * 3
     line = verdict(result, 0.001, bad)

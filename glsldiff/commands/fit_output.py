@@ -62,10 +62,13 @@ def verdict(result: FitResult, E: float | None = None, coefficients: list[dict[s
         statuses = {f.trace.status for f in fits if not f.converged}
         o = result.options
         timed = math.isfinite(o.max_seconds)
-        why = (f"objective, data term plus regularisation, >= {STOP_FRACTION:g} of the measured power when the "
-               f"budget was spent: {o.max_evals} evaluations" + (f" or {o.max_seconds:g} s" if timed else "")
-               + " per channel): raise --max-evals" + (" or --max-seconds" if timed else "")
-               if statuses == {"budget spent"} else "; ".join(sorted(statuses)) + ")")
+        if statuses == {"budget spent"}:
+            budget = f"{o.max_evals} evaluations or {o.max_seconds:g} s" if timed else f"{o.max_evals} evaluations"
+            raise_ = "--max-evals or --max-seconds" if timed else "--max-evals"
+            why = (f"objective, data term plus regularisation, >= {STOP_FRACTION:g} of the measured power when the "
+                   f"budget was spent: {budget} per channel): raise {raise_}")
+        else:
+            why = "; ".join(sorted(statuses)) + ")"
         parts = [f"NOT converged in {', '.join(stalled)} ({why}"]
     elif all(f.trace.status == "converged (f < eps)" for f in fits):
         parts = [f"converged (objective, data term plus regularisation, < {STOP_FRACTION:g} of the measured power)"]

@@ -337,13 +337,14 @@ def _refine(args: argparse.Namespace, meas: Measurements, options: FitOptions, r
     after a Ctrl-C (``out`` then holds the last finished round's)."""
     from glsldiff.validation.refine import transport_refine
 
-    last: list[float | None] = [None]
+    last_E: float | None = None
 
     def error(r) -> str:
+        nonlocal last_E
         if truth is None:
             return ""
-        last[0] = _truth_error(args, meas, options, truth, r)
-        return f", E = {last[0]:.5f}"
+        last_E = _truth_error(args, meas, options, truth, r)
+        return f", E = {last_E:.5f}"
 
     print(f"transport refinement: {args.transport_rounds} round(s), Mitsuba 3 at {args.transport_spp} spp; "
           f"the diffusion fit took {result.seconds:.0f} s{error(result)}", flush=True)
@@ -360,7 +361,7 @@ def _refine(args: argparse.Namespace, meas: Measurements, options: FitOptions, r
         print(f"interrupted during transport refinement: {out} holds the last finished round's material (or the "
               "diffusion fit's)")
         return None
-    return rounds[-1].result, last[0]
+    return rounds[-1].result, last_E
 
 
 def cmd_reflectance(args: argparse.Namespace) -> int:

@@ -47,17 +47,14 @@ def face_captures(model: ForwardModel, kappa: Array, mu: Array, Qs: list[Array],
     """The captures of the volume ``(kappa, mu)`` (``(nz, ny, nx, 3)``) for channel sources
     ``Qs`` (three ``(n_boundary, M)``): radiance on the ``observed`` face and, with ``lit``, the
     reflection on that face, as ``(M, a, b, 3)`` face stacks (reflection None without ``lit``)."""
-    g = model.grid
-    radiance = reflected = None
+    g, M = model.grid, Qs[0].shape[1]
+    radiance = np.zeros((M,) + g.face_shape(observed) + (3,))
+    reflected = None if lit is None else np.zeros((M,) + g.face_shape(lit) + (3,))
     for c in range(3):
         L = render(model, kappa[..., c], mu[..., c], Qs[c])
-        r = np.moveaxis(g.boundary_to_face(observed, L), -1, 0)
-        radiance = np.zeros(r.shape + (3,)) if radiance is None else radiance
-        radiance[..., c] = r
-        if lit is not None:
-            r = np.moveaxis(g.boundary_to_face(lit, L), -1, 0)
-            reflected = np.zeros(r.shape + (3,)) if reflected is None else reflected
-            reflected[..., c] = r
+        radiance[..., c] = np.moveaxis(g.boundary_to_face(observed, L), -1, 0)
+        if reflected is not None:
+            reflected[..., c] = np.moveaxis(g.boundary_to_face(lit, L), -1, 0)
     return radiance, reflected
 
 

@@ -200,8 +200,8 @@ class TetGeometry:
         n = len(X)
         rows, cols = np.repeat(f, 3, axis=1).ravel(), np.tile(f, (1, 3)).ravel()
         vals = (A[:, None, None] * local).ravel()
-        crease = self.crease_nodes | self.flat_surface_nodes
-        lump = (rows != cols) & (crease[rows] | crease[cols])
+        lumped = self.crease_nodes | self.flat_surface_nodes
+        lump = (rows != cols) & (lumped[rows] | lumped[cols])
         cols = np.where(lump, rows, cols)            # a lumped entry moves onto its row's diagonal
         return sp.csr_matrix((vals, (rows, cols)), shape=(n, n))
 
